@@ -1,0 +1,41 @@
+"""One exception hierarchy for plantdyn.
+
+Every error a user can cause subclasses :class:`PipelineError` *and* the matching
+builtin, so callers may catch either.  Messages say what was wrong, where, the numbers,
+and how to fix it.  The CLI maps ``PipelineError`` subclasses that are user errors
+(:class:`UserInputError`) to exit code 2.
+"""
+
+from __future__ import annotations
+
+
+class PipelineError(Exception):
+    """Base class of every error raised by plantdyn."""
+
+
+class UserInputError(PipelineError):
+    """Bad configuration or input data: the user can fix it (CLI exit code 2)."""
+
+
+class ConfigError(UserInputError, ValueError):
+    """Invalid job or model configuration (YAML key path, value, what is allowed)."""
+
+
+class DataQualityError(UserInputError, ValueError):
+    """Input data unusable as given (NaN, constant, too short, all masked, ...)."""
+
+
+class InsufficientDataError(DataQualityError):
+    """Too few usable samples for the requested model order."""
+
+
+class SingularSystemError(DataQualityError):
+    """The normal equations are singular: inputs are constant or perfectly collinear."""
+
+
+class IngestError(UserInputError, ValueError):
+    """A recording cannot be read (format, encoding, truncation, missing tags)."""
+
+
+class ModelError(ConfigError):
+    """A block-diagram model is invalid (unknown block, algebraic loop, bad parameter)."""
