@@ -25,10 +25,13 @@ Gaps: a masked sample removes only the observations whose lag window touches it;
 equations are summed over the contiguous good segments (and over several records —
 "merging experiments" — by adding :class:`NormalEquations`).
 
-Time axis: ``time_s = (lag - 1) * dt``.  Lag 1 is the same-sample term, so ``step[l-1]``
-is the discrete step response ``l-1`` samples after the step sample.  (The thesis writes
-``h((l-1/2+delta)T)``; its half-sample offset ``delta`` depends on how the historian
-sampled the signals — hold or instantaneous — and is not guessed here.)
+Time axis: ``time_s = (lag - 1/2) * dt`` — the thesis' ``h((l - 1/2 + delta) T)`` with
+``delta = 0``, right for signals that are block averages (average-then-decimate, what
+:func:`pipeline.sampling` does) or instantaneous samples of continuous signals: a
+first-order lag estimated from such data matches ``h((l-1/2)T)`` to < 1 % of its gain,
+against ~5 % for ``h((l-1)T)``.  For a plant simulated in discrete time with held
+inputs, ``step[l-1]`` is exactly the discrete step response ``l-1`` samples after the
+step.
 """
 
 from __future__ import annotations
@@ -62,12 +65,18 @@ __all__ = [
     "predict",
     "residuals",
     "good_segments",
+    "lag_times",
 ]
 
 # Relative pivot size below which A counts as singular (rank deficient).
 _RCOND_SINGULAR = 1e-12
 # Variance inflation factor above which inputs count as near-collinear.
 VIF_WARN = 10.0
+
+
+def lag_times(n_p: int, dt: float) -> np.ndarray:
+    """Times ``(l - 1/2) * dt`` of lags ``l = 1..n_p`` (s); see the module docstring."""
+    return (np.arange(1, n_p + 1) - 0.5) * dt
 
 
 # --------------------------------------------------------------------------- results
@@ -204,8 +213,8 @@ class StepResponseEstimate:
 
     @property
     def time_s(self) -> np.ndarray:
-        """Time of each lag after the step, ``(lag-1)*dt`` (s), shape (n_p_max,)."""
-        return np.arange(self.step.shape[2]) * self.dt
+        """Time of each lag after the step, ``(lag - 1/2) * dt`` (s), shape (n_p_max,)."""
+        return lag_times(self.step.shape[2], self.dt)
 
     @property
     def n_y(self) -> int:
