@@ -1,0 +1,141 @@
+"""N_p/N_d search and consistency checks (issue 2, must-show 7)."""
+
+from __future__ import annotations
+
+import control as ct
+import numpy as np
+import pytest
+
+from pipeline.checks import cross_correlation_check, ljung_box, pair_agreement
+from pipeline.errors import InsufficientDataError
+from pipeline.search import search, split_windows_by_length
+from tests.test_estimate import ar1, simulate
+
+
+def settling_time_98(G, *, integrating: bool, t_max: float = 600.0, dt: float = 0.01) -> float:
+    """98 % settling time of the continuous step response (of its slope if integrating),
+    computed independently on a fine grid with python-control."""
+    t = np.arange(0, t_max, dt)
+    h = ct.step_response(G, T=t).outputs
+    q = np.gradient(h, t) if integrating else h
+    final = q[-1]
+    outside = np.flatnonzero(np.abs(q - final) > 0.02 * abs(final))
+    return float(t[outside[-1] + 1])
+
+
+SYSTEMS = {
+    "first_order": (ct.tf([2.0], [10.0, 1.0]), False),
+    "second_order_oscillatory": (ct.tf([1.0], [25.0, 3.0, 1.0]), False),  # zeta = 0.3
+    "integrator_with_lag": (ct.tf([0.05], [8.0, 1.0, 0.0]), True),
+}
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_np_search_lands_near_settling_time(name):
+    """N_p*T within 0.8–1.5x the 98 % settling time (plus T for integrating outputs,
+    method.md eq. 3.15); noise 5 % of the output (of its difference if integrating)."""
+    G, integ = SYSTEMS[name]
+    rng = np.random.default_rng(30)
+    n, dt = 20000, 1.0
+    u = ar1(n, np.exp(-0.3), rng)
+    y = simulate(G, u, dt)
+    y = y + 0.05 * np.std(np.diff(y) if integ else y) * rng.standard_normal(n)
+    res = search(u, y, dt=dt, integrating=integ, n_p_max=150)
+    ts = settling_time_98(G, integrating=integ) + (dt if integ else 0.0)
+    ratio = res.n_p[0, 0] * dt / ts
+    print(f"{name}: T_s={ts:.1f} s, N_p={res.n_p[0, 0]}, ratio {ratio:.2f}, N_d={res.n_d}")
+    assert 0.8 <= ratio <= 1.5
+    assert res.settled[0, 0]
+    # every trial is recorded: the grid and the refinement around the choice
+    tried = [t["n_p"] for t in res.order_trace]
+    assert res.n_p[0, 0] in tried and len(tried) >= 10
+    assert all("bic" in t for t in res.order_trace)
+    # a time-invariant plant: disjoint windows agree
+    assert res.agreement[0][0].verdict == "pass"
+
+
+def test_agreement_fails_when_gain_changes_30_percent_between_windows():
+    rng = np.random.default_rng(31)
+    G = ct.tf([2.0], [10.0, 1.0])
+    n, dt = 20000, 1.0
+    u = ar1(n, np.exp(-0.3), rng)
+    y = np.concatenate([simulate(G, u[: n // 2], dt), simulate(1.3 * G, u[n // 2:], dt)])
+    y = y + 0.05 * rng.standard_normal(n)
+    res = search(u, y, dt=dt, n_p=45)
+    assert res.agreement[0][0].verdict == "fail"
+    # N_d grew until the data ran out (windows never agree), and every trial is recorded
+    assert len(res.nd_trace) >= 2
+    assert res.nd_trace[-1]["n_d"] > res.nd_trace[0]["n_d"]
+    assert res.agreement[0][0].gain_spread == pytest.approx(0.3 / 1.3, abs=0.05)
+
+
+def test_nd_grows_until_noisy_windows_become_informative():
+    """High noise: 10*N_p observations cannot detect a 30 % change, so N_d doubles."""
+    rng = np.random.default_rng(32)
+    G = ct.tf([1.0], [5.0, 1.0])
+    n = 40000
+    u = ar1(n, 0.5, rng)
+    y = simulate(G, u, 1.0) + 2.0 * rng.standard_normal(n)
+    res = search(u, y, dt=1.0, n_p=25)
+    verdicts = [p["verdict"] for t in res.nd_trace for p in t["pairs"]]
+    assert verdicts[0] == "insufficient_data"
+    assert verdicts[-1] == "pass"
+    assert res.n_d > 250
+
+
+def test_pair_agreement_statistic_matches_definition():
+    h_a = np.array([0.0, 1.0, 2.0])
+    h_b = np.array([0.0, 1.5, 2.0])
+    s = np.array([0.1, 0.1, 0.1])
+    r = pair_agreement([h_a, h_b], [s, s])
+    expected = np.sqrt(np.mean(np.array([0.0, 0.5, 0.0]) ** 2 / 0.02))
+    assert r.statistic == pytest.approx(expected)  # sqrt(12.5/3) = 2.04
+    assert r.verdict == "pass"  # below the 3.0 threshold, and a 30 % change is detectable
+    assert r.detectable_change == pytest.approx(2 * np.sqrt(0.02) / 2.0)
+
+
+def test_pair_agreement_verdicts():
+    s = np.full(10, 0.01)
+    h = np.linspace(0, 1, 10)
+    assert pair_agreement([h, h + 0.01], [s, s]).verdict == "pass"
+    assert pair_agreement([h, 1.3 * h], [s, s]).verdict == "fail"
+    wide = np.full(10, 1.0)
+    # a clear response (final 5 = 5 sigma) but 2*sqrt(2)/5 = 57 % > 30 % detectable change
+    assert pair_agreement([5 * h, 5 * h], [wide, wide]).verdict == "insufficient_data"
+    assert pair_agreement([h], [s]).verdict == "insufficient_data"
+    # a pair without any response passes: there is no gain to compare
+    z = np.zeros(10)
+    assert pair_agreement([z, z + 0.001], [wide, wide]).verdict == "pass"
+
+
+def test_ljung_box_white_vs_coloured():
+    rng = np.random.default_rng(33)
+    e = rng.standard_normal(5000)
+    assert ljung_box(e, lags=20)["white"]
+    ar = ar1(5000, 0.5, rng)
+    lb = ljung_box(ar, lags=20)
+    assert not lb["white"] and lb["autocorrelation"][0] == pytest.approx(0.5, abs=0.05)
+
+
+def test_cross_correlation_detects_missing_input_effect():
+    rng = np.random.default_rng(34)
+    x = rng.standard_normal(4000)
+    e_indep = rng.standard_normal(4000)
+    ok = cross_correlation_check(x, e_indep, max_lag=20)
+    assert ok["ok"]
+    assert ok["band"] == pytest.approx(2.5758 / np.sqrt(4000), rel=1e-3)
+    e_dep = e_indep + 0.3 * np.concatenate([np.zeros(5), x[:-5]])  # effect at lag 5
+    bad = cross_correlation_check(x, e_dep, max_lag=20)
+    assert not bad["ok"]
+    assert bad["lags"][int(np.argmax(np.abs(bad["r"])))] == 5
+
+
+def test_windows_are_disjoint_and_spread():
+    w = split_windows_by_length(1000, 200, 3)
+    assert w == [(0, 200), (400, 600), (800, 1000)]
+    assert split_windows_by_length(100, 200, 2) == []
+
+
+def test_search_on_too_short_record_says_what_to_do():
+    with pytest.raises(InsufficientDataError, match=r"too short for the N_p search"):
+        search(np.arange(40.0), np.arange(40.0), dt=1.0)
