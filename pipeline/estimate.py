@@ -60,6 +60,8 @@ __all__ = [
     "estimate_from_normal_equations",
     "estimate_merged",
     "residual_ss_by_order",
+    "sweep_orders",
+    "OrderSweep",
     "estimate_correlation_method",
     "estimate_regularized",
     "predict",
@@ -528,7 +530,12 @@ def _cholesky(M: np.ndarray, n_x: int, what: str):
     return c, scale
 
 
-def _diagnostics(ne: NormalEquations) -> Diagnostics:
+def _diagnostics(ne: NormalEquations, chol=None) -> Diagnostics:
+    """Diagnostics; ``chol`` is the (scaled) Cholesky factor of the full A if known.
+
+    The condition number is LAPACK's 1-norm estimate (dpocon, O(m^2) from the factor)
+    of A scaled to unit diagonal — an SVD would cost more than the whole fit.
+    """
     n_x = ne.n_x
     R0 = ne.A[:n_x, :n_x] / ne.n_d
     rms = np.sqrt(np.clip(np.diag(R0), 0, None))
@@ -542,7 +549,17 @@ def _diagnostics(ne: NormalEquations) -> Diagnostics:
     else:
         vif = np.ones(1)
     sc = np.sqrt(np.clip(np.diag(ne.A), 1e-300, None))
-    cond = float(np.linalg.cond(ne.A / np.outer(sc, sc)))
+    As = ne.A / np.outer(sc, sc)
+    if chol is None:
+        try:
+            chol = scipy.linalg.cho_factor(As, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            chol = None
+    if chol is None:
+        cond = float("inf")
+    else:
+        rcond, _ = scipy.linalg.lapack.dpocon(chol[0], np.abs(As).sum(axis=0).max(), uplo="L")
+        cond = float(1.0 / rcond) if rcond > 0 else float("inf")
     pairs = tuple(
         (i, j, float(corr[i, j]))
         for i in range(n_x)
@@ -610,18 +627,23 @@ def estimate_from_normal_equations(
             )
         key = idx.tobytes()
         if key not in cache:
-            Asub = ne.A[np.ix_(idx, idx)]
-            c, scale = _cholesky(Asub, n_x, f"output {i}")
-            Ainv = scipy.linalg.cho_solve(c, np.eye(m), check_finite=False)
-            Ainv = Ainv / np.outer(scale, scale)
-            cache[key] = (c, scale, Ainv)
-        c, scale, Ainv = cache[key]
+            c, scale = _cholesky(ne.A[np.ix_(idx, idx)], n_x, f"output {i}")
+            # Standard deviations need only columns of L^-1: cov(b) = s2 * D^-1 L^-T L^-1
+            # D^-1, and propagation through the cumulative sums is a cumsum over those
+            # columns — no full inverse (that would cost 3x the Cholesky).
+            Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
+            if info != 0:
+                raise SingularSystemError(
+                    f"normal equations of output {i} are singular: {_collinear_message(ne.A, n_x)}"
+                )
+            cache[key] = (c, scale, Linv / scale[None, :])
+        c, scale, V_all = cache[key]
         ci = ne.C[i, idx]
         b = scipy.linalg.cho_solve(c, ci / scale, check_finite=False) / scale
         rss = max(float(ne.yy[i] - b @ ci), 0.0)
         sigma2[i] = rss / (ne.n_d - m)
         rms[i] = np.sqrt(rss / ne.n_d)
-        cov = sigma2[i] * Ainv
+        sd = np.sqrt(sigma2[i])
         lag_of = idx // n_x
         inp_of = idx % n_x
         for j in range(n_x):
@@ -629,17 +651,23 @@ def estimate_from_normal_equations(
             sel = sel[np.argsort(lag_of[sel])]
             nij = sel.size
             bj = b[sel]
-            Cj = cov[np.ix_(sel, sel)]
-            Mdh, Mh = _propagation(nij, ne.integrating[i])
-            delta_h[i, j, :nij] = Mdh @ bj
-            step[i, j, :nij] = Mh @ bj
-            dh_std[i, j, :nij] = np.sqrt(np.clip(np.einsum("ab,bc,ac->a", Mdh, Cj, Mdh), 0, None))
-            step_std[i, j, :nij] = np.sqrt(np.clip(np.einsum("ab,bc,ac->a", Mh, Cj, Mh), 0, None))
+            V = V_all[:, sel]  # cov of this pair's unknowns = s2 * V' V
+            W1 = np.cumsum(V, axis=1)  # columns of cumsum: one level of summation
             if ne.integrating[i]:
+                W2 = np.cumsum(W1, axis=1)
                 delta_g[i, j, :] = 0.0
                 delta_g[i, j, :nij] = bj
+                delta_h[i, j, :nij] = np.cumsum(bj)
+                step[i, j, :nij] = np.cumsum(np.cumsum(bj))
+                dh_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", W1, W1))
+                step_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", W2, W2))
                 rate[i, j] = bj.sum() / dt
-                rate_std[i, j] = np.sqrt(max(Cj.sum(), 0.0)) / dt
+                rate_std[i, j] = sd * np.linalg.norm(W1[:, -1]) / dt
+            else:
+                delta_h[i, j, :nij] = bj
+                step[i, j, :nij] = np.cumsum(bj)
+                dh_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", V, V))
+                step_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", W1, W1))
     return StepResponseEstimate(
         delta_h=delta_h,
         step=step,
@@ -655,7 +683,7 @@ def estimate_from_normal_equations(
         sigma2=sigma2,
         integrating=ne.integrating,
         method=method,
-        diagnostics=_diagnostics(ne),
+        diagnostics=_diagnostics(ne, cache.get(np.arange(P * n_x).tobytes(), (None,))[0]),
     )
 
 
@@ -746,6 +774,45 @@ def residual_ss_by_order(ne: NormalEquations) -> np.ndarray:
     z = scipy.linalg.solve_triangular(L, (ne.C / scale).T, lower=True, check_finite=False)
     explained = np.cumsum(z**2, axis=0)[ne.n_x - 1 :: ne.n_x]  # (n_p_max, n_y)
     return np.clip(ne.yy[None, :] - explained, 0, None).T
+
+
+@dataclass(frozen=True)
+class OrderSweep:
+    """Least-squares solutions of every order ``N_p = 1..n_p_max`` from one factorisation.
+
+    Attributes
+    ----------
+    rss : ndarray (n_y, n_p_max)
+        Residual sum of squares per output and order.
+    coefficients : ndarray (n_p_max, n_y, n_p_max*n_x)
+        ``coefficients[m-1, i, :m*n_x]`` are output i's lag-major unknowns of order m
+        (``delta_h``, or ``delta_g`` for integrating outputs); zero beyond.
+    """
+
+    rss: np.ndarray
+    coefficients: np.ndarray
+
+
+def sweep_orders(ne: NormalEquations) -> OrderSweep:
+    """Every order's RSS and coefficients from the one Cholesky factor of ``A``.
+
+    The order-m system is the leading ``k = m*n_x`` block; its factor is ``L[:k,:k]``
+    and its solution ``L[:k,:k]^-T z[:k]`` with ``z = L^-1 c`` — a triangular solve per
+    order (O(k^2)) instead of a factorisation (O(k^3)).
+    """
+    c, scale = _cholesky(ne.A, ne.n_x, "the N_p sweep")
+    L = np.tril(c[0])
+    z = scipy.linalg.solve_triangular(L, (ne.C / scale).T, lower=True, check_finite=False)
+    n_x, P = ne.n_x, ne.n_p_max
+    explained = np.cumsum(z**2, axis=0)[n_x - 1 :: n_x]
+    rss = np.clip(ne.yy[None, :] - explained, 0, None).T
+    coef = np.zeros((P, ne.n_y, P * n_x))
+    for m in range(1, P + 1):
+        k = m * n_x
+        b = scipy.linalg.solve_triangular(L[:k, :k], z[:k], lower=True, trans="T",
+                                          check_finite=False)
+        coef[m - 1, :, :k] = (b / scale[:k, None]).T
+    return OrderSweep(rss, coef)
 
 
 # --------------------------------------------------------------------- prediction

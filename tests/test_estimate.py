@@ -156,9 +156,8 @@ def test_thesis_first_experiment_nd_twice_np_noise_free():
     x = ar1(n, np.exp(-w0 * dt_f), rng)
     G = ct.tf([1.0], [tau, 1.0])
     y = ct.forced_response(ct.sample_system(G, dt_f, "foh"), T=np.arange(n) * dt_f, U=x).outputs
-    choice = choose_sample_period({"x": x, "y": y}, dt_s=dt_f,
-                                  roles={"x": "input", "y": "output"},
-                                  target_input=0.05, target_output=1.0)
+    # the thesis chose T from the input's alpha_T
+    choice = choose_sample_period({"x": x}, dt_s=dt_f, roles={"x": "input"}, target_input=0.05)
     T = choice.dt_s
     assert 0.08 < w0 * T < 0.11  # alpha_T = 5 % <-> w0 T ~ 0.1 (method.md §3)
     xs = resample_average(x, choice.decimation)
@@ -369,3 +368,33 @@ def test_errors_are_specific():
         estimate_step_responses(x, y, n_p=3, dt=0.0)
     with pytest.raises(ConfigError, match=r"integrating has 2 entries but y has 1"):
         estimate_step_responses(x, y, n_p=3, dt=1.0, integrating=[True, False])
+
+
+def test_sweep_orders_equals_separate_fits():
+    from pipeline.estimate import sweep_orders
+
+    rng = np.random.default_rng(26)
+    n, P = 2000, 12
+    x = rng.standard_normal((n, 2))
+    y = rng.standard_normal((n, 2))
+    ne = normal_equations(x, y, n_p_max=P)
+    sw = sweep_orders(ne)
+    assert np.allclose(sw.rss, residual_ss_by_order(ne), rtol=1e-10)
+    for m in (1, 5, P):
+        Phi = regressor(x, m, range(P - 1, n))
+        b, *_ = np.linalg.lstsq(Phi, y[P - 1:], rcond=None)
+        assert np.allclose(sw.coefficients[m - 1, :, : m * 2], b.T, atol=1e-10)
+        assert np.all(sw.coefficients[m - 1, :, m * 2:] == 0)
+
+
+def test_condition_number_estimate_matches_exact():
+    """dpocon's 1-norm estimate is within a factor ~3 of the exact 1-norm condition number
+    of A scaled to unit diagonal (LAPACK's estimator is usually exact or close)."""
+    rng = np.random.default_rng(27)
+    a = ar1(3000, 0.95, rng)
+    x = np.column_stack([a, a + 0.2 * rng.standard_normal(3000)])
+    est = estimate_step_responses(x, rng.standard_normal(3000), n_p=6, dt=1.0)
+    ne = normal_equations(x, rng.standard_normal(3000), n_p_max=6)
+    sc = np.sqrt(np.diag(ne.A))
+    exact = np.linalg.cond(ne.A / np.outer(sc, sc), p=1)
+    assert exact / 3 <= est.diagnostics.condition_number <= exact * 1.0001

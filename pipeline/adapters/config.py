@@ -1,0 +1,297 @@
+"""Job configuration: the only YAML parser of plantdyn (pydantic v2, ``extra="forbid"``).
+
+A job YAML (design.md) is parsed into :class:`JobConfig`.  Every error is a
+:class:`~pipeline.errors.ConfigError` that names the file, the YAML key path, the bad
+value and what is allowed.
+
+Path policy (decision): relative paths resolve against the job file's folder.  Source
+files and the storage root must lie inside an *allowed root*: the job file's folder,
+its parent (so the usual ``../storage`` and ``../exports`` work), and any folder listed
+in the environment variable ``PLANTDYN_ALLOWED_ROOTS`` (``os.pathsep``-separated).  A
+job file cannot widen its own roots: that is the operator's call, not the author's.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from pipeline.errors import ConfigError
+
+__all__ = [
+    "JobConfig",
+    "SignalConfig",
+    "load_job",
+    "job_from_dict",
+    "resolve_sources",
+    "allowed_roots",
+    "load_yaml_file",
+]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SignalConfig(_Strict):
+    """One measured signal: its historian tag and how to put it on the grid."""
+
+    tag: str = Field(min_length=1)
+    integrating: bool = False
+    interpolation: Literal["linear", "hold"] | None = None
+    """Default: linear for inputs, hold for outputs (exception-reported PVs)."""
+    max_gap_s: float | None = Field(default=None, gt=0)
+    """Longest span bridged by interpolation/hold; default 10 grid periods."""
+    unit: str | None = None
+
+
+class SignalsConfig(_Strict):
+    inputs: dict[str, SignalConfig] = Field(min_length=1)
+    outputs: dict[str, SignalConfig] = Field(min_length=1)
+
+    @field_validator("inputs", "outputs")
+    @classmethod
+    def _names(cls, v: dict[str, SignalConfig]) -> dict[str, SignalConfig]:
+        for name in v:
+            if not name.replace("_", "").replace("-", "").isalnum():
+                raise ValueError(
+                    f"signal name {name!r} must be letters, digits, '_' or '-' "
+                    "(it becomes a column and an entity path)"
+                )
+        return v
+
+
+class McapOptions(_Strict):
+    time_field: str | None = "t"
+    value_field: str = "value"
+    quality_field: str | None = "quality"
+    tag_field: str | None = None
+    """Field holding the tag; default: the topic name is the tag."""
+
+
+class SourceConfig(_Strict):
+    path: str = Field(min_length=1)
+    """File or glob, relative to the job file; .csv or .mcap."""
+    timezone: str = "UTC"
+    layout: Literal["auto", "long", "wide", "mcap"] = "auto"
+    on_truncated: Literal["error", "warn"] = "error"
+    mcap: McapOptions | None = None
+    grid_dt_s: float | None = Field(default=None, gt=0)
+    """Period of the uniform grid before α_T resampling; default: median sample spacing."""
+
+    @field_validator("timezone")
+    @classmethod
+    def _tz(cls, v: str) -> str:
+        from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
+
+        try:
+            ZoneInfo(v)
+        except (ZoneInfoNotFoundError, ValueError) as exc:
+            raise ValueError(
+                f"unknown time zone {v!r}; use an IANA name such as 'UTC', "
+                "'Europe/Berlin' or 'America/Chicago'"
+            ) from exc
+        return v
+
+
+class SamplingConfig(_Strict):
+    dt_s: float | None = Field(default=None, gt=0)
+    """Fix the sample period; default: chosen by the α_T criterion."""
+    target_input: float = Field(default=0.05, gt=0, lt=1)
+    target_output: float = Field(default=0.01, gt=0, lt=1)
+
+
+class ConditioningConfig(_Strict):
+    method: Literal["mean", "detrend", "difference", "highpass"] = "detrend"
+    kdiff1: int = Field(default=1, ge=1)
+    cutoff_period_s: float | None = Field(default=None, gt=0)
+    order: int = Field(default=2, ge=1, le=8)
+
+
+class SearchConfig(_Strict):
+    n_p: int | None = Field(default=None, ge=1)
+    """Fix N_p for every pair (skips the N_p search)."""
+    settling_time_s: float | None = Field(default=None, gt=0)
+    """If known: N_p = settling_time_s / T (method.md §5)."""
+    n_p_min: int = Field(default=3, ge=1)
+    n_p_max: int | None = Field(default=None, ge=1)
+    n_d_start: int | None = Field(default=None, ge=1)
+    max_windows: int = Field(default=4, ge=2, le=50)
+
+
+class ChecksConfig(_Strict):
+    ljung_box_lags: int = Field(default=20, ge=1)
+    xcorr_max_lag: int | None = Field(default=None, ge=1)
+    """Default: the pair's N_p."""
+
+
+class RerunConfig(_Strict):
+    enabled: bool = True
+
+
+class DaskConfig(_Strict):
+    address: str | None = None
+    """Dask scheduler address (``tcp://host:8786``); None runs in-process."""
+
+
+class JobConfig(_Strict):
+    """A validated estimation (or discrepancy) job."""
+
+    job: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", min_length=1)
+    source: SourceConfig
+    signals: SignalsConfig
+    storage: str = "../storage"
+    sampling: SamplingConfig = SamplingConfig()
+    conditioning: ConditioningConfig = ConditioningConfig()
+    search: SearchConfig = SearchConfig()
+    checks: ChecksConfig = ChecksConfig()
+    rerun: RerunConfig = RerunConfig()
+    dask: DaskConfig = DaskConfig()
+    schedule: str | None = None
+    """Cron string for the nightly deployment (e.g. ``"0 2 * * *"``)."""
+    model: Any = None
+    """Discrepancy jobs: path to a model YAML (relative to the job file) or the mapping."""
+    discrepancy: dict | None = None
+    base_dir: str = "."
+    """Folder of the job file (set by :func:`load_job`; not a YAML key users write)."""
+
+    @field_validator("signals")
+    @classmethod
+    def _disjoint(cls, v: SignalsConfig) -> SignalsConfig:
+        both = set(v.inputs) & set(v.outputs)
+        if both:
+            raise ValueError(f"signal names {sorted(both)} appear as both input and output")
+        return v
+
+    # --- resolved paths
+    @property
+    def base(self) -> Path:
+        return Path(self.base_dir)
+
+    @property
+    def storage_root(self) -> Path:
+        root = (self.base / self.storage).resolve()
+        _check_allowed(root, self.base, "storage")
+        return root
+
+    def tags(self) -> dict[str, str]:
+        """Signal name -> tag, inputs first."""
+        return {n: s.tag for n, s in {**self.signals.inputs, **self.signals.outputs}.items()}
+
+
+def allowed_roots(base: Path) -> list[Path]:
+    roots = [base.resolve(), base.resolve().parent]
+    extra = os.environ.get("PLANTDYN_ALLOWED_ROOTS", "")
+    roots += [Path(p).resolve() for p in extra.split(os.pathsep) if p]
+    return roots
+
+
+def _check_allowed(path: Path, base: Path, key: str) -> None:
+    roots = allowed_roots(base)
+    if not any(path == r or r in path.parents for r in roots):
+        raise ConfigError(
+            f"{key}: {str(path)!r} is outside the allowed roots "
+            f"{[str(r) for r in roots]}; move the data under the job's folder or its parent, "
+            "or add its folder to the PLANTDYN_ALLOWED_ROOTS environment variable"
+        )
+
+
+def _format_validation_error(exc: ValidationError, where: str) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "<top level>"
+        if err["type"] == "extra_forbidden":
+            parts.append(f"{loc}: unknown key (not allowed here; check the spelling)")
+            continue
+        if err["type"] == "missing":
+            parts.append(f"{loc}: required key is missing")
+            continue
+        val = err.get("input")
+        text = repr(val) if not isinstance(val, dict) else "{...}"
+        if len(text) > 80:
+            text = text[:77] + "..."
+        msg = err["msg"].removeprefix("Value error, ")
+        parts.append(f"{loc}: {msg} (got {text})")
+    return f"invalid job configuration in {where}: " + "; ".join(parts)
+
+
+def job_from_dict(data: Any, *, base_dir: Path | str = ".", where: str = "<dict>") -> JobConfig:
+    """Validate a parsed job mapping.  ``base_dir`` resolves relative paths."""
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"invalid job configuration in {where}: the top level must be a mapping with keys "
+            f"job, source, signals, storage; got {type(data).__name__}"
+        )
+    if "base_dir" in data:
+        raise ConfigError(f"invalid job configuration in {where}: base_dir: unknown key "
+                          "(not allowed here; paths resolve against the job file's folder)")
+    try:
+        return JobConfig.model_validate({**data, "base_dir": str(Path(base_dir).resolve())})
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, where)) from None
+
+
+def load_yaml_file(path: Path | str) -> Any:
+    """Parse a YAML file with a clear error for missing files and syntax errors."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"job file {str(p)!r} does not exist; give the path to a .yaml job file")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{p}: not UTF-8 text (byte {exc.start}); save the job file as UTF-8") \
+            from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"{p}: malformed YAML{where}: {problem}; fix the syntax") from None
+
+
+def load_job(path: Path | str) -> JobConfig:
+    """Read and validate a job YAML file."""
+    p = Path(path)
+    return job_from_dict(load_yaml_file(p), base_dir=p.resolve().parent, where=str(p))
+
+
+def resolve_sources(cfg: JobConfig) -> list[Path]:
+    """Files matched by ``source.path`` (sorted), checked against the allowed roots."""
+    pattern = str(cfg.base / cfg.source.path)
+    files = sorted(Path(f).resolve() for f in glob.glob(pattern))
+    files = [f for f in files if f.is_file()]
+    if not files:
+        raise ConfigError(
+            f"source.path: no file matches {cfg.source.path!r} (looked for {pattern}); "
+            "check the path (relative to the job file) and the glob"
+        )
+    for f in files:
+        _check_allowed(f, cfg.base, "source.path")
+        if f.suffix.lower() not in (".csv", ".txt", ".mcap"):
+            raise ConfigError(
+                f"source.path: {f.name!r} has suffix {f.suffix!r}; allowed: .csv, .txt, .mcap"
+            )
+    return files
+
+
+def load_model_spec(cfg: JobConfig) -> dict:
+    """The ``model:`` section as a mapping (reading the YAML file when it is a path)."""
+    if cfg.model is None:
+        raise ConfigError("model: a discrepancy job needs a model (path to a model YAML or "
+                          "the mapping inline)")
+    if isinstance(cfg.model, str):
+        p = (cfg.base / cfg.model).resolve()
+        _check_allowed(p, cfg.base, "model")
+        data = load_yaml_file(p)
+        if isinstance(data, dict) and "model" in data:
+            data = data["model"]
+        return data
+    if isinstance(cfg.model, dict):
+        return cfg.model.get("model", cfg.model)
+    raise ConfigError(f"model: expected a path or a mapping; got {type(cfg.model).__name__}")

@@ -1,0 +1,156 @@
+"""Estimator benchmark: ratios measured side by side in one run (issue 2, must-show 9).
+
+Run:  .venv/bin/python -m tests.benchmarks.bench_estimate [--quick]
+
+Prints
+1. ours vs numpy.linalg.lstsq on the explicit regressor and vs Phi'Phi + Cholesky at
+   N_x=4, N_p=100, N_d=1e5: largest relative difference of the estimates and speed-ups.
+2. the whole N_p sweep 1..N_p_max (RSS and coefficients of every order from one
+   factorisation) vs one fit at N_p_max.
+3. ours at N_d=1e6, N_x=10, N_p=200 as a ratio to one pass over the data (a sum over the
+   array) and to the components' own limit: the same block FFTs, the same batched
+   cross-spectrum GEMM and the Cholesky, timed bare.
+Timings are best-of-3 wall clock (the machines are noisy).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import scipy.fft
+import scipy.linalg
+import scipy.signal as ss
+
+from pipeline.estimate import (
+    estimate_from_normal_equations,
+    estimate_step_responses,
+    normal_equations,
+    sweep_orders,
+)
+
+
+def best_of(fn, repeat: int = 3):
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def make_data(n: int, n_x: int, n_y: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    x = ss.lfilter([1.0], [1, -0.8], rng.standard_normal((n, n_x)), axis=0)
+    y = np.zeros((n, n_y))
+    for i in range(n_y):
+        for j in range(n_x):
+            y[:, i] += ss.lfilter([0.1 * (i + 1)], [1, -0.9 + 0.01 * j], x[:, j])
+    return x, y + 0.1 * rng.standard_normal((n, n_y))
+
+
+def regressor(x: np.ndarray, P: int) -> np.ndarray:
+    n, n_x = x.shape
+    Phi = np.empty((n - P + 1, P * n_x))
+    for l in range(P):
+        Phi[:, l * n_x : (l + 1) * n_x] = x[P - 1 - l : n - l]
+    return Phi
+
+
+def part1(n_d: int, n_x: int, P: int) -> None:
+    n = n_d + P - 1
+    x, y = make_data(n, n_x, 1)
+    t_ours, est = best_of(lambda: estimate_step_responses(x, y, n_p=P, dt=1.0))
+    ours = est.delta_h[0].T.ravel()  # lag-major
+
+    def via_lstsq():
+        Phi = regressor(x, P)
+        return np.linalg.lstsq(Phi, y[P - 1 :, 0], rcond=None)[0]
+
+    def via_cholesky():
+        Phi = regressor(x, P)
+        c = scipy.linalg.cho_factor(Phi.T @ Phi)
+        return scipy.linalg.cho_solve(c, Phi.T @ y[P - 1 :, 0])
+
+    t_lstsq, b_lstsq = best_of(via_lstsq, 1)
+    t_chol, b_chol = best_of(via_cholesky, 2)
+    rel = lambda b: float(np.max(np.abs(ours - b)) / np.max(np.abs(b)))  # noqa: E731
+    print(f"[1] N_x={n_x}, N_p={P}, N_d={n_d:.0e}")
+    print(f"    ours {t_ours:.3f} s | lstsq {t_lstsq:.3f} s | Phi'Phi+Cholesky {t_chol:.3f} s")
+    print(f"    speed-up vs lstsq {t_lstsq / t_ours:.1f}x (target >= 50x), "
+          f"vs Phi'Phi+Cholesky {t_chol / t_ours:.1f}x")
+    print(f"    max relative difference: vs lstsq {rel(b_lstsq):.2e}, "
+          f"vs Cholesky {rel(b_chol):.2e} (target <= 1e-8)")
+
+
+def part2(n_d: int, n_x: int, P: int) -> None:
+    x, y = make_data(n_d + P - 1, n_x, 1, seed=1)
+    ne = normal_equations(x, y, n_p_max=P)
+    t_one, _ = best_of(lambda: estimate_from_normal_equations(ne, n_p=P, dt=1.0))
+    t_sweep, sw = best_of(lambda: sweep_orders(ne))
+    t_ne, _ = best_of(lambda: normal_equations(x, y, n_p_max=P))
+    print(f"[2] N_p sweep 1..{P} (RSS + coefficients of every order) vs one fit at N_p={P}")
+    print(f"    normal equations {t_ne:.3f} s (shared); one fit {t_one:.3f} s; sweep "
+          f"{t_sweep:.3f} s")
+    print(f"    sweep / one fit (incl. normal equations) = "
+          f"{(t_ne + t_sweep) / (t_ne + t_one):.2f}x (target <= 2x); solve parts alone "
+          f"{t_sweep / t_one:.2f}x")
+    assert sw.rss.shape == (1, P)
+
+
+def part3(n_d: int, n_x: int, P: int) -> None:
+    n = n_d + P - 1
+    x, y = make_data(n, n_x, 2, seed=2)
+    t_pass, _ = best_of(lambda: float(np.concatenate([x, y], axis=1).sum()))
+    t_ours, ne = best_of(lambda: normal_equations(x, y, n_p_max=P), 2)
+    t_solve, _ = best_of(lambda: estimate_from_normal_equations(ne, n_p=P, dt=1.0), 2)
+
+    # The components' own limit: the same block FFTs + batched GEMM + Cholesky, bare.
+    L = scipy.fft.next_fast_len(max(8 * P, 512), real=True)
+    B = L - P + 1
+    nb = -(-n_d // B)
+    w = np.concatenate([x, y], axis=1)
+    n_w = w.shape[1]
+    chunk = max(1, int(4_000_000 // (L * (n_w + n_x))))
+    segs_x = np.zeros((chunk, n_x, L))
+    segs_w = np.zeros((chunk, n_w, L))
+
+    def bare():
+        F = L // 2 + 1
+        S = np.zeros((F, n_w, n_x), dtype=complex)
+        for b0 in range(0, nb, chunk):
+            X = scipy.fft.rfft(segs_x, axis=2)
+            W = scipy.fft.rfft(segs_w, axis=2)
+            S += np.matmul(W.transpose(2, 1, 0), X.conj().transpose(2, 0, 1))
+        scipy.fft.irfft(S, n=L, axis=0)
+        scipy.linalg.cho_factor(ne.A)
+        return S
+
+    t_bare, _ = best_of(bare, 2)
+    flops_gemm = 8.0 * (L // 2 + 1) * n_w * n_x * nb  # complex MACs in the cross-spectra
+    print(f"[3] N_d={n_d:.0e}, N_x={n_x}, n_y=2, N_p={P}")
+    print(f"    normal equations {t_ours:.2f} s + solve {t_solve:.2f} s = "
+          f"{t_ours + t_solve:.2f} s")
+    print(f"    one pass over the data {t_pass:.3f} s -> ratio {(t_ours + t_solve) / t_pass:.0f}x")
+    print(f"    components' limit (bare FFTs + cross-spectrum GEMM ({flops_gemm / 1e9:.1f} GFLOP) "
+          f"+ Cholesky) {t_bare:.2f} s -> ratio {(t_ours + t_solve) / t_bare:.2f}x "
+          "(target <= 3x)")
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
+    args = ap.parse_args(argv)
+    if args.quick:
+        part1(20_000, 4, 50)
+        part2(20_000, 4, 50)
+        part3(100_000, 10, 50)
+    else:
+        part1(100_000, 4, 100)
+        part2(100_000, 4, 100)
+        part3(1_000_000, 10, 200)
+
+
+if __name__ == "__main__":
+    main()
