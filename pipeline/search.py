@@ -70,6 +70,8 @@ class SearchResult:
         Verdicts at the chosen N_d, ``[output][input]``.
     bic_order : ndarray of int (n_y,)
         Order minimising BIC per output (information; the tail rule decides).
+    windows : list of (int, int)
+        The disjoint windows (sample slices) at the chosen N_d.
     """
 
     n_p: np.ndarray
@@ -80,6 +82,7 @@ class SearchResult:
     nd_trace: list = field(default_factory=list)
     agreement: list = field(default_factory=list)
     bic_order: np.ndarray | None = None
+    windows: list = field(default_factory=list)
 
 
 def _truncate(ne: NormalEquations, m: int) -> NormalEquations:
@@ -222,6 +225,7 @@ def search(
     n_p: np.ndarray | int | None = None,
     n_d_start: int | None = None,
     max_windows: int = 4,
+    estimate_windows: bool = True,
 ) -> SearchResult:
     """Run both stages of the search on one conditioned record.
 
@@ -245,6 +249,9 @@ def search(
         First stage-2 window size in observations; default ``10 * max(n_p)``.
     max_windows : int
         Disjoint windows reported at the chosen N_d (at least 2 are used to judge).
+    estimate_windows : bool
+        Estimate those windows and fill ``agreement`` here; False leaves it empty for a
+        caller that maps the window estimates itself (the Prefect flow).
     """
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -310,10 +317,11 @@ def search(
         )
     n_d, length = chosen
     wins = split_windows_by_length(n, length, max_windows)
-    ests = _window_estimates(x, y, mask, wins, npm, dt, integrating)
-    agreement = window_agreement(ests)
+    agreement = []
+    if estimate_windows:
+        agreement = window_agreement(_window_estimates(x, y, mask, wins, npm, dt, integrating))
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
-                        bic_order)
+                        bic_order, wins)
 
 
 def agreement_table(agreement: list[list[AgreementResult]]) -> list[dict]:

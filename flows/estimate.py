@@ -1,0 +1,105 @@
+"""The ``estimate`` flow: ingest -> condition -> sample period -> windows -> N_p/N_d search
+-> estimates -> checks -> store -> Rerun.  Each task body is one call into ``pipeline.jobs``."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from prefect import flow, task, unmapped
+from prefect.artifacts import (
+    create_markdown_artifact,
+    create_progress_artifact,
+    create_table_artifact,
+    update_progress_artifact,
+)
+from prefect.cache_policies import NO_CACHE
+
+from flows.common import retry_transient_io, task_runner_for
+from pipeline import jobs
+from pipeline.adapters.config import load_job
+
+# Big arrays flow between tasks: hashing them for a cache key would cost more than the
+# work, and results are not persisted, so caching is off.
+_T = {"cache_policy": NO_CACHE, "persist_result": False}
+
+
+@task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
+def ingest_task(cfg, files):
+    return jobs.load_recording(cfg, files)
+
+
+@task(name="prepare", **_T)
+def prepare_task(cfg, rec):
+    return jobs.prepare(cfg, rec)
+
+
+@task(name="search", **_T)
+def search_task(cfg, prep):
+    return jobs.search_orders(cfg, prep)
+
+
+@task(name="estimate-window", **_T)
+def estimate_task(prep, window, n_p):
+    return jobs.estimate_window(prep, window, n_p)
+
+
+@task(name="summarise", **_T)
+def summarise_task(cfg, prep, sr, all_est, wins):
+    return jobs.summarise(cfg, prep, sr, all_est, wins)
+
+
+@task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
+def store_task(cfg, summary, prep, sr, timings, run_id):
+    return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
+
+
+def _artifact_key(job: str, suffix: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in f"{job}-{suffix}".lower())
+
+
+@flow(name="estimate", log_prints=True)
+def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
+    """Estimate step responses for one job YAML (optionally on given files)."""
+    cfg = load_job(job_path)
+    timings: dict[str, float] = {}
+    progress = create_progress_artifact(0.0, key=_artifact_key(cfg.job, "progress"),
+                                        description=f"{cfg.job}: estimation progress")
+    t0 = time.perf_counter()
+    rec = ingest_task(cfg, [Path(f) for f in files] if files else None)
+    timings["ingest"] = time.perf_counter() - t0
+    update_progress_artifact(progress, 15.0, description="ingested")
+    t0 = time.perf_counter()
+    prep = prepare_task(cfg, rec)
+    timings["prepare"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    sr = search_task(cfg, prep)
+    timings["search"] = time.perf_counter() - t0
+    update_progress_artifact(progress, 50.0, description=f"N_p chosen, N_d={sr.n_d}")
+    t0 = time.perf_counter()
+    windows = [None] + [tuple(w) for w in sr.windows]
+    futures = estimate_task.map(unmapped(prep), windows, unmapped(sr.n_p))
+    ests = futures.result()
+    timings["estimate"] = time.perf_counter() - t0
+    update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
+    t0 = time.perf_counter()
+    summary = summarise_task(cfg, prep, sr, ests[0], ests[1:])
+    timings["summarise"] = time.perf_counter() - t0
+    report = store_task(cfg, summary, prep, sr, timings, run_id)
+    update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
+    create_markdown_artifact(summary.report_md, key=_artifact_key(cfg.job, "report"),
+                             description=f"{cfg.job} run {report.run_id}")
+    create_table_artifact(
+        [{"output": p["output"], "input": p["input"], "n_p": p["n_p"],
+          "final_step": round(p["final_step"], 6), "verdict": p["agreement"]["verdict"]}
+         for p in summary.checks["pairs"]],
+        key=_artifact_key(cfg.job, "pairs"), description="pairs and window-agreement verdicts")
+    return report
+
+
+def run_estimate(job_path: str | Path, *, files=None, run_id=None):
+    """Run the estimate flow, on a Dask cluster when ``dask.address`` is configured."""
+    cfg = load_job(job_path)
+    runner = task_runner_for(cfg.dask.address)
+    fl = estimate_flow.with_options(task_runner=runner) if runner else estimate_flow
+    return fl(str(job_path), [str(f) for f in files] if files else None, run_id)

@@ -1,0 +1,50 @@
+"""The ``nightly`` flow: process every new export in a job's drop folder exactly once."""
+
+from __future__ import annotations
+
+from prefect import flow, task, unmapped
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.cache_policies import NO_CACHE
+
+from flows.common import task_runner_for
+from pipeline.adapters.config import load_job
+from pipeline.nightly import discover_files, process_file
+
+
+@task(name="discover", cache_policy=NO_CACHE, persist_result=False)
+def discover_task(cfg):
+    return discover_files(cfg)
+
+
+@task(name="process-file", cache_policy=NO_CACHE, persist_result=False)
+def process_file_task(cfg, item):
+    return process_file(cfg, item[0], item[1])
+
+
+@flow(name="nightly", log_prints=True)
+def nightly_flow(job_path: str) -> list[dict]:
+    """Discover new files of the job (``source.path`` glob) and process each once."""
+    cfg = load_job(job_path)
+    items = discover_task(cfg)
+    rows = process_file_task.map(unmapped(cfg), items).result() if items else []
+    failed = [r for r in rows if r["status"] in ("failed", "error")]
+    lines = [f"# nightly {cfg.job}", "",
+             f"{len(items)} file(s) seen, {sum(r['status'] == 'ok' for r in rows)} processed, "
+             f"{sum(r['status'].startswith('skipped') for r in rows)} skipped, "
+             f"{len(failed)} failed."]
+    lines += [f"- FAILED {r['path']}: {r['error']}" for r in failed]
+    key = "".join(c if c.isalnum() else "-" for c in f"{cfg.job}-nightly".lower())
+    create_markdown_artifact("\n".join(lines), key=key)
+    if rows:
+        create_table_artifact([{k: r.get(k) for k in ("path", "status", "run_id", "error")}
+                               for r in rows], key=key + "-files")
+    for r in rows:
+        print(f"{r['status']:>22}  {r['path']}  {r['run_id'] or ''} {r['error'] or ''}")
+    return rows
+
+
+def run_nightly(job_path: str):
+    cfg = load_job(job_path)
+    runner = task_runner_for(cfg.dask.address)
+    fl = nightly_flow.with_options(task_runner=runner) if runner else nightly_flow
+    return fl(str(job_path))

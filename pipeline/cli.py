@@ -1,0 +1,170 @@
+"""The ``plantdyn`` command line.
+
+Exit codes (design.md): 0 success, 2 bad configuration or input (message on stderr),
+1 internal error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+from pipeline.errors import UserInputError
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Progress:
+    """Stage progress on stderr: long work is never silent."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __call__(self, stage: str, message: str) -> None:
+        print(f"[{time.perf_counter() - self.t0:7.1f} s] {stage}: {message}", file=sys.stderr,
+              flush=True)
+
+
+def _cmd_run(args) -> int:
+    from pipeline.adapters.config import load_job
+
+    cfg = load_job(args.job)  # validate before starting Prefect: fast, clear errors
+    if args.no_prefect:
+        from pipeline.jobs import run_job
+
+        report = run_job(cfg, run_id=args.run_id, progress=_Progress())
+    else:
+        from flows.common import prefect_env_defaults
+
+        prefect_env_defaults()
+        print("starting the Prefect flow 'estimate' (embedded server unless PREFECT_API_URL "
+              "is set)...", file=sys.stderr, flush=True)
+        from flows.estimate import run_estimate
+
+        report = run_estimate(args.job, run_id=args.run_id)
+    print(report, file=sys.stderr)
+    print(report.run_dir)
+    return 0
+
+
+def _cmd_nightly(args) -> int:
+    from flows.common import prefect_env_defaults
+
+    prefect_env_defaults()
+    from flows.nightly import run_nightly
+
+    rows = run_nightly(args.job)
+    failed = [r for r in rows if r["status"] in ("failed", "error")]
+    return 0 if not failed else 2
+
+
+def _cmd_runs(args) -> int:
+    import polars as pl
+
+    from pipeline.adapters.config import load_job
+    from pipeline.adapters.store import ResultStore
+
+    if args.job.endswith((".yaml", ".yml")):
+        cfg = load_job(args.job)
+        root, job = cfg.storage_root, cfg.job
+    else:
+        root, job = Path(args.storage).resolve(), args.job
+    store = ResultStore(root)
+    runs = store.list_runs(job)
+    if runs.height == 0:
+        print(f"no runs of job {job!r} under {root}")
+        return 0
+    with pl.Config(tbl_rows=200, tbl_cols=20, fmt_str_lengths=60, tbl_width_chars=200):
+        print(runs.select([c for c in ("run_id", "status", "created_utc", "n_inputs", "path")
+                           if c in runs.columns]))
+        trend = store.trend(job)
+        if trend.height:
+            keep = [c for c in ("run_id", "created_utc", "output", "input", "metric", "value")
+                    if c in trend.columns]
+            metrics = args.metric or ["final_step", "rate", "dead_time_s", "static_gain"]
+            print(trend.filter(pl.col("metric").is_in(metrics)).select(keep))
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from pipeline.demo import run_demo
+
+    return run_demo(Path(args.dir), no_prefect=args.no_prefect, progress=_Progress())
+
+
+def _cmd_serve(args) -> int:
+    from flows.serve import serve
+
+    return serve([Path(p) for p in args.jobs], limit=args.limit, once=args.once)
+
+
+def _cmd_discrepancy(args) -> int:
+    print("plantdyn discrepancy: the discrepancy workflow is not implemented yet "
+          "(issue 4); nothing was run", file=sys.stderr)
+    return 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="plantdyn",
+        description="Step responses of every input->output pair from normal operating data.")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run an estimation job; prints the run directory")
+    r.add_argument("job", help="job YAML file")
+    r.add_argument("--run-id", default=None, help="run id (default: UTC time + random)")
+    r.add_argument("--no-prefect", action="store_true",
+                   help="call the pipeline directly instead of through the Prefect flow")
+    r.set_defaults(fn=_cmd_run)
+    n = sub.add_parser("nightly", help="process new files of a job's drop folder once each")
+    n.add_argument("job")
+    n.set_defaults(fn=_cmd_nightly)
+    d = sub.add_parser("demo", help="make a demo historian export and run the demo job")
+    d.add_argument("--dir", default=str(PROJECT_ROOT / "demo"),
+                   help="folder for the demo export and job (default: ./demo)")
+    d.add_argument("--no-prefect", action="store_true")
+    d.set_defaults(fn=_cmd_demo)
+    s = sub.add_parser("serve", help="serve the scheduled (nightly) deployments")
+    s.add_argument("jobs", nargs="*", default=sorted(str(q) for q in
+                                                     (PROJECT_ROOT / "configs").glob("*.yaml")),
+                   help="job YAMLs with a 'schedule:' (default: configs/*.yaml)")
+    s.add_argument("--limit", type=int, default=1, help="concurrent runs")
+    s.add_argument("--once", action="store_true",
+                   help="register the deployments, run each once now, and exit")
+    s.set_defaults(fn=_cmd_serve)
+    ru = sub.add_parser("runs", help="list runs of a job and trend its pairs")
+    ru.add_argument("job", help="job name or job YAML")
+    ru.add_argument("--storage", default=str(PROJECT_ROOT / "storage"),
+                    help="results root when JOB is a name")
+    ru.add_argument("--metric", action="append", help="metrics to trend (repeatable)")
+    ru.set_defaults(fn=_cmd_runs)
+    dc = sub.add_parser("discrepancy", help="simulation-vs-measurement workflow")
+    dc.add_argument("job")
+    dc.set_defaults(fn=_cmd_discrepancy)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("DO_NOT_TRACK", "1")
+    try:
+        return args.fn(args)
+    except UserInputError as exc:
+        print(f"plantdyn: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("plantdyn: interrupted", file=sys.stderr)
+        return 1
+    except Exception:  # noqa: BLE001 - internal error: show it, exit 1
+        traceback.print_exc()
+        print("plantdyn: internal error (exit 1); please report it with the traceback above",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

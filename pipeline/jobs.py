@@ -1,0 +1,563 @@
+"""Composition: ``run_job(config) -> RunReport``, callable from a REPL.
+
+The estimation job is a readable sequence of stage functions; the Prefect flow in
+``flows/estimate.py`` wraps each one in a task (and maps :func:`estimate_window` over
+windows), so the flow and a plain call produce the same results.
+
+    load_recording -> prepare -> search_orders -> estimate_window (all + each window)
+      -> summarise -> write_run (store + Rerun)
+
+Decisions (also in the README):
+
+* Grid: the recording is put on a uniform grid at the median sample spacing of its
+  signals (or ``source.grid_dt_s``); inputs are linearly interpolated, outputs held,
+  each up to ``max_gap_s`` (default 10 grid periods), beyond which samples are masked.
+* Sample period: α_T on the longest stretch where every signal is good; the record is
+  then averaged-then-decimated (a decimated sample is bad if any source sample is).
+* Conditioning with gaps: masked samples are filled by linear interpolation only to let
+  the transform run (mean, detrend, high-pass need a gap-free series), then masked again
+  (for ``difference`` the mask is shifted with the difference).  The estimator never sees
+  a filled value.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from pipeline import __version__
+from pipeline.checks import cross_correlation_check, ljung_box, window_agreement
+from pipeline.conditioning import condition
+from pipeline.errors import DataQualityError, InsufficientDataError, PipelineError
+from pipeline.estimate import (
+    StepResponseEstimate,
+    estimate_step_responses,
+    good_segments,
+    lag_times,
+    residuals,
+)
+from pipeline.sampling import choose_sample_period, resample_average_masked
+from pipeline.search import SearchResult, search
+
+__all__ = [
+    "Recording",
+    "Prepared",
+    "RunReport",
+    "load_recording",
+    "prepare",
+    "search_orders",
+    "estimate_window",
+    "summarise",
+    "write_run",
+    "run_job",
+]
+
+Progress = Callable[[str, str], None]
+
+
+def _quiet(stage: str, message: str) -> None:  # default progress sink
+    pass
+
+
+# ------------------------------------------------------------------------ dataclasses
+@dataclass(frozen=True)
+class Recording:
+    """Signals of a job on one uniform grid, with quality masks.
+
+    ``values``/``good`` columns follow ``names`` (inputs first, then outputs).
+    """
+
+    names: tuple[str, ...]
+    roles: tuple[str, ...]
+    tags: tuple[str, ...]
+    time: np.ndarray  # datetime64[us] UTC, (N,)
+    dt_s: float
+    values: np.ndarray  # (N, k), NaN where masked
+    good: np.ndarray  # (N, k) bool
+    files: tuple[str, ...]
+    quality: dict  # per signal: counts of masked samples by reason + ingest stats
+    ingest: dict  # ingest report summary
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """The record at the estimation sample period, conditioned."""
+
+    recording: Recording
+    dt_s: float
+    decimation: int
+    sampling: dict  # alpha_T choice (JSON-ready)
+    time: np.ndarray  # (N,) datetime64[us]
+    raw: np.ndarray  # (N, k) resampled, not conditioned (NaN where bad)
+    x: np.ndarray  # (N, n_x) conditioned inputs (NaN where bad)
+    y: np.ndarray  # (N, n_y) conditioned outputs (NaN where bad)
+    good: np.ndarray  # (N, k) bool
+    conditioning: dict
+    integrating: tuple[bool, ...]
+
+    @property
+    def inputs(self) -> list[str]:
+        return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "input"]
+
+    @property
+    def outputs(self) -> list[str]:
+        return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "output"]
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Everything a run writes, as tables and documents (no I/O yet)."""
+
+    step_responses: pl.DataFrame
+    signals: pl.DataFrame
+    residuals: pl.DataFrame
+    checks: dict
+    metrics: list
+    report_md: str
+    status: str
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """What a run produced (printable)."""
+
+    job: str
+    run_id: str
+    run_dir: Path
+    status: str
+    dt_s: float
+    n_p: dict
+    n_d: int
+    verdicts: dict
+    files: tuple[str, ...]
+    recording: Path | None
+    timings_s: dict = field(default_factory=dict)
+
+    def __str__(self) -> str:
+        lines = [f"run {self.job}/{self.run_id}: {self.status}", f"  results: {self.run_dir}",
+                 f"  dt = {self.dt_s:g} s, N_d per window = {self.n_d}"]
+        for pair, v in self.verdicts.items():
+            lines.append(f"  {pair}: N_p={self.n_p[pair]}, windows {v}")
+        if self.recording:
+            lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
+        return "\n".join(lines)
+
+
+# -------------------------------------------------------------------------- stages
+def load_recording(cfg, files: list[Path] | None = None) -> Recording:
+    """Ingest the job's files and put its signals on one uniform grid."""
+    from pipeline.adapters.config import resolve_sources
+    from pipeline.adapters.grid import to_grid
+    from pipeline.adapters.ingest import read_recordings
+
+    files = list(files) if files is not None else resolve_sources(cfg)
+    sig = {**{n: ("input", s) for n, s in cfg.signals.inputs.items()},
+           **{n: ("output", s) for n, s in cfg.signals.outputs.items()}}
+    tags = [s.tag for _, s in sig.values()]
+    mcap = cfg.source.mcap.model_dump() if cfg.source.mcap else None
+    table, report = read_recordings(files, layout=cfg.source.layout,
+                                    timezone=cfg.source.timezone, tags=tags, mcap=mcap,
+                                    on_truncated=cfg.source.on_truncated)
+    grid_dt = cfg.source.grid_dt_s or _median_spacing_s(table)
+    spec = {}
+    for name, (role, s) in sig.items():
+        interp = s.interpolation or ("linear" if role == "input" else "hold")
+        spec[s.tag] = {"interpolation": interp, "max_gap_s": s.max_gap_s or 10 * grid_dt}
+    grid = to_grid(table, dt_s=grid_dt, signals=spec)
+    order = [grid.names.index(t) for t in tags]
+    values = np.asarray(grid.values)[:, order]
+    good = np.asarray(grid.good)[:, order]
+    quality = {}
+    ing = _report_dict(report)
+    per_signal = ing.get("signals", {})
+    for name, (role, s) in sig.items():
+        reasons = dict(grid.mask_reasons.get(s.tag, {}))
+        quality[name] = {"tag": s.tag, "role": role,
+                         "grid_samples": int(values.shape[0]),
+                         "masked": int((~good[:, list(sig).index(name)]).sum()),
+                         "masked_by_reason": reasons,
+                         "ingest": per_signal.get(s.tag, {})}
+        if good[:, list(sig).index(name)].sum() == 0:
+            raise DataQualityError(
+                f"signal {name!r} (tag {s.tag}): every sample is bad or missing after ingestion "
+                f"({reasons}); check the tag's quality in the export or remove the signal"
+            )
+    return Recording(tuple(sig), tuple(r for r, _ in sig.values()), tuple(tags),
+                     np.asarray(grid.time), float(grid_dt), values, good,
+                     tuple(str(f) for f in files), quality, ing)
+
+
+def _report_dict(report) -> dict:
+    for attr in ("to_dict", "as_dict"):
+        if hasattr(report, attr):
+            return getattr(report, attr)()
+    return {}
+
+
+def _median_spacing_s(table: pl.DataFrame) -> float:
+    d = (table.sort(["signal", "time"])
+         .with_columns(pl.col("time").diff().over("signal").dt.total_microseconds()
+                       .alias("d_us"))
+         .filter(pl.col("d_us") > 0)["d_us"])
+    if d.len() == 0:
+        raise InsufficientDataError(
+            "the recording has fewer than two distinct timestamps per signal; it cannot be "
+            "put on a grid — export a longer period"
+        )
+    med = float(d.median()) / 1e6
+    # round to a "nice" period (ms resolution) so grids of nightly files line up
+    return max(round(med, 3), 0.001)
+
+
+def _fill(values: np.ndarray, good: np.ndarray) -> np.ndarray:
+    """Linear interpolation over masked samples (edges held), column by column."""
+    out = values.copy()
+    idx = np.arange(values.shape[0])
+    for c in range(values.shape[1]):
+        g = good[:, c]
+        if g.all():
+            continue
+        out[~g, c] = np.interp(idx[~g], idx[g], values[g, c])
+    return out
+
+
+def _longest_common_good(good: np.ndarray) -> tuple[int, int]:
+    segs = good_segments(good.all(axis=1))
+    if not segs:
+        return (0, 0)
+    return max(segs, key=lambda s: s[1] - s[0])
+
+
+def prepare(cfg, rec: Recording) -> Prepared:
+    """Choose T by α_T, average-then-decimate, condition inputs and outputs alike."""
+    a, b = _longest_common_good(rec.good)
+    if cfg.sampling.dt_s is not None:
+        factor = max(1, int(round(cfg.sampling.dt_s / rec.dt_s)))
+        if abs(factor * rec.dt_s - cfg.sampling.dt_s) > 1e-6 * cfg.sampling.dt_s:
+            raise DataQualityError(
+                f"sampling.dt_s={cfg.sampling.dt_s} is not an integer multiple of the grid "
+                f"period {rec.dt_s} s; choose a multiple (e.g. {factor * rec.dt_s:g}) or set "
+                "source.grid_dt_s"
+            )
+        sampling = {"dt_s": factor * rec.dt_s, "decimation": factor, "source": "config"}
+    else:
+        if b - a < 200:
+            raise InsufficientDataError(
+                f"the longest stretch where every signal is good has {b - a} samples; the "
+                "α_T criterion needs at least 200 — set sampling.dt_s in the job YAML or "
+                "supply cleaner data"
+            )
+        choice = choose_sample_period(
+            {n: rec.values[a:b, k] for k, n in enumerate(rec.names)}, dt_s=rec.dt_s,
+            roles={n: r for n, r in zip(rec.names, rec.roles)},
+            target_input=cfg.sampling.target_input, target_output=cfg.sampling.target_output)
+        factor = int(choice.decimation)
+        sampling = {**choice.to_dict(), "source": "alpha_t"}
+    vals, good = resample_average_masked(np.nan_to_num(rec.values), rec.good, factor)
+    n = vals.shape[0]
+    tgrid = rec.time[: n * factor : factor] if factor > 1 else rec.time[:n]
+    dt_s = factor * rec.dt_s
+    n_x = sum(r == "input" for r in rec.roles)
+    filled = _fill(vals, good)
+    c = cfg.conditioning
+    params: dict[str, Any] = {}
+    if c.method == "difference":
+        params["kdiff1"] = c.kdiff1
+    if c.method == "highpass":
+        params["cutoff_period_s"] = c.cutoff_period_s or 50 * dt_s * 10
+        params["order"] = c.order
+    cond = condition(filled[:, :n_x], filled[:, n_x:], method=c.method, dt_s=dt_s, **params)
+    g = good
+    t = tgrid
+    raw = np.where(good, vals, np.nan)
+    if c.method == "difference":
+        k = c.kdiff1
+        g = good[k:] & good[:-k]
+        t = tgrid[: g.shape[0]]
+        raw = raw[: g.shape[0]]
+    xc = np.where(g[:, :n_x], cond.x, np.nan)
+    yc = np.where(g[:, n_x:], cond.y, np.nan)
+    integ = tuple(cfg.signals.outputs[o].integrating for o in cfg.signals.outputs)
+    return Prepared(rec, float(dt_s), factor, sampling, t, raw, xc, yc, g,
+                    {"method": c.method, **params}, integ)
+
+
+def search_orders(cfg, prep: Prepared) -> SearchResult:
+    """N_p/N_d trial-and-error search (windows are estimated by the caller)."""
+    s = cfg.search
+    n_p = s.n_p
+    if n_p is None and s.settling_time_s is not None:
+        n_p = max(1, int(np.ceil(s.settling_time_s / prep.dt_s)))
+    return search(
+        np.nan_to_num(prep.x), np.nan_to_num(prep.y), dt=prep.dt_s,
+        integrating=prep.integrating, mask=prep.good, n_p_max=s.n_p_max, n_p_min=s.n_p_min,
+        n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows, estimate_windows=False)
+
+
+def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p) -> StepResponseEstimate:
+    """Estimate on one window (``None`` = every usable sample)."""
+    a, b = window if window is not None else (0, prep.x.shape[0])
+    return estimate_step_responses(
+        np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b]), n_p=n_p, dt=prep.dt_s,
+        integrating=prep.integrating, mask=prep.good[a:b])
+
+
+def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
+    """Characteristic quantities of one pair (empty dict when they cannot be read off)."""
+    try:
+        from pipeline import characteristics as ch
+    except ImportError:  # pragma: no cover - module is part of the package
+        return {}
+    n = int(est.n_p[i, j])
+    try:
+        if est.integrating[i]:
+            res = ch.integrating_characteristics(est.step[i, j, :n], dt_s=est.dt,
+                                                 h_std=est.step_std[i, j, :n],
+                                                 rate=float(est.rate[i, j]))
+        else:
+            res = ch.self_regulating_characteristics(est.step[i, j, :n], dt_s=est.dt,
+                                                     h_std=est.step_std[i, j, :n])
+        return res.to_dict()
+    except PipelineError as exc:
+        return {"error": str(exc)}
+
+
+def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
+              window_ests: list[StepResponseEstimate]) -> Summary:
+    """Tables, checks and the report of a run (pure: no I/O)."""
+    ins, outs = prep.inputs, prep.outputs
+    rows = []
+    for label, est in [("all", all_est)] + [(f"w{k}", e) for k, e in enumerate(window_ests)]:
+        P = est.step.shape[2]
+        t = lag_times(P, est.dt)
+        for i, o in enumerate(outs):
+            for j, u in enumerate(ins):
+                n = int(est.n_p[i, j])
+                rows.append(pl.DataFrame({
+                    "window": [label] * n, "output": [o] * n, "input": [u] * n,
+                    "lag": np.arange(1, n + 1, dtype=np.int32), "time_s": t[:n],
+                    "delta_h": est.delta_h[i, j, :n], "step": est.step[i, j, :n],
+                    "step_std": est.step_std[i, j, :n],
+                    "n_p": np.full(n, n, dtype=np.int32),
+                    "n_d": np.full(n, est.n_d, dtype=np.int64),
+                    "dt_s": np.full(n, est.dt)}))
+    steps = pl.concat(rows)
+    agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
+        [[None] * len(ins) for _ in outs]
+    # residuals of the all-data estimate; NaN where any sample they need is masked
+    x0, y0 = np.nan_to_num(prep.x), np.nan_to_num(prep.y)
+    res = residuals(all_est, x0, y0)
+    bad = ~prep.good.all(axis=1)
+    P = int(all_est.n_p.max())
+    touched = np.convolve(bad.astype(float), np.ones(P + 1))[: bad.size] > 0
+    res[touched] = np.nan
+    pairs = []
+    metrics = []
+    xcorr = {}
+    for i, o in enumerate(outs):
+        lb = ljung_box(res[:, i], lags=cfg.checks.ljung_box_lags)
+        for j, u in enumerate(ins):
+            n = int(all_est.n_p[i, j])
+            a = agreement[i][j]
+            agr = a.to_dict() if a is not None else {
+                "statistic": None, "verdict": "insufficient_data", "n_windows": len(window_ests)}
+            xc = cross_correlation_check(x0[:, j], res[:, i],
+                                         max_lag=cfg.checks.xcorr_max_lag or n)
+            xcorr[f"{o}<-{u}"] = {k: xc[k] for k in ("band", "fraction_outside", "max_abs_r",
+                                                     "statistic", "p_value", "ok")}
+            chars = _characteristics(all_est, i, j)
+            pair = {"output": o, "input": u, "n_p": n, "settled": bool(sr.settled[i, j]),
+                    "integrating": bool(all_est.integrating[i]),
+                    "final_step": float(all_est.step[i, j, n - 1]),
+                    "final_step_std": float(all_est.step_std[i, j, n - 1]),
+                    "rate": None if not all_est.integrating[i] else float(all_est.rate[i, j]),
+                    "agreement": agr, "characteristics": chars}
+            pairs.append(pair)
+            for key, val in [("final_step", pair["final_step"]), ("rate", pair["rate"]),
+                             ("agreement_statistic", agr.get("statistic"))] + \
+                    [(k, v) for k, v in chars.items() if isinstance(v, (int, float))]:
+                if val is not None and np.isfinite(val):
+                    metrics.append({"window": "all", "output": o, "input": u,
+                                    "metric": key, "value": float(val)})
+        xcorr[f"whiteness:{o}"] = {k: lb[k] for k in ("statistic", "p_value", "lags", "white")}
+    d = all_est.diagnostics
+    checks = {
+        "dt_s": prep.dt_s,
+        "sampling": prep.sampling,
+        "conditioning": prep.conditioning,
+        "search": {
+            "n_p": {f"{outs[i]}<-{ins[j]}": int(sr.n_p[i, j])
+                    for i in range(len(outs)) for j in range(len(ins))},
+            "n_d": sr.n_d, "window_samples": sr.window_samples,
+            "windows": [list(w) for w in sr.windows],
+            "bic_order": None if sr.bic_order is None else
+            {outs[i]: int(v) for i, v in enumerate(sr.bic_order)},
+            "order_trace": _named_trace(sr.order_trace, outs, ins),
+            "nd_trace": _named_trace(sr.nd_trace, outs, ins),
+        },
+        "pairs": pairs,
+        "residuals": {
+            "whiteness": {o: xcorr.pop(f"whiteness:{o}") for o in outs},
+            "input_cross_correlation": xcorr,
+        },
+        "excitation": {
+            "condition_number": d.condition_number,
+            "input_rms": {u: float(v) for u, v in zip(ins, d.input_rms)},
+            "input_correlation": {ins[a]: {ins[b]: float(d.input_correlation[a, b])
+                                           for b in range(len(ins))} for a in range(len(ins))},
+            "vif": {u: float(v) for u, v in zip(ins, d.vif)},
+            "near_collinear": [{"inputs": [ins[a], ins[b]], "correlation": c}
+                               for a, b, c in d.near_collinear],
+        },
+        "data_quality": {
+            "grid_dt_s": prep.recording.dt_s,
+            "samples_at_dt": int(prep.good.shape[0]),
+            "samples_used_all": int(all_est.n_d),
+            "signals": prep.recording.quality,
+            "ingest": prep.recording.ingest,
+        },
+    }
+    status = "ok"
+    if any(p["agreement"]["verdict"] == "fail" for p in pairs):
+        status = "windows_disagree"
+    sig = _signals_table(prep)
+    rtab = pl.DataFrame({
+        "window": ["all"] * (res.shape[0] * len(outs)),
+        "time": np.concatenate([prep.time] * len(outs)),
+        "output": np.repeat(outs, res.shape[0]),
+        "residual": res.T.ravel()})
+    report = _report_md(cfg, prep, sr, pairs, status)
+    return Summary(steps, sig, rtab, checks, metrics, report, status)
+
+
+def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
+    out = []
+    for t in trace:
+        t = dict(t)
+        if "pairs" in t:
+            t["pairs"] = [{**p, "output": outs[p["output"]], "input": ins[p["input"]]}
+                          for p in t["pairs"]]
+        out.append(t)
+    return out
+
+
+def _signals_table(prep: Prepared) -> pl.DataFrame:
+    rec = prep.recording
+    n_x = len(prep.inputs)
+    cond = np.concatenate([prep.x, prep.y], axis=1)
+    frames = []
+    for k, (name, role) in enumerate(zip(rec.names, rec.roles)):
+        frames.append(pl.DataFrame({
+            "time": prep.time, "signal": [name] * prep.time.size,
+            "role": [role] * prep.time.size,
+            "raw": prep.raw[:, k], "conditioned": cond[:, k],
+            "good": prep.good[:, k]}).with_columns(
+                pl.col("raw").fill_nan(None), pl.col("conditioned").fill_nan(None)))
+    del n_x
+    return pl.concat(frames).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+
+def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, status: str) -> str:
+    lines = [f"# plantdyn run: {cfg.job}", "",
+             f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
+             f"(decimation {prep.decimation} from the {prep.recording.dt_s:g} s grid, "
+             f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
+             f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows.", "",
+             "| output | input | N_p | N_p·T (s) | final step ± σ | rate K (/s) | windows |",
+             "|---|---|---|---|---|---|---|"]
+    for p in pairs:
+        rate = "" if p["rate"] is None else f"{p['rate']:.4g}"
+        lines.append(f"| {p['output']} | {p['input']} | {p['n_p']} | {p['n_p'] * prep.dt_s:g} "
+                     f"| {p['final_step']:.4g} ± {p['final_step_std']:.2g} | {rate} | "
+                     f"{p['agreement']['verdict']} |")
+    masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
+    lines += ["", f"Masked grid samples per signal: {masked or 'none'}.",
+              "Unsettled pairs (no flat tail up to n_p_max): "
+              f"{[p['output'] + '<-' + p['input'] for p in pairs if not p['settled']] or 'none'}."]
+    return "\n".join(lines) + "\n"
+
+
+def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, float],
+              run_id: str | None = None) -> tuple[str, Path, Path | None]:
+    """Write the run directory atomically (store) with its Rerun recording.
+
+    Returns ``(run_id, run_dir, recording_path)``.
+    """
+    from pipeline.adapters.store import ResultStore
+
+    store = ResultStore(cfg.storage_root)
+    resolved = cfg.model_dump(mode="json")
+    rrd = None
+    with store.new_run(cfg.job, run_id=run_id, config=resolved, inputs=files) as run:
+        for stage, sec in timings.items():
+            run.record_timing(stage, sec)
+        run.write_step_responses(summary.step_responses)
+        run.write_signals(summary.signals)
+        run.write_residuals(summary.residuals)
+        run.write_checks(summary.checks)
+        run.write_report(summary.report_md)
+        run.set_status(summary.status)
+        run.add_metrics(summary.metrics)
+        if cfg.rerun.enabled:
+            from pipeline.adapters.rerun_sink import render_run
+
+            t0 = time.perf_counter()
+            trends = store.trend(cfg.job) if store.list_runs(cfg.job).height else None
+            render_run(run.path, trends=trends)
+            run.record_timing("rerun", time.perf_counter() - t0)
+        rid = run.run_id
+    run_dir = cfg.storage_root / cfg.job / rid
+    if cfg.rerun.enabled:
+        rrd = run_dir / "recording.rrd"
+    return rid, run_dir, rrd
+
+
+def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
+            progress: Progress = _quiet) -> RunReport:
+    """Run an estimation job end to end (no Prefect): the same stages the flow runs."""
+    timings: dict[str, float] = {}
+
+    def stage(name, fn, *a, **k):
+        progress(name, "start")
+        t0 = time.perf_counter()
+        out = fn(*a, **k)
+        timings[name] = time.perf_counter() - t0
+        progress(name, f"done in {timings[name]:.2f} s")
+        return out
+
+    rec = stage("ingest", load_recording, cfg, files)
+    prep = stage("prepare", prepare, cfg, rec)
+    sr = stage("search", search_orders, cfg, prep)
+    all_est = stage("estimate_all", estimate_window, prep, None, sr.n_p)
+    wins = []
+    for k, w in enumerate(sr.windows):
+        wins.append(stage(f"estimate_w{k}", estimate_window, prep, tuple(w), sr.n_p))
+    summary = stage("summarise", summarise, cfg, prep, sr, all_est, wins)
+    return finish_run(cfg, summary, prep, sr, timings, run_id=run_id, progress=progress)
+
+
+def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings: dict,
+               *, run_id: str | None = None, progress: Progress = _quiet) -> RunReport:
+    """Write the results and build the :class:`RunReport`."""
+    progress("store", "writing run directory")
+    t0 = time.perf_counter()
+    rid, run_dir, rrd = write_run(cfg, summary, files=list(prep.recording.files),
+                                  timings=timings, run_id=run_id)
+    timings["store"] = time.perf_counter() - t0
+    ins, outs = prep.inputs, prep.outputs
+    n_p = {f"{o}<-{u}": int(sr.n_p[i, j]) for i, o in enumerate(outs) for j, u in enumerate(ins)}
+    verdicts = {f"{p['output']}<-{p['input']}": p["agreement"]["verdict"]
+                for p in summary.checks["pairs"]}
+    return RunReport(cfg.job, rid, run_dir, summary.status, prep.dt_s, n_p, sr.n_d, verdicts,
+                     prep.recording.files, rrd, timings)
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
