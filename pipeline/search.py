@@ -167,8 +167,8 @@ def choose_orders(
     # Refine between the last failing candidate and the pick (the coarse grid steps
     # ~25 %): try the orders in between, smallest first, in steps of about 4 %.
     between = sorted({int(m) for i in range(n_y) for j in range(n_x) if settled[i, j]
-                      for m in _candidates(lower[i, j] + 1, n_p[i, j], 25)
-                      if lower[i, j] < m < n_p[i, j]})
+                      for m in _candidates(max(lower[i, j] + 1, n_p_min), n_p[i, j], 25)
+                      if max(lower[i, j], n_p_min - 1) < m < n_p[i, j]})
     for m in between:
         est = estimate_from_normal_equations(_truncate(ne, m), n_p=m, dt=dt)
         rows = []
