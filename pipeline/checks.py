@@ -46,9 +46,11 @@ class AgreementResult:
     verdict : str
         ``"pass"``, ``"fail"`` or ``"insufficient_data"``.
     gain_spread : float
-        Largest relative difference of the final step values between windows.
+        Largest difference of the final step values between windows, relative to the
+        response's peak magnitude.
     detectable_change : float
-        Relative gain change detectable at 2 sigma with these windows.
+        Change (relative to the peak magnitude) detectable at 2 sigma with these windows:
+        ``2 * max_l sqrt(s_a^2 + s_b^2) / max|h|``.
     n_windows : int
     """
 
@@ -84,9 +86,11 @@ def pair_agreement(steps, stds) -> AgreementResult:
             ok = var > 0
             z2 = (ha[ok] - hb[ok]) ** 2 / var[ok]
             stat = max(stat, float(np.sqrt(np.mean(z2))) if z2.size else 0.0)
-            scale = max(abs(ha[-1]), abs(hb[-1]), 1e-300)
+            # Scale: the response's peak magnitude, not its final value — a closed-loop
+            # disturbance response may settle at zero and still be well determined.
+            scale = max(np.max(np.abs(ha)), np.max(np.abs(hb)), 1e-300)
             spread = max(spread, abs(ha[-1] - hb[-1]) / scale)
-            detect = max(detect, 2 * np.sqrt(var[-1]) / scale)
+            detect = max(detect, 2 * np.sqrt(np.max(var)) / scale)
     if stat > AGREEMENT_MAX_STATISTIC:
         verdict = "fail"
     elif detect > DETECTABLE_GAIN_CHANGE and not _is_null_pair(steps, stds):

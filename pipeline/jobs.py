@@ -176,7 +176,7 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
     good = np.asarray(grid.good)[:, order]
     quality = {}
     ing = _report_dict(report)
-    per_signal = ing.get("signals", {})
+    per_signal = {row.get("signal"): row for row in ing.get("signals", [])}
     for name, (role, s) in sig.items():
         reasons = dict(grid.mask_reasons.get(s.tag, {}))
         quality[name] = {"tag": s.tag, "role": role,
@@ -212,8 +212,9 @@ def _median_spacing_s(table: pl.DataFrame) -> float:
             "put on a grid — export a longer period"
         )
     med = float(d.median()) / 1e6
-    # round to a "nice" period (ms resolution) so grids of nightly files line up
-    return max(round(med, 3), 0.001)
+    # Exception-reported timestamps jitter (1.002 s); two significant figures give the
+    # period the historian was configured for, and grids of nightly files line up.
+    return max(float(f"{med:.2g}"), 0.001)
 
 
 def _fill(values: np.ndarray, good: np.ndarray) -> np.ndarray:
@@ -309,6 +310,10 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p) -> Step
         integrating=prep.integrating, mask=prep.good[a:b])
 
 
+_ABSOLUTE_TIMES = ("dead_time_s", "settling_time_s", "peak_time_s", "inverse_peak_time_s",
+                   "apparent_delay_s")
+
+
 def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
     """Characteristic quantities of one pair (empty dict when they cannot be read off)."""
     try:
@@ -319,12 +324,18 @@ def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
     try:
         if est.integrating[i]:
             res = ch.integrating_characteristics(est.step[i, j, :n], dt_s=est.dt,
-                                                 h_std=est.step_std[i, j, :n],
-                                                 rate=float(est.rate[i, j]))
+                                                 step_std=est.step_std[i, j, :n],
+                                                 rate=float(est.rate[i, j]),
+                                                 rate_std=float(est.rate_std[i, j]))
         else:
             res = ch.self_regulating_characteristics(est.step[i, j, :n], dt_s=est.dt,
-                                                     h_std=est.step_std[i, j, :n])
-        return res.to_dict()
+                                                     step_std=est.step_std[i, j, :n])
+        out = res.to_dict()
+        # characteristics.py puts step[0] at t = 0; our lag times are (l - 1/2) dt
+        for key in _ABSOLUTE_TIMES:
+            if isinstance(out.get(key), float) and np.isfinite(out[key]):
+                out[key] += 0.5 * est.dt
+        return out
     except PipelineError as exc:
         return {"error": str(exc)}
 
@@ -346,7 +357,7 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
                     "delta_h": est.delta_h[i, j, :n], "step": est.step[i, j, :n],
                     "step_std": est.step_std[i, j, :n],
                     "n_p": np.full(n, n, dtype=np.int32),
-                    "n_d": np.full(n, est.n_d, dtype=np.int64),
+                    "n_d": np.full(n, est.n_d, dtype=np.int32),
                     "dt_s": np.full(n, est.dt)}))
     steps = pl.concat(rows)
     agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
@@ -432,7 +443,9 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
         "window": ["all"] * (res.shape[0] * len(outs)),
         "time": np.concatenate([prep.time] * len(outs)),
         "output": np.repeat(outs, res.shape[0]),
-        "residual": res.T.ravel()})
+        "residual": res.T.ravel()}).with_columns(
+            pl.col("time").cast(pl.Datetime("us", "UTC"))).filter(
+                pl.col("residual").is_not_nan())  # undefined where lags touch a gap
     report = _report_md(cfg, prep, sr, pairs, status)
     return Summary(steps, sig, rtab, checks, metrics, report, status)
 
