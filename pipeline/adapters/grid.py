@@ -1,0 +1,465 @@
+"""Irregular canonical samples → a uniform time grid with quality masks.
+
+Historians store by exception: a tag has a sample when it changed by more than a
+deadband, so samples are irregular. :func:`to_grid` places every signal on one uniform
+grid ``t_k = start + k·dt_s``:
+
+* ``"linear"`` (continuous tags): interpolate between the samples that bracket ``t_k``
+  (exactly the sample when one falls on ``t_k``);
+* ``"hold"`` (setpoints, digital and step tags): the last sample at or before ``t_k``
+  (zero-order hold).
+
+A grid point is *masked* (NaN value, ``good`` False) — never invented — when
+
+* ``before_first_sample`` / ``after_last_sample``: outside the signal's samples;
+* ``bad_quality:<state>``: a sample it would use is bad (for linear interpolation
+  either bracketing sample; for hold the held sample — a bad state persists until the
+  next sample, as in PI); suspect samples mask as ``suspect_quality:<state>`` unless
+  ``mask_suspect=False``;
+* ``gap>max_gap_s``: linear — the bracketing samples are more than ``max_gap_s`` apart;
+  hold — the held sample is more than ``max_gap_s`` old.
+
+Each masked point has exactly one reason (checked in that order) and
+:attr:`Grid.mask_reasons` counts them per signal. Signals are processed one at a time
+from slices of the table (sorted by signal), so peak memory is the table plus the grid
+plus one signal's arrays; the per-signal work is vectorised with
+:func:`numpy.searchsorted`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import polars as pl
+
+from pipeline.errors import ConfigError, DataQualityError, IngestError
+
+__all__ = ["Grid", "SignalGridSpec", "grid_from_regular", "to_grid"]
+
+Interpolation = Literal["linear", "hold"]
+_REASON_BEFORE = "before_first_sample"
+_REASON_AFTER = "after_last_sample"
+_REASON_GAP = "gap>max_gap_s"
+
+
+@dataclass(frozen=True)
+class SignalGridSpec:
+    """How one signal goes onto the grid.
+
+    Parameters
+    ----------
+    interpolation : {"linear", "hold"}
+        Linear interpolation for continuous tags, zero-order hold for step tags.
+    max_gap_s : float
+        Longest bracket (linear) or hold age (hold) in seconds; beyond it the point is
+        masked. ``inf`` (default) never masks for gaps.
+    """
+
+    interpolation: Interpolation = "linear"
+    max_gap_s: float = math.inf
+
+    def __post_init__(self) -> None:
+        if self.interpolation not in ("linear", "hold"):
+            raise ConfigError(
+                f"interpolation={self.interpolation!r} is not 'linear' or 'hold'"
+            )
+        if not (self.max_gap_s > 0):
+            raise ConfigError(f"max_gap_s={self.max_gap_s!r} must be > 0 seconds")
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """Signals on a uniform time grid.
+
+    Attributes
+    ----------
+    time : numpy.ndarray of datetime64[us], shape (N,)
+        Grid instants, UTC (numpy datetimes carry no zone).
+    t_s : numpy.ndarray of float, shape (N,)
+        Seconds from ``time[0]``.
+    names : tuple of str
+        Signal names, one per column.
+    values : numpy.ndarray of float, shape (N, k)
+        Values; NaN where masked.
+    good : numpy.ndarray of bool, shape (N, k)
+        True where the value is usable.
+    mask_reasons : dict of str to dict of str to int
+        Per signal, masked points by reason (see module docstring); counts sum to the
+        number of masked points of that signal.
+    dt_s : float
+        Grid period in seconds.
+    interpolation : dict of str to str
+        Per signal, ``"linear"`` or ``"hold"`` (``"regular"`` for
+        :func:`grid_from_regular`).
+    """
+
+    time: np.ndarray
+    t_s: np.ndarray
+    names: tuple[str, ...]
+    values: np.ndarray
+    good: np.ndarray
+    mask_reasons: dict[str, dict[str, int]]
+    dt_s: float
+    interpolation: dict[str, str] = field(default_factory=dict)
+
+    def column(self, name: str) -> int:
+        """Column index of a signal.
+
+        Raises
+        ------
+        IngestError
+            When the grid has no such signal.
+        """
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise IngestError(
+                f"signal {name!r} is not on the grid; it has {list(self.names)}"
+            ) from None
+
+    def series(self, name: str) -> np.ndarray:
+        """Values of one signal, shape (N,), NaN where masked."""
+        return self.values[:, self.column(name)]
+
+    def to_frame(self) -> pl.DataFrame:
+        """Wide polars frame: ``time`` plus one Float64 column per signal (null where masked)."""
+        data: dict[str, Any] = {"time": pl.Series(self.time).dt.replace_time_zone("UTC")}
+        for j, name in enumerate(self.names):
+            data[name] = pl.Series(self.values[:, j]).fill_nan(None)
+        return pl.DataFrame(data)
+
+
+def _spec(
+    raw: Any, name: str, default_interpolation: str, default_max_gap_s: float | None
+) -> SignalGridSpec:
+    if isinstance(raw, SignalGridSpec):
+        return raw
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, Mapping):
+        raise ConfigError(
+            f"signals[{name!r}] must be a mapping {{interpolation, max_gap_s}} or a "
+            f"SignalGridSpec, got {type(raw).__name__}"
+        )
+    unknown = sorted(set(raw) - {"interpolation", "max_gap_s"})
+    if unknown:
+        raise ConfigError(
+            f"signals[{name!r}]: unknown key(s) {unknown}; allowed: interpolation, max_gap_s"
+        )
+    max_gap = raw.get("max_gap_s", default_max_gap_s)
+    return SignalGridSpec(
+        interpolation=raw.get("interpolation", default_interpolation),
+        max_gap_s=math.inf if max_gap is None else float(max_gap),
+    )
+
+
+def _to_us(value: Any, what: str) -> int:
+    """A datetime-like → int µs since the Unix epoch (naive = UTC)."""
+    if isinstance(value, np.datetime64):
+        return int(value.astype("datetime64[us]").astype(np.int64))
+    if isinstance(value, str):
+        try:
+            value = _dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
+        except ValueError as exc:
+            raise ConfigError(f"{what}={value!r} is not an ISO 8601 time") from exc
+    if isinstance(value, _dt.datetime):
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=_dt.UTC)
+        delta = value - _dt.datetime(1970, 1, 1, tzinfo=_dt.UTC)
+        return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
+    raise ConfigError(
+        f"{what} must be a datetime, numpy.datetime64 or ISO text, got {type(value).__name__}"
+    )
+
+
+def _canonical_times(table: pl.DataFrame) -> pl.DataFrame:
+    """Ensure time is Datetime(us, UTC) and rows are sorted by signal."""
+    missing = {"time", "signal", "value", "quality"} - set(table.columns)
+    if missing:
+        raise DataQualityError(
+            f"to_grid needs a canonical table (time, signal, value, quality[, state]); "
+            f"missing columns {sorted(missing)} — use pipeline.adapters.ingest.read_recording"
+        )
+    t = table.schema["time"]
+    if not isinstance(t, pl.Datetime):
+        raise DataQualityError(f"to_grid: column 'time' has dtype {t}; expected a Datetime")
+    if t.time_zone is None:
+        table = table.with_columns(pl.col("time").dt.replace_time_zone("UTC"))
+    if t.time_unit != "us" or (t.time_zone not in (None, "UTC")):
+        table = table.with_columns(
+            pl.col("time").dt.convert_time_zone("UTC").dt.cast_time_unit("us")
+        )
+    if not table["signal"].is_sorted():
+        table = table.sort(["signal", "time"], maintain_order=True)
+    return table
+
+
+def _signal_arrays(
+    part: pl.DataFrame, mask_suspect: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sorted unique times (int µs), values, usable flags, and state labels."""
+    t = part["time"].dt.epoch("us").to_numpy()
+    v = part["value"].cast(pl.Float64).fill_null(np.nan).to_numpy()
+    quality = part["quality"]  # Enum or String: both compare with plain strings
+    bad = (quality == "bad").to_numpy()
+    suspect = (quality == "suspect").to_numpy()
+    usable = ~bad & ~(suspect & mask_suspect) & np.isfinite(v)
+    if "state" in part.columns:
+        states = part["state"].cast(pl.String)
+    else:
+        states = pl.repeat(None, len(part), dtype=pl.String, eager=True)
+    # Label of each unusable sample: built only for the (few) unusable rows.
+    label = np.full(len(t), "", dtype=object)
+    idx = np.flatnonzero(~usable)
+    if len(idx):
+        st = states.gather(idx).fill_null("unknown").to_numpy()
+        kind = np.where(suspect[idx] & ~bad[idx], "suspect_quality:", "bad_quality:")
+        st = np.where(bad[idx] | suspect[idx], st, "NaN")
+        label[idx] = np.char.add(kind.astype(str), st.astype(str))
+    if len(t) > 1 and not np.all(np.diff(t) > 0):
+        # Not canonical (hand-made table): stable sort and keep the last duplicate.
+        order = np.argsort(t, kind="stable")
+        t, v, usable, label = t[order], v[order], usable[order], label[order]
+        last = np.append(t[1:] != t[:-1], True)
+        t, v, usable, label = t[last], v[last], usable[last], label[last]
+    return t, v, usable, label
+
+
+def _grid_signal(
+    g: np.ndarray,
+    t: np.ndarray,
+    v: np.ndarray,
+    usable: np.ndarray,
+    label: np.ndarray,
+    spec: SignalGridSpec,
+) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """One signal onto grid instants ``g`` (int µs). Returns values, good, reasons."""
+    n_grid = len(g)
+    values = np.full(n_grid, np.nan)
+    if len(t) == 0:
+        return values, np.zeros(n_grid, dtype=bool), {_REASON_BEFORE: n_grid} if n_grid else {}
+    i = np.searchsorted(t, g, side="right") - 1  # last sample at or before g
+    before = i < 0
+    after = g > t[-1]
+    inside = ~before & ~after
+    ic = np.clip(i, 0, len(t) - 1)
+    exact = inside & (t[ic] == g)
+    # Offending sample for the quality mask (-1: none).
+    offender = np.full(n_grid, -1, dtype=np.int64)
+    max_gap_us = spec.max_gap_s * 1e6
+    if spec.interpolation == "hold":
+        left_bad = inside & ~usable[ic]
+        offender[left_bad] = ic[left_bad]
+        gap = inside & ~left_bad & ((g - t[ic]) > max_gap_us)
+        ok = inside & ~left_bad & ~gap
+        values[ok] = v[ic[ok]]
+    else:
+        j = np.clip(ic + 1, 0, len(t) - 1)
+        between = inside & ~exact  # here t[ic] < g < t[j], j exists because g <= t[-1]
+        left_bad = inside & ~usable[ic]
+        right_bad = between & usable[ic] & ~usable[j]
+        offender[left_bad] = ic[left_bad]
+        offender[right_bad] = j[right_bad]
+        quality_bad = left_bad | right_bad
+        gap = between & ~quality_bad & ((t[j] - t[ic]) > max_gap_us)
+        ok = inside & ~quality_bad & ~gap
+        ex = ok & exact
+        values[ex] = v[ic[ex]]
+        lin = ok & ~exact
+        w = (g[lin] - t[ic[lin]]) / (t[j[lin]] - t[ic[lin]])
+        values[lin] = v[ic[lin]] + (v[j[lin]] - v[ic[lin]]) * w
+    reasons: dict[str, int] = {}
+    for key, mask in ((_REASON_BEFORE, before), (_REASON_AFTER, after), (_REASON_GAP, gap)):
+        n = int(mask.sum())
+        if n:
+            reasons[key] = n
+    off = offender[offender >= 0]
+    if len(off):
+        labels, counts = np.unique(label[off].astype(str), return_counts=True)
+        reasons.update({str(k): int(c) for k, c in zip(labels, counts, strict=True)})
+    return values, ok, dict(sorted(reasons.items()))
+
+
+def to_grid(
+    table: pl.DataFrame,
+    *,
+    dt_s: float,
+    start: Any = None,
+    end: Any = None,
+    signals: Mapping[str, Mapping[str, Any] | SignalGridSpec | None] | Sequence[str] | None = None,
+    default_interpolation: Interpolation = "linear",
+    default_max_gap_s: float | None = None,
+    mask_suspect: bool = True,
+) -> Grid:
+    """Resample a canonical table onto a uniform grid with quality masks.
+
+    Parameters
+    ----------
+    table : polars.DataFrame
+        Canonical table (``time``, ``signal``, ``value``, ``quality``, ``state``) as
+        returned by :func:`pipeline.adapters.ingest.read_recording`.
+    dt_s : float
+        Grid period in seconds (a whole number of microseconds).
+    start, end : datetime, numpy.datetime64, ISO text or None
+        First grid instant and the last instant the grid may reach (inclusive; the grid
+        is ``start + k·dt_s <= end``). Naive values are UTC. Defaults: the earliest
+        first sample and the latest last sample of the selected signals.
+    signals : mapping or sequence of str or None
+        Signals in column order, each with ``{"interpolation": "linear"|"hold",
+        "max_gap_s": float}`` (or a :class:`SignalGridSpec`, or None for defaults); a
+        plain sequence of names uses the defaults; None takes every signal, sorted.
+    default_interpolation : {"linear", "hold"}
+        For signals without their own setting.
+    default_max_gap_s : float or None
+        For signals without their own setting; None means no limit.
+    mask_suspect : bool
+        Mask grid points that use suspect samples (default) or use them as good.
+
+    Returns
+    -------
+    Grid
+
+    Raises
+    ------
+    IngestError
+        A requested signal is not in the table (the message lists those present).
+    ConfigError
+        Invalid ``dt_s``, range or per-signal settings.
+    """
+    if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
+        raise ConfigError(f"dt_s={dt_s!r} must be a positive number of seconds")
+    dt_us = round(dt_s * 1e6)
+    if dt_us < 1 or abs(dt_us - dt_s * 1e6) > 1e-6 * dt_us:
+        raise ConfigError(f"dt_s={dt_s!r} must be a whole number of microseconds (>= 1e-6 s)")
+    table = _canonical_times(table)
+    sig = table["signal"]
+    if signals is None:
+        # The column is sorted: its runs are the signals (no hashing of every row).
+        present = sig.rle().struct.field("value").to_list() if len(sig) else []
+        items: Any = ((s, None) for s in present)
+    elif isinstance(signals, Mapping):
+        items = signals.items()
+    else:
+        items = ((s, None) for s in signals)
+    specs = {
+        name: _spec(raw, name, default_interpolation, default_max_gap_s) for name, raw in items
+    }
+    if not specs:
+        raise DataQualityError("to_grid: the table has no signals")
+    # Slices of the signal-sorted table: zero-copy views, one signal in memory at a time.
+    bounds = {}
+    for name in specs:
+        lo = int(sig.search_sorted(name, side="left"))
+        hi = int(sig.search_sorted(name, side="right"))
+        bounds[name] = (lo, hi)
+    missing = [s for s, (lo, hi) in bounds.items() if hi == lo]
+    if missing:
+        present = sig.rle().struct.field("value").to_list() if len(sig) else []
+        raise IngestError(
+            f"signal(s) {missing} are not in the recording; it has {present}; fix "
+            f"the tag names in the job's signals section"
+        )
+    if start is None or end is None:
+        firsts, lasts = [], []
+        tcol = table["time"]
+        for lo, hi in bounds.values():
+            if hi > lo:
+                # min/max, not the first/last row: a hand-made table may be unsorted in time.
+                part = tcol.slice(lo, hi - lo)
+                firsts.append(part.min())
+                lasts.append(part.max())
+        if not firsts:
+            raise DataQualityError("to_grid: the selected signals have no samples")
+    if start is not None:
+        start_us = _to_us(start, "start")
+    else:
+        start_us = min(_to_us(x, "start") for x in firsts)
+    end_us = _to_us(end, "end") if end is not None else max(_to_us(x, "end") for x in lasts)
+    if end_us < start_us:
+        raise ConfigError(f"end ({end}) is before start ({start}); give end >= start")
+    n = (end_us - start_us) // dt_us + 1
+    g = start_us + np.arange(n, dtype=np.int64) * dt_us
+    names = tuple(specs)
+    values = np.empty((n, len(names)))
+    good = np.empty((n, len(names)), dtype=bool)
+    reasons: dict[str, dict[str, int]] = {}
+    for k, name in enumerate(names):
+        lo, hi = bounds[name]
+        part = table.slice(lo, hi - lo)
+        t, v, usable, label = _signal_arrays(part, mask_suspect)
+        values[:, k], good[:, k], reasons[name] = _grid_signal(g, t, v, usable, label, specs[name])
+    return Grid(
+        time=g.astype("datetime64[us]"),
+        t_s=(g - start_us) / 1e6,
+        names=names,
+        values=values,
+        good=good,
+        mask_reasons=reasons,
+        dt_s=dt_us / 1e6,
+        interpolation={s: specs[s].interpolation for s in names},
+    )
+
+
+def grid_from_regular(
+    values: np.ndarray,
+    names: Sequence[str],
+    dt_s: float,
+    t0: Any,
+) -> Grid:
+    """Wrap data that is already uniformly sampled as a :class:`Grid`.
+
+    Parameters
+    ----------
+    values : array_like, shape (N, k)
+        Samples; NaN or inf marks a missing sample (masked, reason ``"nonfinite_value"``).
+    names : sequence of str, length k
+        Signal names.
+    dt_s : float
+        Sampling period in seconds (a whole number of microseconds).
+    t0 : datetime, numpy.datetime64 or ISO text
+        Time of the first row (naive = UTC).
+
+    Returns
+    -------
+    Grid
+    """
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2:
+        raise ConfigError(f"values must have shape (N, k); got shape {arr.shape}")
+    names = tuple(names)
+    if len(names) != arr.shape[1]:
+        raise ConfigError(
+            f"{len(names)} names for {arr.shape[1]} columns; give one name per column"
+        )
+    if len(set(names)) != len(names):
+        raise ConfigError(f"names must be unique; got {list(names)}")
+    if not (math.isfinite(dt_s) and dt_s > 0):
+        raise ConfigError(f"dt_s={dt_s!r} must be a positive number of seconds")
+    dt_us = round(dt_s * 1e6)
+    if dt_us < 1 or abs(dt_us - dt_s * 1e6) > 1e-6 * dt_us:
+        raise ConfigError(f"dt_s={dt_s!r} must be a whole number of microseconds")
+    start_us = _to_us(t0, "t0")
+    g = start_us + np.arange(arr.shape[0], dtype=np.int64) * dt_us
+    good = np.isfinite(arr)
+    values_out = np.where(good, arr, np.nan)
+    reasons = {
+        n: ({"nonfinite_value": int((~good[:, j]).sum())} if (~good[:, j]).any() else {})
+        for j, n in enumerate(names)
+    }
+    return Grid(
+        time=g.astype("datetime64[us]"),
+        t_s=(g - start_us) / 1e6,
+        names=names,
+        values=values_out,
+        good=good,
+        mask_reasons=reasons,
+        dt_s=dt_us / 1e6,
+        interpolation={n: "regular" for n in names},
+    )

@@ -1,0 +1,546 @@
+"""Historian CSV exports (long and wide layouts) → pre-canonical table.
+
+Detection works on the first 64 KiB (decoded): encoding (byte-order mark, else UTF-8),
+separator, decimal mark, layout, header rows, column roles. The whole file is then read
+once by :func:`polars.read_csv` with every column as text, and parsed with polars
+expressions (timestamps, numbers, text states) — no Python loop over rows.
+
+Use :func:`pipeline.adapters.ingest.read_recording`; this module is its CSV back end.
+"""
+
+from __future__ import annotations
+
+import codecs
+import csv as _csv
+import re
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+from pipeline.adapters.ingest import (
+    CsvOptions,
+    _BAD_FLAGS,
+    _check_tags,
+    _GOOD_FLAGS,
+    _ReaderMeta,
+    _SUSPECT_FLAGS,
+    looks_like_time,
+    parse_time_and_values,
+)
+from pipeline.errors import ConfigError, IngestError
+
+_HEAD_BYTES = 65536
+_SAMPLE_ROWS = 200
+
+_TAG_KEYS = {"tag", "tagname", "name", "pointname", "point", "signal", "item", "itemid", "tagid"}
+_TIME_KEYS = {
+    "time", "timestamp", "datetime", "date", "ts", "t", "localtime", "timeutc",
+    "timestamputc", "timelocal", "timestamplocal", "zeitstempel", "zeit",
+}  # fmt: skip
+_VALUE_KEYS = {"value", "pv", "val", "v", "reading", "wert", "measurement"}
+_QUALITY_KEYS = {"status", "quality", "q", "qual", "flag", "flags", "qualitycode", "statuscode"}
+_QUALITY_SUFFIXES = (
+    " quality", ".quality", "_quality", "-quality", " status", ".status", "_status",
+)  # fmt: skip
+
+_COMMA_DECIMAL = re.compile(r"^\s*[-+]?\d+,\d+([eE][-+]?\d+)?\s*$")
+_DOT_DECIMAL = re.compile(r"^\s*[-+]?(\d+\.\d*|\.\d+)([eE][-+]?\d+)?\s*$")
+
+
+def _key(name: str) -> str:
+    """Header name → comparison key: lower case, letters and digits only."""
+    return re.sub(r"[^0-9a-z]", "", name.strip().lower())
+
+
+def _is_quality_header(name: str) -> bool:
+    low = name.strip().lower()
+    return _key(name) in _QUALITY_KEYS or low.endswith(_QUALITY_SUFFIXES)
+
+
+def _is_flag_text(cell: str) -> bool:
+    low = cell.strip().lower()
+    return low in _GOOD_FLAGS or low in _BAD_FLAGS or low in _SUSPECT_FLAGS
+
+
+# ----------------------------------------------------------------------------- encoding
+def _detect_encoding(head: bytes, options: CsvOptions, path: str, complete: bool) -> str:
+    """Python codec of the file: forced, from the byte-order mark, or UTF-8.
+
+    Raises IngestError when there is no BOM and the bytes are not UTF-8.
+    """
+    if options.encoding is not None:
+        try:
+            return codecs.lookup(options.encoding).name
+        except LookupError as exc:
+            raise ConfigError(
+                f"CsvOptions(encoding={options.encoding!r}) is not a known codec; use e.g. "
+                f"'utf-8', 'utf-16', 'cp1252', 'latin-1'"
+            ) from exc
+    if head.startswith(codecs.BOM_UTF8):
+        return "utf-8-sig"
+    if head.startswith((codecs.BOM_UTF32_LE, codecs.BOM_UTF32_BE)):
+        return "utf-32"
+    if head.startswith(codecs.BOM_UTF16_LE):
+        return "utf-16-le"
+    if head.startswith(codecs.BOM_UTF16_BE):
+        return "utf-16-be"
+    if head.startswith(b"PK\x03\x04"):
+        raise IngestError(
+            f"{path}: this is a zip archive (an Excel .xlsx workbook?), not a CSV text "
+            f"export; save it as CSV from the historian or spreadsheet"
+        )
+    window = head[:4096]
+    if b"\x00" in window:
+        # UTF-16 without a BOM: ASCII text has a NUL in every other byte.
+        even, odd = window[0::2], window[1::2]
+        if odd.count(0) > 0.3 * len(odd) and even.count(0) < 0.05 * len(even):
+            return "utf-16-le"
+        if even.count(0) > 0.3 * len(even) and odd.count(0) < 0.05 * len(odd):
+            return "utf-16-be"
+        raise IngestError(
+            f"{path}: unknown encoding — the file holds NUL bytes but no byte-order mark "
+            f"and no UTF-16 pattern (a binary file?); export as UTF-8 or UTF-16 text, or "
+            f"pass CsvOptions(encoding=...)"
+        )
+    try:
+        codecs.getincrementaldecoder("utf-8")().decode(head, final=complete)
+    except UnicodeDecodeError as exc:
+        raise IngestError(
+            f"{path}: unknown encoding — no byte-order mark and byte 0x{head[exc.start]:02X} "
+            f"at offset {exc.start} is not valid UTF-8; pass the export's code page, e.g. "
+            f"CsvOptions(encoding='cp1252') or 'latin-1'"
+        ) from exc
+    return "utf-8"
+
+
+def _decode_head(head: bytes, codec: str, complete: bool, path: str) -> str:
+    try:
+        text = codecs.getincrementaldecoder(codec)().decode(head, final=complete)
+    except UnicodeDecodeError as exc:
+        raise IngestError(
+            f"{path}: cannot decode the first bytes as {codec} (offset {exc.start}); pass "
+            f"the right CsvOptions(encoding=...)"
+        ) from exc
+    return text.lstrip("\ufeff")
+
+
+def _polars_source(path: Path, codec: str) -> str | bytes:
+    """What polars reads: the path for UTF-8, else the file transcoded to UTF-8 bytes."""
+    if codec in ("utf-8", "utf-8-sig"):
+        return str(path)  # polars skips a UTF-8 BOM itself
+    try:
+        text = path.read_bytes().decode(codec)
+    except UnicodeDecodeError as exc:
+        raise IngestError(
+            f"{path}: bytes at offset {exc.start} are not valid {codec}; the file is "
+            f"corrupt or in another encoding (pass CsvOptions(encoding=...))"
+        ) from exc
+    return text.lstrip("\ufeff").encode("utf-8")
+
+
+# ----------------------------------------------------------------------------- layout
+def _detect_separator(lines: list[str]) -> str:
+    """The candidate with the largest count that is the same on >= 80 % of lines."""
+    lines = [ln for ln in lines if ln.strip()][:_SAMPLE_ROWS]
+    best, best_count = ",", 0
+    for cand in (";", "\t", ",", "|"):  # ties go to the earlier (rarer in data) one
+        counts = Counter(ln.count(cand) for ln in lines)
+        mode, freq = counts.most_common(1)[0]
+        if mode >= 1 and freq >= 0.8 * len(lines) and mode > best_count:
+            best, best_count = cand, mode
+    return best
+
+
+def _detect_decimal(cells: list[str], separator: str) -> str:
+    if separator == ",":
+        return "."
+    comma = sum(1 for c in cells if _COMMA_DECIMAL.match(c))
+    dot = sum(1 for c in cells if _DOT_DECIMAL.match(c))
+    return "," if comma > 0 and dot == 0 else "."
+
+
+def _cell(row: list[str], i: int) -> str:
+    return row[i].strip() if i < len(row) else ""
+
+
+def _find(
+    header: list[str], keys: set[str], forced: str | None, what: str, path: str
+) -> int | None:
+    if forced is not None:
+        if forced == "":
+            return None
+        for i, h in enumerate(header):
+            if h.strip() == forced.strip():
+                return i
+        raise IngestError(
+            f"{path}: {what} column {forced!r} (from CsvOptions) is not in the header "
+            f"{[h.strip() for h in header]}"
+        )
+    for i, h in enumerate(header):
+        if _key(h) in keys:
+            return i
+    return None
+
+
+def _detect_layout(rows: list[list[str]], options: CsvOptions) -> str:
+    header = rows[0]
+    keys = {_key(h) for h in header}
+    if options.tag_column is not None or (keys & _TAG_KEYS and keys & _VALUE_KEYS):
+        return "long"
+    if len(header) >= 3 and looks_like_time(header[1]) and not looks_like_time(header[0]):
+        return "long"  # headerless tag,time,value[,status]
+    return "wide"
+
+
+# ----------------------------------------------------------------------------- reading
+def read_csv_raw(
+    path: Path,
+    *,
+    layout: str,
+    options: CsvOptions,
+    timezone: str,
+    tags: list[str] | None,
+) -> tuple[pl.DataFrame, _ReaderMeta]:
+    """Read a historian CSV into the pre-canonical table.
+
+    Returns
+    -------
+    pre : polars.DataFrame
+        Columns ``signal`` (str), ``time`` (Datetime us UTC), ``value`` (Float64, null
+        for text/empty), ``state_text`` (str), ``flag`` (str raw quality flag or null),
+        in file order.
+    meta : _ReaderMeta
+    """
+    name = str(path)
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(_HEAD_BYTES)
+    complete = size <= _HEAD_BYTES
+    codec = _detect_encoding(head, options, name, complete)
+    text = _decode_head(head, codec, complete, name)
+    lines = text.splitlines()
+    if not complete and lines:
+        lines = lines[:-1]  # the last line of the head may be cut
+    lines = lines[options.skip_lines :]
+    while lines and not lines[0].strip():
+        # Blank lines before the header are skipped by polars too; count them as skipped.
+        lines = lines[1:]
+        options = _replace(options, skip_lines=options.skip_lines + 1)
+    if not lines:
+        raise IngestError(
+            f"{name}: no text lines (only blanks / a byte-order mark); re-run the export"
+        )
+    sep = options.separator or _detect_separator(lines)
+    rows = [r for r in _csv.reader(lines[:_SAMPLE_ROWS], delimiter=sep)]
+    if layout == "auto":
+        layout = _detect_layout(rows, options)
+    source = _polars_source(path, codec)
+    encoding = {"utf-8-sig": "utf-8-bom"}.get(codec, codec)
+    if layout == "long":
+        return _read_long(source, rows, sep, options, timezone, tags, name, encoding)
+    return _read_wide(source, rows, sep, options, timezone, tags, name, encoding)
+
+
+def _replace(options: CsvOptions, **changes: Any) -> CsvOptions:
+    from dataclasses import replace
+
+    return replace(options, **changes)
+
+
+def _polars_read(source: str | bytes, name: str, **kwargs: Any) -> pl.DataFrame:
+    import io
+
+    src: Any = io.BytesIO(source) if isinstance(source, bytes) else source
+    try:
+        return pl.read_csv(src, infer_schema=False, raise_if_empty=False, **kwargs)
+    except pl.exceptions.PolarsError as exc:
+        msg = str(exc)
+        if "utf-8" in msg.lower() or "utf8" in msg.lower():
+            raise IngestError(
+                f"{name}: invalid UTF-8 further into the file ({msg.splitlines()[0]}); "
+                f"pass the export's code page, e.g. CsvOptions(encoding='cp1252')"
+            ) from exc
+        raise IngestError(
+            f"{name}: the CSV reader failed ({type(exc).__name__}: {msg.splitlines()[0]}); "
+            f"check the separator/quoting or pass CsvOptions(separator=...)"
+        ) from exc
+
+
+def _read_long(
+    source: str | bytes,
+    rows: list[list[str]],
+    sep: str,
+    options: CsvOptions,
+    timezone: str,
+    tags: list[str] | None,
+    name: str,
+    encoding: str,
+) -> tuple[pl.DataFrame, _ReaderMeta]:
+    header = rows[0]
+    named = {_key(h) for h in header} & (_TAG_KEYS | _VALUE_KEYS | _TIME_KEYS)
+    has_header = (
+        bool(named)
+        or options.tag_column is not None
+        or not (len(header) >= 3 and looks_like_time(header[1]) and not looks_like_time(header[0]))
+    )
+    if has_header:
+        i_tag = _find(header, _TAG_KEYS, options.tag_column, "tag", name)
+        i_time = _find(header, _TIME_KEYS, options.time_column, "time", name)
+        i_value = _find(header, _VALUE_KEYS, options.value_column, "value", name)
+        i_flag = _find(header, _QUALITY_KEYS, options.quality_column, "quality", name)
+        if i_tag is None or i_value is None:
+            raise IngestError(
+                f"{name}: long layout needs a tag and a value column; header is "
+                f"{[h.strip() for h in header]}; name them tag/value or pass "
+                f"CsvOptions(tag_column=..., value_column=...)"
+            )
+        if i_time is None:
+            raise IngestError(
+                f"{name}: no time column in header {[h.strip() for h in header]}; name it "
+                f"one of time/timestamp/datetime/date or pass CsvOptions(time_column=...)"
+            )
+        data_rows = rows[1:]
+    else:
+        i_tag, i_time, i_value = 0, 1, 2
+        i_flag = 3 if len(header) >= 4 and options.quality_column != "" else None
+        data_rows = rows
+    roles = {"tag": i_tag, "time": i_time, "value": i_value}
+    if i_flag is not None:
+        roles["flag"] = i_flag
+    by_index = sorted(roles.items(), key=lambda kv: kv[1])
+    sample_values = [_cell(r, i_value) for r in data_rows]
+    decimal = options.decimal or _detect_decimal(sample_values, sep)
+    first_line = options.skip_lines + (2 if has_header else 1)
+    df = _polars_read(
+        source,
+        name,
+        separator=sep,
+        has_header=has_header,
+        skip_lines=options.skip_lines,
+        columns=[i for _, i in by_index],
+        row_index_name="_row" if tags is not None else None,
+    )
+    names = (["_row"] if tags is not None else []) + [r for r, _ in by_index]
+    df = df.rename(dict(zip(df.columns, names, strict=True)))
+    if len(df) == 0:
+        raise IngestError(f"{name}: the file has a header but no data rows; re-run the export")
+    tag_col = df["tag"]
+    if tag_col.null_count():
+        i = int(tag_col.is_null().arg_true()[0])
+        raise IngestError(f"{name}, line {first_line + i}: empty tag name; fix or remove the row")
+    if bool(tag_col.head(1000).str.contains(r"^\s|\s$").any()):
+        tag_col = tag_col.str.strip_chars()
+        df = df.with_columns(tag=tag_col)
+    if tags is not None:
+        _check_tags(tag_col.unique().to_list(), tags, name)
+        df = df.filter(pl.col("tag").is_in(tags))
+        rows_idx = df["_row"]
+
+        def line_of(i: int) -> int:
+            return first_line + int(rows_idx[i])
+    else:
+
+        def line_of(i: int) -> int:
+            return first_line + i
+
+    time, values, fmt, dst, warnings = parse_time_and_values(
+        df,
+        time_col="time",
+        value_cols=["value"],
+        timezone=timezone,
+        time_format=options.time_format,
+        decimal_comma=decimal == ",",
+        signal=df["tag"],
+        line_of=line_of,
+        path=name,
+    )
+    value, state = values["value"]
+    if "flag" in df.columns:
+        flag = df["flag"]
+    else:
+        flag = pl.repeat(None, len(df), dtype=pl.String, eager=True)
+    pre = pl.DataFrame(
+        {"signal": df["tag"], "time": time, "value": value, "state_text": state, "flag": flag}
+    )
+    meta = _ReaderMeta(
+        path=name,
+        layout="long",
+        encoding=encoding,
+        separator=sep,
+        decimal=decimal,
+        time_format=fmt,
+        header_rows=1 if has_header else 0,
+        dst_resolved=dst,
+        warnings=tuple(warnings),
+    )
+    return pre, meta
+
+
+def _read_wide(
+    source: str | bytes,
+    rows: list[list[str]],
+    sep: str,
+    options: CsvOptions,
+    timezone: str,
+    tags: list[str] | None,
+    name: str,
+    encoding: str,
+) -> tuple[pl.DataFrame, _ReaderMeta]:
+    header0 = rows[0]
+    i_time = _find(header0, _TIME_KEYS, options.time_column, "time", name)
+    if i_time is None:
+        i_time = 0
+    if options.header_rows is not None:
+        n_header = options.header_rows
+    else:
+        n_header = next(
+            (r for r, row in enumerate(rows) if looks_like_time(_cell(row, i_time))), None
+        )
+        if n_header is None:
+            raise IngestError(
+                f"{name}: no time column — none of the first {len(rows)} rows has a "
+                f"timestamp in column {i_time + 1} ({_cell(header0, i_time)!r}); put the "
+                f"time first, name it Time, or pass CsvOptions(time_column=..., "
+                f"time_format=...)"
+            )
+    if n_header == 0:
+        raise IngestError(
+            f"{name}: wide layout without a header row naming the tags; add one or export "
+            f"in the long layout (tag,time,value)"
+        )
+    header = rows[:n_header]
+    data_rows = rows[n_header:]
+    if not (0 <= options.tag_row < n_header):
+        raise ConfigError(
+            f"CsvOptions(tag_row={options.tag_row}) must be in 0..{n_header - 1} "
+            f"(the file has {n_header} header rows)"
+        )
+    tag_row = header[options.tag_row]
+    n_cols = max(len(r) for r in rows)
+    value_cols: dict[str, int] = {}
+    quality_cols: dict[str, int] = {}
+    warnings: list[str] = []
+    last_tag: str | None = None
+    for c in range(n_cols):
+        if c == i_time:
+            continue
+        top = _cell(header0, c)
+        tag = _cell(tag_row, c)
+        sample = [_cell(r, c) for r in data_rows if _cell(r, c)]
+        quality_like = _is_quality_header(top) or (tag and _is_quality_header(tag))
+        blank_flags = not tag and sample and all(_is_flag_text(x) for x in sample)
+        if quality_like or blank_flags:
+            target = last_tag
+            low = top.lower()
+            for suffix in _QUALITY_SUFFIXES:
+                if low.endswith(suffix) and top[: -len(suffix)].strip() in value_cols:
+                    target = top[: -len(suffix)].strip()
+            if target is None:
+                warnings.append(
+                    f"{name}: quality column {c + 1} ({top!r}) has no value column before "
+                    f"it; ignored"
+                )
+            else:
+                quality_cols[target] = c
+            continue
+        if not tag and not sample:
+            continue  # an empty column (e.g. from a trailing separator)
+        if not tag:
+            tag = f"column{c + 1}"
+            warnings.append(f"{name}: value column {c + 1} has no tag name; named it {tag!r}")
+        if tag in value_cols:
+            raise IngestError(
+                f"{name}: tag {tag!r} names two columns ({value_cols[tag] + 1} and {c + 1}) in "
+                f"header row {options.tag_row + 1}; make the header unique or pass "
+                f"CsvOptions(tag_row=...) for the row that names the tags"
+            )
+        value_cols[tag] = c
+        last_tag = tag
+    if not value_cols:
+        raise IngestError(f"{name}: wide layout with no value columns besides the time column")
+    unit_row = (
+        options.unit_row
+        if options.unit_row is not None
+        else (n_header - 1 if n_header >= 2 else None)
+    )
+    desc_row = (
+        options.description_row
+        if options.description_row is not None
+        else (n_header - 2 if n_header >= 3 else None)
+    )
+    units: dict[str, str] = {}
+    descriptions: dict[str, str] = {}
+    for tag, c in value_cols.items():
+        for row_i, out in ((unit_row, units), (desc_row, descriptions)):
+            if row_i is None or row_i == options.tag_row or not (0 <= row_i < n_header):
+                continue
+            cell = _cell(header[row_i], c)
+            if cell and cell != tag:
+                out[tag] = cell
+    if tags is not None:
+        _check_tags(value_cols, tags, name)
+        value_cols = {t: value_cols[t] for t in tags}
+        quality_cols = {t: c for t, c in quality_cols.items() if t in value_cols}
+    sample_values = [_cell(r, c) for r in data_rows for c in value_cols.values()]
+    decimal = options.decimal or _detect_decimal(sample_values, sep)
+    wanted = sorted({i_time, *value_cols.values(), *quality_cols.values()})
+    df = _polars_read(
+        source,
+        name,
+        separator=sep,
+        has_header=False,
+        skip_lines=options.skip_lines + n_header,
+        columns=wanted,
+    )
+    df = df.rename(dict(zip(df.columns, [f"c{i}" for i in wanted], strict=True)))
+    if len(df) == 0:
+        raise IngestError(f"{name}: the file has {n_header} header rows but no data rows")
+    first_line = options.skip_lines + n_header + 1
+    time, values, fmt, dst, time_warnings = parse_time_and_values(
+        df,
+        time_col=f"c{i_time}",
+        value_cols=[f"c{c}" for c in value_cols.values()],
+        timezone=timezone,
+        time_format=options.time_format,
+        decimal_comma=decimal == ",",
+        signal=None,
+        line_of=lambda i: first_line + i,
+        path=name,
+    )
+    warnings.extend(time_warnings)
+    frames = []
+    null_flags = pl.repeat(None, len(df), dtype=pl.String, eager=True)
+    for tag, c in value_cols.items():
+        value, state = values[f"c{c}"]
+        flag = df[f"c{quality_cols[tag]}"] if tag in quality_cols else null_flags
+        frames.append(
+            pl.DataFrame(
+                {
+                    "signal": pl.repeat(tag, len(df), eager=True, dtype=pl.String),
+                    "time": time,
+                    "value": value,
+                    "state_text": state,
+                    "flag": flag,
+                }
+            )
+        )
+    pre = pl.concat(frames, how="vertical")
+    meta = _ReaderMeta(
+        path=name,
+        layout="wide",
+        encoding=encoding,
+        separator=sep,
+        decimal=decimal,
+        time_format=fmt,
+        header_rows=n_header,
+        dst_resolved={tag: dst.get("", 0) for tag in value_cols} if dst else {},
+        units=units,
+        descriptions=descriptions,
+        warnings=tuple(warnings),
+    )
+    return pre, meta
+
+
+__all__ = ["read_csv_raw"]

@@ -1,0 +1,199 @@
+"""Benchmark: historian long-CSV ingestion vs a bare ``polars.read_csv``, and a month
+of 1 Hz data through ingestion and ``to_grid``.
+
+Run::
+
+    .venv/bin/python -m tests.benchmarks.bench_ingest            # both parts
+    .venv/bin/python -m tests.benchmarks.bench_ingest --days 3 --no-month
+
+Part 1 — a generated PI-style long CSV (20 tags x 1 Hz x ``--days`` days, ISO UTC
+timestamps, status column, a few text states): best-of-``--repeat`` wall time of
+``polars.read_csv(path)`` and of ``read_recording(path)``, interleaved, and their ratio
+(target <= 2).
+
+Part 2 — a month (20 tags x 1 Hz x 30 days ≈ 52 M rows, ≈ 2.3 GB) generated once, tag
+by tag, under ``--cache-dir`` (default ``/tmp/plantdyn_bench``). Each stage runs in its
+own subprocess so its peak resident memory (``resource.getrusage(...).ru_maxrss``, which
+also counts polars' Rust allocations that ``tracemalloc`` cannot see) is its own:
+bare ``polars.read_csv``; ``read_recording``; ``read_recording`` + ``to_grid`` at 1 s.
+
+Performance claims live here, printed from one run — never in a timed unit test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+N_TAGS = 20
+STATE_EVERY = 50_000  # one "Bad Input" text state per tag every ~14 h of 1 Hz data
+
+
+def generate_long_csv(path: Path, *, days: float, n_tags: int = N_TAGS, seed: int = 0) -> Path:
+    """Write a tag-grouped PI-style long CSV at 1 Hz, one tag at a time (bounded memory).
+
+    Columns ``tag,timestamp,value,status``; timestamps ISO 8601 with ``Z``; values a
+    random walk with 4 decimals; every ``STATE_EVERY``-th sample is the text state
+    ``Bad Input`` with status ``Bad``.
+    """
+    n = int(days * 86_400)
+    start = np.datetime64("2024-01-01T00:00:00", "ms")
+    offsets = np.arange(n).astype("timedelta64[s]").astype("timedelta64[ms]")
+    stamps = pl.Series("timestamp", start + offsets).dt.strftime("%Y-%m-%dT%H:%M:%SZ")
+    rng = np.random.default_rng(seed)
+    tmp = path.with_suffix(".partial")
+    with tmp.open("wb") as f:
+        f.write(b"tag,timestamp,value,status\n")
+        for k in range(n_tags):
+            walk = np.round(np.cumsum(rng.normal(0, 0.1, n)) + 50.0, 4)
+            value = pl.Series("value", walk).cast(pl.String)
+            is_state = pl.Series((np.arange(n) % STATE_EVERY) == (k * 997) % STATE_EVERY)
+            frame = pl.DataFrame(
+                {
+                    "tag": pl.repeat(f"PLANT.TAG{k:03d}.PV", n, dtype=pl.String, eager=True),
+                    "timestamp": stamps,
+                    "value": pl.select(
+                        pl.when(pl.lit(is_state)).then(pl.lit("Bad Input")).otherwise(pl.lit(value))
+                    ).to_series(),
+                    "status": pl.select(
+                        pl.when(pl.lit(is_state)).then(pl.lit("Bad")).otherwise(pl.lit("Good"))
+                    ).to_series(),
+                }
+            )
+            frame.write_csv(f, include_header=False)
+    tmp.replace(path)
+    return path
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _stage(stage: str, path: str) -> dict[str, float]:
+    """One measured stage (run inside a fresh subprocess)."""
+    from pipeline.adapters.grid import to_grid
+    from pipeline.adapters.ingest import read_recording
+
+    base = _peak_rss_mb()
+    t0 = time.perf_counter()
+    out: dict[str, float] = {}
+    if stage == "bare":
+        df = pl.read_csv(path)
+        out["rows"] = len(df)
+    elif stage in ("ingest", "ingest+grid"):
+        table, report = read_recording(path)
+        out["rows"] = len(table)
+        out["bad"] = sum(s.bad for s in report.signals)
+        out["ingest_s"] = time.perf_counter() - t0
+        if stage == "ingest+grid":
+            t1 = time.perf_counter()
+            grid = to_grid(table, dt_s=1.0)
+            out["grid_s"] = time.perf_counter() - t1
+            out["grid_points"] = float(grid.values.size)
+            out["grid_masked"] = float((~grid.good).sum())
+    else:
+        raise SystemExit(f"unknown stage {stage!r}")
+    out["seconds"] = time.perf_counter() - t0
+    out["peak_rss_mb"] = _peak_rss_mb()
+    out["rss_before_mb"] = base
+    return out
+
+
+def _run_stage(stage: str, path: Path) -> dict[str, float]:
+    cmd = [sys.executable, "-m", "tests.benchmarks.bench_ingest", "--stage", stage, "--path", str(path)]
+    root = Path(__file__).resolve().parents[2]
+    res = subprocess.run(cmd, check=True, capture_output=True, text=True, cwd=root)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def bench_ratio(path: Path, repeat: int) -> None:
+    """Part 1: bare read_csv vs read_recording on the same file, best of ``repeat``."""
+    from pipeline.adapters.ingest import read_recording
+
+    pl.read_csv(path)  # warm the page cache and polars
+    read_recording(path)
+    bare, ours = [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        pl.read_csv(path)
+        bare.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        table, _ = read_recording(path)
+        ours.append(time.perf_counter() - t0)
+    size_mb = path.stat().st_size / 1e6
+    print(f"[ratio] {path.name}: {size_mb:.0f} MB, {len(table):,} rows")
+    for label, times in (("polars.read_csv", bare), ("read_recording", ours)):
+        print(
+            f"[ratio] {label:16s} best {min(times):.3f} s ({size_mb / min(times):.0f} MB/s), "
+            f"median {float(np.median(times)):.3f} s, all {[round(x, 3) for x in times]}"
+        )
+    print(
+        f"[ratio] read_recording / polars.read_csv = {min(ours) / min(bare):.2f} (best of "
+        f"{repeat}), {float(np.median(ours)) / float(np.median(bare)):.2f} (medians); target <= 2"
+    )
+
+
+def bench_month(cache_dir: Path, days: float) -> None:
+    """Part 2: a month through ingestion and to_grid, each stage in its own process."""
+    path = cache_dir / f"month_{N_TAGS}tags_{days:g}d_1Hz.csv"
+    if not path.exists():
+        t0 = time.perf_counter()
+        generate_long_csv(path, days=days)
+        print(f"[month] generated {path} in {time.perf_counter() - t0:.1f} s")
+    size_gb = path.stat().st_size / 1e9
+    print(f"[month] {path.name}: {size_gb:.2f} GB, {N_TAGS} tags x {int(days * 86400):,} s")
+    results = {}
+    for stage in ("bare", "ingest", "ingest+grid"):
+        results[stage] = r = _run_stage(stage, path)
+        extra = ""
+        if stage == "ingest+grid":
+            extra = (
+                f", ingest {r['ingest_s']:.1f} s + to_grid {r['grid_s']:.1f} s, "
+                f"grid {int(r['grid_points']):,} points, {int(r['grid_masked']):,} masked"
+            )
+        print(
+            f"[month] {stage:12s} {r['seconds']:6.1f} s  peak RSS {r['peak_rss_mb'] / 1024:5.2f} GiB  "
+            f"rows {int(r['rows']):,}{extra}"
+        )
+    print(
+        f"[month] read_recording / polars.read_csv = "
+        f"{results['ingest']['seconds'] / results['bare']['seconds']:.2f}; "
+        f"peak memory ratio {results['ingest']['peak_rss_mb'] / results['bare']['peak_rss_mb']:.2f}"
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command-line entry point (see module docstring)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--days", type=float, default=3.0, help="days of 1 Hz data (ratio part)")
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--month-days", type=float, default=30.0)
+    parser.add_argument("--no-month", action="store_true", help="skip the month part")
+    default_cache = Path(os.environ.get("TMPDIR", "/tmp")) / "plantdyn_bench"
+    parser.add_argument("--cache-dir", type=Path, default=default_cache)
+    parser.add_argument("--stage", help=argparse.SUPPRESS)
+    parser.add_argument("--path", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.stage:
+        print(json.dumps(_stage(args.stage, args.path)))
+        return
+    args.cache_dir.mkdir(parents=True, exist_ok=True)
+    ratio_path = args.cache_dir / f"long_{N_TAGS}tags_{args.days:g}d_1Hz.csv"
+    if not ratio_path.exists():
+        generate_long_csv(ratio_path, days=args.days)
+    bench_ratio(ratio_path, args.repeat)
+    if not args.no_month:
+        bench_month(args.cache_dir, args.month_days)
+
+
+if __name__ == "__main__":
+    main()
