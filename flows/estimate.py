@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -15,7 +16,11 @@ from prefect.artifacts import (
 )
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import retry_transient_io, task_runner_for
+from flows.common import (
+    console_without_user_error_tracebacks,
+    retry_transient_io,
+    task_runner_for,
+)
 from pipeline import jobs
 from pipeline.adapters.config import load_job
 
@@ -54,6 +59,12 @@ def store_task(cfg, summary, prep, sr, timings, run_id):
     return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
 
 
+def _say(t_start: float, stage: str, message: str) -> None:
+    """Stage progress on stderr (Prefect's own logging is quiet by default)."""
+    print(f"[{time.perf_counter() - t_start:7.1f} s] {stage}: {message}", file=sys.stderr,
+          flush=True)
+
+
 def _artifact_key(job: str, suffix: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in f"{job}-{suffix}".lower())
 
@@ -65,26 +76,36 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     timings: dict[str, float] = {}
     progress = create_progress_artifact(0.0, key=_artifact_key(cfg.job, "progress"),
                                         description=f"{cfg.job}: estimation progress")
+    start = time.perf_counter()
+    _say(start, "ingest", f"reading {files or cfg.source.path}")
     t0 = time.perf_counter()
     rec = ingest_task(cfg, [Path(f) for f in files] if files else None)
     timings["ingest"] = time.perf_counter() - t0
     update_progress_artifact(progress, 15.0, description="ingested")
+    _say(start, "ingest", f"{rec.values.shape[0]} grid samples at {rec.dt_s:g} s, "
+         f"{sum(q['masked'] for q in rec.quality.values())} masked")
     t0 = time.perf_counter()
     prep = prepare_task(cfg, rec)
     timings["prepare"] = time.perf_counter() - t0
+    _say(start, "prepare", f"T = {prep.dt_s:g} s (decimation {prep.decimation}), "
+         f"conditioning {prep.conditioning['method']}")
     t0 = time.perf_counter()
     sr = search_task(cfg, prep)
     timings["search"] = time.perf_counter() - t0
     update_progress_artifact(progress, 50.0, description=f"N_p chosen, N_d={sr.n_d}")
+    _say(start, "search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
+         f"{len(sr.windows)} windows")
     t0 = time.perf_counter()
     windows = [None] + [tuple(w) for w in sr.windows]
     futures = estimate_task.map(unmapped(prep), windows, unmapped(sr.n_p))
     ests = futures.result()
     timings["estimate"] = time.perf_counter() - t0
     update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
+    _say(start, "estimate", f"{len(windows)} estimates (all + windows)")
     t0 = time.perf_counter()
     summary = summarise_task(cfg, prep, sr, ests[0], ests[1:])
     timings["summarise"] = time.perf_counter() - t0
+    _say(start, "store", "writing run directory and Rerun recording")
     report = store_task(cfg, summary, prep, sr, timings, run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(summary.report_md, key=_artifact_key(cfg.job, "report"),
@@ -100,6 +121,7 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
 def run_estimate(job_path: str | Path, *, files=None, run_id=None):
     """Run the estimate flow, on a Dask cluster when ``dask.address`` is configured."""
     cfg = load_job(job_path)
+    console_without_user_error_tracebacks()
     runner = task_runner_for(cfg.dask.address)
     fl = estimate_flow.with_options(task_runner=runner) if runner else estimate_flow
     return fl(str(job_path), [str(f) for f in files] if files else None, run_id)

@@ -11,7 +11,8 @@ Decisions (also in the README):
 
 * Grid: the recording is put on a uniform grid at the median sample spacing of its
   signals (or ``source.grid_dt_s``); inputs are linearly interpolated, outputs held,
-  each up to ``max_gap_s`` (default 10 grid periods), beyond which samples are masked.
+  each up to ``max_gap_s`` (default: the larger of 10 grid periods and 600 s, see
+  :data:`DEFAULT_MAX_GAP_S`), beyond which samples are masked.
 * Sample period: α_T on the longest stretch where every signal is good; the record is
   then averaged-then-decimated (a decimated sample is bad if any source sample is).
 * Conditioning with gaps: masked samples are filled by linear interpolation only to let
@@ -60,6 +61,11 @@ __all__ = [
 ]
 
 Progress = Callable[[str, str], None]
+
+DEFAULT_MAX_GAP_S = 600.0
+"""Default longest span bridged on the grid.  Historians record by exception: no record
+means "no change beyond the deadband", and a tag is re-recorded at least every
+exception-max interval (PI's default ExcMax is 600 s).  Longer gaps are outages: masked."""
 
 
 def _quiet(stage: str, message: str) -> None:  # default progress sink
@@ -169,7 +175,8 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
     spec = {}
     for name, (role, s) in sig.items():
         interp = s.interpolation or ("linear" if role == "input" else "hold")
-        spec[s.tag] = {"interpolation": interp, "max_gap_s": s.max_gap_s or 10 * grid_dt}
+        spec[s.tag] = {"interpolation": interp,
+                       "max_gap_s": s.max_gap_s or max(10 * grid_dt, DEFAULT_MAX_GAP_S)}
     grid = to_grid(table, dt_s=grid_dt, signals=spec)
     order = [grid.names.index(t) for t in tags]
     values = np.asarray(grid.values)[:, order]
