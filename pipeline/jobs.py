@@ -171,6 +171,8 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
     table, report = read_recordings(files, layout=cfg.source.layout,
                                     timezone=cfg.source.timezone, tags=tags, mcap=mcap,
                                     on_truncated=cfg.source.on_truncated)
+    if cfg.source.time_order == "strict":
+        _check_time_order(report)
     grid_dt = cfg.source.grid_dt_s or _median_spacing_s(table)
     spec = {}
     for name, (role, s) in sig.items():
@@ -199,6 +201,19 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
     return Recording(tuple(sig), tuple(r for r, _ in sig.values()), tuple(tags),
                      np.asarray(grid.time), float(grid_dt), values, good,
                      tuple(str(f) for f in files), quality, ing)
+
+
+def _check_time_order(report) -> None:
+    bad = [(st.signal, st.duplicates_removed, st.out_of_order) for st in report.signals
+           if st.duplicates_removed or st.out_of_order]
+    if bad:
+        detail = "; ".join(f"tag {t}: {d} duplicate and {o} out-of-order timestamp(s)"
+                           for t, d, o in bad[:5])
+        raise DataQualityError(
+            f"source.time_order is 'strict' but the recording has non-monotonic or "
+            f"duplicate times: {detail}; fix the export, or set source.time_order: fix to "
+            "resolve them (last value wins, rows sorted) and count them in checks.json"
+        )
 
 
 def _report_dict(report) -> dict:

@@ -83,6 +83,10 @@ class SourceConfig(_Strict):
     mcap: McapOptions | None = None
     grid_dt_s: float | None = Field(default=None, gt=0)
     """Period of the uniform grid before α_T resampling; default: median sample spacing."""
+    time_order: Literal["fix", "strict"] = "fix"
+    """``fix``: duplicates (last wins) and out-of-order rows are resolved and counted in
+    checks.json; ``strict``: any duplicate or out-of-order timestamp is an error (for
+    exports that are supposed to be clean, where disorder signals a broken export)."""
 
     @field_validator("timezone")
     @classmethod
