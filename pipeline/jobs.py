@@ -545,7 +545,7 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
 
             t0 = time.perf_counter()
             trends = store.trend(cfg.job) if store.list_runs(cfg.job).height else None
-            render_run(run.path, trends=trends)
+            render_run(run.path, trends=trends, ident=f"{cfg.job}/{run.run_id}")
             run.record_timing("rerun", time.perf_counter() - t0)
         rid = run.run_id
     run_dir = cfg.storage_root / cfg.job / rid
