@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+import logging
 import os
 
 from pipeline.errors import UserInputError
@@ -34,3 +36,37 @@ def task_runner_for(address: str | None):
     from prefect_dask import DaskTaskRunner
 
     return DaskTaskRunner(address=address)
+
+
+class _OneLineUserErrors(logging.Formatter):
+    """Formats records whose exception is a user error without the traceback.
+
+    Bad input is reported by the CLI as one message (exit code 2); Prefect's console
+    logs would otherwise print the same error twice more with full tracebacks.  Internal
+    errors keep their tracebacks, and the API log handler (the UI) is not affected.
+    """
+
+    def __init__(self, inner: logging.Formatter) -> None:
+        super().__init__()
+        self.inner = inner
+
+    def format(self, record: logging.LogRecord) -> str:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, UserInputError):
+            record = copy.copy(record)  # other handlers still get the traceback
+            record.exc_info, record.exc_text, record.stack_info = None, None, None
+        return self.inner.format(record)
+
+
+def console_without_user_error_tracebacks() -> None:
+    """Make Prefect's console handler print user errors as one line (idempotent).
+
+    Call after Prefect has configured logging (i.e. after importing prefect), before
+    running a flow from the command line.
+    """
+    from prefect.logging.handlers import PrefectConsoleHandler
+
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, PrefectConsoleHandler) and \
+                not isinstance(handler.formatter, _OneLineUserErrors):
+            handler.setFormatter(_OneLineUserErrors(handler.formatter or logging.Formatter()))

@@ -6,7 +6,7 @@ from prefect import flow, task, unmapped
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import task_runner_for
+from flows.common import console_without_user_error_tracebacks, task_runner_for
 from pipeline.adapters.config import load_job
 from pipeline.nightly import discover_files, process_file
 
@@ -45,6 +45,7 @@ def nightly_flow(job_path: str) -> list[dict]:
 
 def run_nightly(job_path: str):
     cfg = load_job(job_path)
+    console_without_user_error_tracebacks()
     runner = task_runner_for(cfg.dask.address)
     fl = nightly_flow.with_options(task_runner=runner) if runner else nightly_flow
     return fl(str(job_path))
