@@ -503,36 +503,47 @@ N_FILES = 40
 
 
 def _claim_all(root: str, barrier, queue) -> None:
-    store = ResultStore(root, busy_timeout_s=60.0)
-    won = []
-    for i in range(N_FILES):
-        barrier.wait()  # both processes go for the same file at the same moment
-        if store.claim_file("nightly", f"{i:064x}", f"exports/{i}.csv"):
-            won.append(i)
-    # and write runs concurrently, to exercise concurrent catalog inserts
-    for k in range(3):
-        with store.new_run("nightly", config={"k": k}, inputs=[]) as run:
-            run.write_report(f"{os.getpid()} {k}")
-    queue.put(won)
+    try:
+        store = ResultStore(root, busy_timeout_s=60.0)
+        won = []
+        for i in range(N_FILES):
+            barrier.wait()  # both processes go for the same file at the same moment
+            if store.claim_file("nightly", f"{i:064x}", f"exports/{i}.csv"):
+                won.append(i)
+        # and write runs concurrently, to exercise concurrent catalog inserts
+        for k in range(3):
+            with store.new_run("nightly", config={"k": k}, inputs=[]) as run:
+                run.write_report(f"{os.getpid()} {k}")
+        queue.put(won)
+    except BaseException as exc:  # report, so the parent fails fast instead of waiting
+        barrier.abort()
+        queue.put(f"{type(exc).__name__}: {exc}")
 
 
 def test_concurrent_claims_from_two_processes_never_both_win(tmp_path):
     root = tmp_path / "storage"
     ResultStore(root)
     ctx = multiprocessing.get_context("spawn")  # no fork of a process with polars threads
-    barrier, queue = ctx.Barrier(2), ctx.Queue()
-    procs = [ctx.Process(target=_claim_all, args=(str(root), barrier, queue)) for _ in range(2)]
-    for p in procs:
-        p.start()
-    results = [queue.get(timeout=120) for _ in procs]
-    for p in procs:
-        p.join(timeout=60)
-        assert p.exitcode == 0
+    barrier, queue = ctx.Barrier(2, timeout=60), ctx.Queue()
+    procs = [ctx.Process(target=_claim_all, args=(str(root), barrier, queue), daemon=True) for _ in range(2)]
+    try:
+        for p in procs:
+            p.start()
+        results = [queue.get(timeout=120) for _ in procs]
+        for p in procs:
+            p.join(timeout=60)
+            assert p.exitcode == 0
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+    errors = [r for r in results if isinstance(r, str)]
+    assert not errors, errors
     won_a, won_b = (set(r) for r in results)
     assert won_a.isdisjoint(won_b)
     assert won_a | won_b == set(range(N_FILES))
     store = ResultStore(root)
     processed = store.processed("nightly")
     assert processed.height == N_FILES and set(processed["attempts"]) == {1}
-    assert len(set(processed["owner"])) == 2 if won_a and won_b else 1
+    assert len(set(processed["owner"])) == (2 if won_a and won_b else 1)
     assert store.list_runs("nightly").height == 6
