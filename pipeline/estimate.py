@@ -501,6 +501,17 @@ def _collinear_message(A: np.ndarray, n_x: int) -> str:
             f"input(s) {const} are constant (zero after conditioning) over the used "
             "observations; remove them from the job or choose a window where they move"
         )
+    if A.shape[0] >= 2 * n_x:
+        # a constant but non-zero input (e.g. a setpoint that did not move in this window,
+        # conditioned over the whole record) has identical lag columns: lag-1 products
+        # equal lag-0 products
+        rho = np.array([A[j, n_x + j] / A[j, j] for j in range(n_x)])
+        flat = [j for j in range(n_x) if rho[j] > 1 - 1e-9]
+        if flat:
+            return (
+                f"input(s) {flat} do not vary over the used observations (constant offset); "
+                "remove them from the job or choose a window where they move"
+            )
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = d / np.outer(s, s)
     np.fill_diagonal(corr, 0)

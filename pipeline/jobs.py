@@ -324,12 +324,30 @@ def search_orders(cfg, prep: Prepared) -> SearchResult:
         n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows, estimate_windows=False)
 
 
-def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p) -> StepResponseEstimate:
-    """Estimate on one window (``None`` = every usable sample)."""
+@dataclass(frozen=True)
+class WindowFailure:
+    """A disjoint window that could not be estimated (recorded, not fatal)."""
+
+    window: tuple[int, int]
+    error: str
+
+
+def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p):
+    """Estimate on one window (``None`` = every usable sample).
+
+    A disjoint window whose data cannot be estimated (an input that does not move in it,
+    too many masked samples) returns a :class:`WindowFailure` — a bad window is a
+    recorded status, never a crash of the job.  Failure of the all-data estimate raises.
+    """
     a, b = window if window is not None else (0, prep.x.shape[0])
-    return estimate_step_responses(
-        np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b]), n_p=n_p, dt=prep.dt_s,
-        integrating=prep.integrating, mask=prep.good[a:b])
+    try:
+        return estimate_step_responses(
+            np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b]), n_p=n_p, dt=prep.dt_s,
+            integrating=prep.integrating, mask=prep.good[a:b])
+    except DataQualityError as exc:
+        if window is None:
+            raise
+        return WindowFailure(tuple(window), str(exc))
 
 
 _ABSOLUTE_TIMES = ("dead_time_s", "settling_time_s", "peak_time_s", "inverse_peak_time_s",
@@ -363,11 +381,19 @@ def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
 
 
 def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
-              window_ests: list[StepResponseEstimate]) -> Summary:
+              window_results: list) -> Summary:
     """Tables, checks and the report of a run (pure: no I/O)."""
     ins, outs = prep.inputs, prep.outputs
+    labelled = [(f"w{k}", e) for k, e in enumerate(window_results)]
+    window_status = [{"window": lab, "samples": list(map(int, sr.windows[k])),
+                      "status": "failed" if isinstance(e, WindowFailure) else "ok",
+                      **({"error": e.error} if isinstance(e, WindowFailure) else
+                         {"n_d": int(e.n_d)})}
+                     for k, (lab, e) in enumerate(labelled)]
+    labelled = [(lab, e) for lab, e in labelled if not isinstance(e, WindowFailure)]
+    window_ests = [e for _, e in labelled]
     rows = []
-    for label, est in [("all", all_est)] + [(f"w{k}", e) for k, e in enumerate(window_ests)]:
+    for label, est in [("all", all_est)] + labelled:
         P = est.step.shape[2]
         t = lag_times(P, est.dt)
         for i, o in enumerate(outs):
@@ -429,7 +455,7 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
             "n_p": {f"{outs[i]}<-{ins[j]}": int(sr.n_p[i, j])
                     for i in range(len(outs)) for j in range(len(ins))},
             "n_d": sr.n_d, "window_samples": sr.window_samples,
-            "windows": [list(w) for w in sr.windows],
+            "windows": window_status,
             "bic_order": None if sr.bic_order is None else
             {outs[i]: int(v) for i, v in enumerate(sr.bic_order)},
             "order_trace": _named_trace(sr.order_trace, outs, ins),

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.checks import AgreementResult, window_agreement
-from pipeline.errors import ConfigError, InsufficientDataError
+from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
 from pipeline.estimate import (
     NormalEquations,
     StepResponseEstimate,
@@ -205,12 +205,20 @@ def split_windows_by_length(n: int, length: int, count: int | None = None) -> li
 
 
 def _window_estimates(x, y, mask, windows, n_p, dt, integrating) -> list[StepResponseEstimate]:
-    ests = []
-    for a, b in windows:
-        ests.append(estimate_step_responses(
-            x[a:b], y[a:b], n_p=n_p, dt=dt, integrating=integrating,
-            mask=None if mask is None else mask[a:b]))
-    return ests
+    return [estimate_step_responses(x[a:b], y[a:b], n_p=n_p, dt=dt, integrating=integrating,
+                                    mask=None if mask is None else mask[a:b])
+            for a, b in windows]
+
+
+def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating):
+    """Estimates of the windows that can be estimated (a bad window is skipped)."""
+    out = []
+    for w in windows:
+        try:
+            out.extend(_window_estimates(x, y, mask, [w], n_p, dt, integrating))
+        except DataQualityError:
+            continue
+    return out
 
 
 def search(
@@ -288,7 +296,10 @@ def search(
             break
         try:
             ests = _window_estimates(x, y, mask, wins, npm, dt, integrating)
-        except InsufficientDataError as exc:  # masked windows may hold too few observations
+        except DataQualityError as exc:
+            # a window may hold too few observations (masks) or an input that does not
+            # move there (singular): record the trial, try longer windows
+
             nd_trace.append({"n_d": n_d, "window_samples": length, "error": str(exc)})
             n_d *= 2
             continue
@@ -319,7 +330,8 @@ def search(
     wins = split_windows_by_length(n, length, max_windows)
     agreement = []
     if estimate_windows:
-        agreement = window_agreement(_window_estimates(x, y, mask, wins, npm, dt, integrating))
+        agreement = window_agreement(
+            _usable_window_estimates(x, y, mask, wins, npm, dt, integrating))
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
                         bic_order, wins)
 

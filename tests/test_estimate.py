@@ -398,3 +398,13 @@ def test_condition_number_estimate_matches_exact():
     sc = np.sqrt(np.diag(ne.A))
     exact = np.linalg.cond(ne.A / np.outer(sc, sc), p=1)
     assert exact / 3 <= est.diagnostics.condition_number <= exact * 1.0001
+
+
+def test_input_constant_at_an_offset_is_named():
+    """A setpoint that does not move in a window (conditioned over the whole record, so
+    it sits at a non-zero offset) makes A singular; the message names it."""
+    rng = np.random.default_rng(28)
+    x = np.column_stack([rng.standard_normal(500), np.full(500, 0.7)])
+    y = rng.standard_normal(500)
+    with pytest.raises(SingularSystemError, match=r"input\(s\) \[1\] do not vary .*constant offset"):
+        estimate_step_responses(x, y, n_p=4, dt=1.0)
