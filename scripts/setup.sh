@@ -16,10 +16,19 @@ stamp=.venv/.plantdyn-installed
 sig="$(cat pyproject.toml constraints.txt | sha256sum | cut -c1-16)-$want_test"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$sig" ]; then
   echo "[setup] installing pinned dependencies (first time takes a few minutes)"
-  .venv/bin/python -m pip install -q --upgrade pip
   extras=""
   [ $want_test = 1 ] && extras="[test]"
-  .venv/bin/python -m pip install -q -c constraints.txt -e ".${extras}"
+  # (this machine's pip config lists optional local mirrors; their "is ignored" notes are noise)
+  log=$(mktemp)
+  if ! { .venv/bin/python -m pip install -q --upgrade pip &&
+         .venv/bin/python -m pip install -q -c constraints.txt -e ".${extras}"; } >"$log" 2>&1; then
+    grep -v "is ignored: it is neither a file nor a directory" "$log" >&2 || true
+    echo "[setup] pip install failed (full log: $log)" >&2
+    exit 1
+  fi
+  grep -v -e "is ignored: it is neither a file nor a directory" -e "editable" -e "WheelFile(wheel_path" -e "^ *!!" \
+    -e "\*\*\*\*" -e "name as your package" -e "Please be careful" -e "^ *$" "$log" || true
+  rm -f "$log"
   echo "$sig" > "$stamp"
 fi
 
