@@ -23,7 +23,6 @@ Decisions (also in the README):
 
 from __future__ import annotations
 
-import datetime as dt
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,7 +32,6 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline import __version__
 from pipeline.checks import cross_correlation_check, ljung_box, window_agreement
 from pipeline.conditioning import condition
 from pipeline.errors import DataQualityError, InsufficientDataError, PipelineError
@@ -511,7 +509,6 @@ def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
 
 def _signals_table(prep: Prepared) -> pl.DataFrame:
     rec = prep.recording
-    n_x = len(prep.inputs)
     cond = np.concatenate([prep.x, prep.y], axis=1)
     frames = []
     for k, (name, role) in enumerate(zip(rec.names, rec.roles)):
@@ -521,7 +518,6 @@ def _signals_table(prep: Prepared) -> pl.DataFrame:
             "raw": prep.raw[:, k], "conditioned": cond[:, k],
             "good": prep.good[:, k]}).with_columns(
                 pl.col("raw").fill_nan(None), pl.col("conditioned").fill_nan(None)))
-    del n_x
     return pl.concat(frames).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
 
 
@@ -618,7 +614,3 @@ def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings:
                 for p in summary.checks["pairs"]}
     return RunReport(cfg.job, rid, run_dir, summary.status, prep.dt_s, n_p, sr.n_d, verdicts,
                      prep.recording.files, rrd, timings)
-
-
-def utc_now() -> dt.datetime:
-    return dt.datetime.now(dt.timezone.utc)
