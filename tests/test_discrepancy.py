@@ -1,7 +1,7 @@
 """The discrepancy workflow: catalogue realisations, nesting, the demo, the API contract.
 
 The statistical targets (correct name and location, false positives, parameter error)
-are in ``tests/test_hidden_effects.py``; here each test checks one behaviour against a
+are measured by ``python -m tests.benchmarks.bench_discrepancy``; here each test checks one behaviour against a
 known answer: analytic step responses of the effect blocks, exact equivalences, the
 bundled demo (controller gain 20 % high), noise-free recovery, the JSON contract and the
 re-simulation of the augmented model.
