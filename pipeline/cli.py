@@ -91,6 +91,11 @@ def _cmd_runs(args) -> int:
 
 
 def _cmd_demo(args) -> int:
+    if args.discrepancy:
+        from pipeline.demo import run_discrepancy_demo
+
+        return run_discrepancy_demo(Path(args.dir), no_prefect=args.no_prefect,
+                                    progress=_Progress())
     from pipeline.demo import run_demo
 
     return run_demo(Path(args.dir), no_prefect=args.no_prefect, progress=_Progress())
@@ -103,9 +108,29 @@ def _cmd_serve(args) -> int:
 
 
 def _cmd_discrepancy(args) -> int:
-    print("plantdyn discrepancy: the discrepancy workflow is not implemented yet "
-          "(issue 4); nothing was run", file=sys.stderr)
-    return 1
+    from pipeline.adapters.config import load_job
+
+    cfg = load_job(args.job)  # validate before starting Prefect: fast, clear errors
+    if args.no_prefect:
+        from pipeline.discrepancy_job import check_job, run_discrepancy
+
+        check_job(cfg)  # model and settings errors before reading data
+        report = run_discrepancy(cfg, run_id=args.run_id, progress=_Progress())
+    else:
+        from pipeline.discrepancy_job import check_job
+
+        check_job(cfg)
+        from flows.common import prefect_env_defaults
+
+        prefect_env_defaults()
+        print("starting the Prefect flow 'discrepancy' (embedded server unless "
+              "PREFECT_API_URL is set)...", file=sys.stderr, flush=True)
+        from flows.discrepancy import run_discrepancy_flow
+
+        report = run_discrepancy_flow(args.job, run_id=args.run_id)
+    print(report, file=sys.stderr)
+    print(report.run_dir)
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -126,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--dir", default=str(PROJECT_ROOT / "demo"),
                    help="folder for the demo export and job (default: ./demo)")
     d.add_argument("--no-prefect", action="store_true")
+    d.add_argument("--discrepancy", action="store_true",
+                   help="the discrepancy demo instead: a plant whose controller gain is 20 %% "
+                        "above the model's (configs/demo_discrepancy.yaml)")
     d.set_defaults(fn=_cmd_demo)
     s = sub.add_parser("serve", help="serve the scheduled (nightly) deployments")
     s.add_argument("jobs", nargs="*", default=sorted(str(q) for q in
@@ -141,8 +169,12 @@ def build_parser() -> argparse.ArgumentParser:
                     help="results root when JOB is a name")
     ru.add_argument("--metric", action="append", help="metrics to trend (repeatable)")
     ru.set_defaults(fn=_cmd_runs)
-    dc = sub.add_parser("discrepancy", help="simulation-vs-measurement workflow")
-    dc.add_argument("job")
+    dc = sub.add_parser("discrepancy", help="simulation-vs-measurement workflow; prints the "
+                                            "run directory")
+    dc.add_argument("job", help="job YAML file with model: (or discrepancy.simulator_outputs)")
+    dc.add_argument("--run-id", default=None, help="run id (default: UTC time + random)")
+    dc.add_argument("--no-prefect", action="store_true",
+                    help="call the pipeline directly instead of through the Prefect flow")
     dc.set_defaults(fn=_cmd_discrepancy)
     return p
 

@@ -118,3 +118,80 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
         print(f"recording: {report.recording}")
         print(f"view it:   .venv/bin/rerun {report.recording}")
     return 0
+
+
+# ------------------------------------------------------------------ discrepancy demo
+DISCREPANCY_JOB = PROJECT_ROOT / "configs" / "demo_discrepancy.yaml"
+AUX0 = 20.0  # operating point of the unrelated auxiliary flow
+
+
+def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11) -> Path:
+    """Historian export of a plant whose pressure controller gain is 20 % above the model's.
+
+    The signals come from :func:`pipeline.discrepancy.make_discrepancy_demo` (the shipped
+    boiler model with ``controller.kp`` × 1.2, AR(1) sensor noise), moved to the demo's
+    operating point and written as a PI-style long CSV at 1 s in local time with two
+    isolated "Bad Input" states (bridged by the workflow).
+    """
+    from pipeline.adapters.historian_writer import write_long_csv
+    from pipeline.discrepancy import make_discrepancy_demo
+
+    inputs, measured, dt_s = make_discrepancy_demo(seed, hours=hours)
+    n = measured["turbine_pressure"].size
+    folder.mkdir(parents=True, exist_ok=True)
+    start = np.datetime64("2026-11-20T22:00:00", "us")
+    times = start + (np.arange(n) * dt_s * 1e6).astype("timedelta64[us]")
+    rng = np.random.default_rng(seed + 1)
+    states = {"PI-102.PV": [(int(i), "Bad Input") for i in rng.integers(1000, n - 1000, 2)]}
+    path = folder / "boiler_kp_export.csv"
+    write_long_csv(path, times, {"FI-101.PV": STEAM0 + inputs["steam_flow"],
+                                 "FI-110.PV": AUX0 + inputs["aux_flow"],
+                                 "PI-102.PV": PRESSURE0 + measured["turbine_pressure"]},
+                   timezone="Europe/Berlin", states=states)
+    return path
+
+
+def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
+    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml``."""
+    import sys
+
+    folder = folder.resolve()
+    job = DISCREPANCY_JOB
+    exports = folder / "discrepancy"
+    if folder != (PROJECT_ROOT / "demo").resolve():
+        text = DISCREPANCY_JOB.read_text()
+        text = text.replace("../demo/discrepancy/*.csv", "discrepancy/*.csv")
+        (folder / "models").mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(BOILER_MODEL, folder / "models" / BOILER_MODEL.name)
+        job = folder / "demo_discrepancy.yaml"
+        job.write_text(text)
+    if exports.exists():
+        shutil.rmtree(exports)
+    if progress:
+        progress("demo", f"writing an 8 h export of a boiler whose controller gain is 20 % "
+                         f"above the model's to {exports}")
+    path = write_discrepancy_export(exports)
+    if progress:
+        progress("demo", f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
+    from pipeline.adapters.config import load_job
+
+    cfg = load_job(job)
+    if no_prefect:
+        from pipeline.discrepancy_job import run_discrepancy
+
+        report = run_discrepancy(cfg, progress=progress or (lambda s, m: None))
+    else:
+        from flows.common import prefect_env_defaults
+
+        prefect_env_defaults()
+        from flows.discrepancy import run_discrepancy_flow
+
+        report = run_discrepancy_flow(job)
+    print(report, file=sys.stderr)
+    print(f"\nresults:   {report.run_dir}")
+    print(f"report:    {report.run_dir / 'report.md'}")
+    print(f"model:     {report.run_dir / 'model_augmented.yaml'}")
+    if report.recording:
+        print(f"recording: {report.recording}")
+        print(f"view it:   .venv/bin/rerun {report.recording}")
+    return 0

@@ -16,10 +16,17 @@ from __future__ import annotations
 import glob
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from pipeline.errors import ConfigError
 
@@ -31,6 +38,9 @@ __all__ = [
     "resolve_sources",
     "allowed_roots",
     "load_yaml_file",
+    "load_model_spec",
+    "dump_yaml",
+    "DiscrepancySection",
 ]
 
 
@@ -138,6 +148,53 @@ class RerunConfig(_Strict):
     enabled: bool = True
 
 
+class DiscrepancySection(_Strict):
+    """The job's optional ``discrepancy:`` section (discrepancy jobs only).
+
+    Workflow keys are read by :mod:`pipeline.discrepancy_job`; every other key is a
+    setting of :class:`pipeline.discrepancy.DiscrepancyConfig` (same name, same meaning;
+    unset keys keep the core's automatic defaults).  A test keeps the two lists equal.
+    """
+
+    # --- workflow keys
+    simulator_outputs: dict[str, str] | None = None
+    """External simulator: ``{measured_output: recorded_signal}`` where the recorded
+    signal (listed under ``signals.inputs``) holds a simulator's prediction of that
+    output.  Replaces ``model:``; effects then apply at the outputs only."""
+    operating_point: Literal["mean", "none"] | dict[str, float] = "mean"
+    """Models are in deviation variables: subtract each signal's mean over the analysed
+    stretch (``mean``), nothing (``none``), or given values ``{signal: value}`` (others
+    by their mean).  A sensor bias is only identifiable against given values."""
+    seed: int = Field(default=0, ge=0)
+    """Seeds the localisation bootstrap (the only random step)."""
+    # --- settings of pipeline.discrepancy.DiscrepancyConfig
+    effects: list[str] | None = None
+    holdout_fraction: float | None = None
+    warmup_s: float | None = None
+    initial: Literal["rest", "steady"] | None = None
+    ar_order_max: int | None = None
+    bic_margin: float | None = None
+    holdout_z_min: float | None = None
+    lookalike_margin: float | None = None
+    n_fit_candidates: int | None = None
+    max_delay_s: float | None = None
+    n_bootstrap: int | None = None
+    load_signal: str | None = None
+    n_load_bins: int | None = None
+    max_nfev: int | None = None
+
+    WORKFLOW_KEYS: ClassVar[tuple[str, ...]] = ("simulator_outputs", "operating_point", "seed")
+
+    def core_settings(self) -> dict[str, Any]:
+        """The keys set in the YAML that belong to ``DiscrepancyConfig``."""
+        out = {}
+        for key in self.model_fields_set - set(self.WORKFLOW_KEYS):
+            value = getattr(self, key)
+            if value is not None or key in ("warmup_s", "max_delay_s", "load_signal"):
+                out[key] = tuple(value) if key == "effects" else value
+        return out
+
+
 class DaskConfig(_Strict):
     address: str | None = None
     """Dask scheduler address (``tcp://host:8786``); None runs in-process."""
@@ -160,7 +217,7 @@ class JobConfig(_Strict):
     """Cron string for the nightly deployment (e.g. ``"0 2 * * *"``)."""
     model: Any = None
     """Discrepancy jobs: path to a model YAML (relative to the job file) or the mapping."""
-    discrepancy: dict | None = None
+    discrepancy: DiscrepancySection | None = None
     base_dir: str = "."
     """Folder of the job file (set by :func:`load_job`; not a YAML key users write)."""
 
@@ -171,6 +228,25 @@ class JobConfig(_Strict):
         if both:
             raise ValueError(f"signal names {sorted(both)} appear as both input and output")
         return v
+
+    @model_validator(mode="after")
+    def _simulator_or_model(self) -> JobConfig:
+        sim = self.discrepancy.simulator_outputs if self.discrepancy else None
+        if sim is None:
+            return self
+        if self.model is not None:
+            raise ValueError("give either model: (a block-diagram model) or "
+                             "discrepancy.simulator_outputs (an external simulator's recorded "
+                             "outputs), not both")
+        for out, sig in sim.items():
+            if out not in self.signals.outputs:
+                raise ValueError(f"discrepancy.simulator_outputs: {out!r} is not a measured "
+                                 f"output (signals.outputs: {sorted(self.signals.outputs)})")
+            if sig not in self.signals.inputs:
+                raise ValueError(f"discrepancy.simulator_outputs: {out!r} -> {sig!r}: list the "
+                                 f"simulator's recorded signal {sig!r} under signals.inputs "
+                                 f"(inputs: {sorted(self.signals.inputs)})")
+        return self
 
     # --- resolved paths
     @property
@@ -299,3 +375,11 @@ def load_model_spec(cfg: JobConfig) -> dict:
     if isinstance(cfg.model, dict):
         return cfg.model.get("model", cfg.model)
     raise ConfigError(f"model: expected a path or a mapping; got {type(cfg.model).__name__}")
+
+
+def dump_yaml(data: Any, *, header: str = "") -> str:
+    """YAML text of plain data (block style, key order kept), with ``#`` header lines."""
+    body = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True,
+                          width=100)
+    lines = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())
+    return lines + body

@@ -31,16 +31,23 @@ A default blueprint opens tabs *Step responses* (one view per pair), *Signals*,
 given the full time range explicitly (without it the viewer shows only ±30 s around the
 time cursor).  The other tabs need the ``time`` (signals, residuals) or ``run_time``
 (trends) timeline, chosen in the time panel.
+
+Discrepancy runs are rendered by ``render_discrepancy(run_dir)`` from
+``discrepancy.json`` and ``discrepancy_series.parquet`` (both required): measured vs
+nominal vs augmented outputs and the residual before/after on a ``time_s`` timeline, the
+localisation as bar charts and documents under ``discrepancy/<output>/localisation``,
+the candidate ranking under ``discrepancy/candidates``; its docstring lists the paths.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import secrets
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -51,11 +58,12 @@ import rerun.blueprint as rrb
 
 from pipeline.errors import ConfigError, DataQualityError
 
-__all__ = ["APPLICATION_ID", "TIMELINES", "recording_id_for", "render_run"]
+__all__ = ["APPLICATION_ID", "TIMELINES", "recording_id_for", "render_discrepancy", "render_run"]
 
 APPLICATION_ID = "plantdyn"
-#: Timeline names: sample time of the signals, lag after the step, creation time of runs.
-TIMELINES = {"signals": "time", "step": "lag_s", "trends": "run_time"}
+#: Timeline names: sample time of the signals, lag after the step, creation time of runs,
+#: seconds since the first sample of a discrepancy record.
+TIMELINES = {"signals": "time", "step": "lag_s", "trends": "run_time", "discrepancy": "time_s"}
 # Fixed namespace: recording ids are uuid5(namespace, "<job>/<run_id>"), stable across
 # processes and machines (uuid5 of a URL-namespace name, as the first version did).
 _NAMESPACE = uuid.NAMESPACE_URL
@@ -210,8 +218,7 @@ def render_run(run_dir: Path, *, trends: pl.DataFrame | None = None,
         ``trends`` holds several rows per output, input, metric and run.
     """
     run_dir = Path(run_dir)
-    if not out_name or Path(out_name).name != out_name or out_name.startswith("."):
-        raise ConfigError(f"out_name {out_name!r} must be a plain file name such as 'recording.rrd'")
+    _check_out_name(out_name)
     manifest_path = run_dir / "manifest.json"
     if ident is None and manifest_path.is_file():
         manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
@@ -232,14 +239,7 @@ def render_run(run_dir: Path, *, trends: pl.DataFrame | None = None,
     trend_pairs = [] if trends is None else [
         tuple(r) for r in trends.select("output", "input").unique(maintain_order=True).rows()]
 
-    out = run_dir / out_name
-    tmp = run_dir / f".{out_name}.{secrets.token_hex(4)}.part"
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id_for(ident), send_properties=False)
-    try:
-        rec.set_log_time_enabled(False)
-        rec.set_log_tick_enabled(False)
-        rec.save(tmp, default_blueprint=_blueprint(ident, pairs, signal_names, outputs, trend_pairs))
-        rec.send_recording_name(ident)  # shown in the viewer; deterministic, unlike a start time
+    def send(rec: rr.RecordingStream) -> None:
         if signals is not None:
             _send_signals(rec, signals)
         if steps is not None:
@@ -251,6 +251,29 @@ def render_run(run_dir: Path, *, trends: pl.DataFrame | None = None,
                         _floats(df["residual"]), name=f"residual {output}")
         if trends is not None:
             _send_trends(rec, trends)
+
+    return _write_recording(run_dir / out_name, ident,
+                            _blueprint(ident, pairs, signal_names, outputs, trend_pairs), send)
+
+
+def _check_out_name(out_name: str) -> None:
+    if not out_name or Path(out_name).name != out_name or out_name.startswith("."):
+        raise ConfigError(f"out_name {out_name!r} must be a plain file name such as 'recording.rrd'")
+
+
+def _write_recording(out: Path, ident: str, blueprint: rrb.Blueprint,
+                     send: Callable[[rr.RecordingStream], None]) -> Path:
+    """Write a recording with id ``recording_id_for(ident)`` to a temporary name next to
+    ``out``, call ``send(rec)`` to log the data, finalise and rename to ``out``.  Any
+    failure removes the temporary file and leaves ``out`` as it was."""
+    tmp = out.parent / f".{out.name}.{secrets.token_hex(4)}.part"
+    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id_for(ident), send_properties=False)
+    try:
+        rec.set_log_time_enabled(False)
+        rec.set_log_tick_enabled(False)
+        rec.save(tmp, default_blueprint=blueprint)
+        rec.send_recording_name(ident)  # shown in the viewer; deterministic, unlike a start time
+        send(rec)
         rec.flush()
         rec.disconnect()  # finalises the file (footer with the chunk manifest)
         if not tmp.is_file():
@@ -312,3 +335,569 @@ def _send_trends(rec: rr.RecordingStream, trends: pl.DataFrame) -> None:
         rec.log(path, rr.SeriesPoints(names=metric, marker_sizes=5.0), static=True, strict=True)
         rec.send_columns(path, indexes=[rr.TimeColumn(TIMELINES["trends"], timestamp=df["created_utc"].to_numpy())],
                          columns=rr.Scalars.columns(scalars=_floats(df["value"])), strict=True)
+
+
+# --------------------------------------------------------------------------- discrepancy runs
+
+_DISCREPANCY_FILES = ("discrepancy.json", "discrepancy_series.parquet")
+_DISCREPANCY_VALUES = ("measured", "nominal", "augmented", "residual_before", "residual_after", "rolling_rms")
+_DISCREPANCY_PARTS = ("warmup", "fit", "holdout")
+_SIGNAL_COLOURS = {"measured": (200, 200, 200), "nominal": (31, 119, 180), "augmented": (255, 127, 14)}
+_BEFORE_COLOUR, _AFTER_COLOUR = (31, 119, 180), (255, 127, 14)
+_ROLLING_COLOUR, _BLOCK_COLOUR = (148, 103, 189), (44, 160, 44)
+_MODEL_COLOUR, _DATA_COLOUR = (31, 119, 180), (255, 127, 14)
+_PASSED_COLOUR, _FAILED_COLOUR = (44, 160, 44), (214, 39, 40)
+_SPLIT_COLOUR = (220, 0, 0)
+
+
+def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident: str | None = None) -> Path:
+    """Render a discrepancy run (``discrepancy.json`` + ``discrepancy_series.parquet``)
+    into ``run_dir/out_name``.
+
+    Time series are on the ``time_s`` timeline (a duration: seconds since the first
+    sample, the parquet's ``time_s``); bar charts and documents are static.  ``<o>`` is
+    a measured output, ``<s>`` a measured signal (names escaped with
+    ``rr.escape_entity_path_part``):
+
+    * ``discrepancy/summary`` -- markdown: verdict, effect, held-out gap per output, the
+      fit/hold-out split, look-alikes, the best candidates;
+    * ``discrepancy/<o>/signals/{measured,nominal,augmented}`` -- every stored sample;
+    * ``discrepancy/<o>/signals/{fit_start,holdout_start}`` -- the split: a vertical
+      line (two points at the same time, from the lowest to the highest value in the
+      view; no aggregation);
+    * ``discrepancy/<o>/residual/{before,after}`` -- ``residual_before/after``, with the
+      same split lines ``discrepancy/<o>/residual/{fit_start,holdout_start}``;
+    * ``discrepancy/<o>/rolling_rms`` -- rolling RMS of the residual before (NaN ends
+      are gaps);
+    * ``discrepancy/<o>/localisation/partial_r2/<s>`` and ``.../neg_log10_p/<s>`` --
+      one bar per signal at x = its index in ``localization[o]["signals"]`` (the legend
+      names it): partial R² of the residual on the signal's lagged bank and -log10 of
+      its bootstrap p-value (1.3 = p 0.05);
+    * ``discrepancy/<o>/localisation/frequency_bands/<s>/{model_gain,data_gain}`` --
+      for model inputs: mean |H| per band, x = log10 f in Hz: each band
+      [log10 f_lo, log10 f_hi] holds the model's bar in its left half and the data's in
+      its right half;
+    * ``discrepancy/<o>/localisation/time_windows/block_rms`` -- block RMS of the
+      residual on ``time_s``, a staircase (step-after) with one row at each block start
+      (fit start + k·window_s) and a closing row at the end of the last block repeating
+      its value; ``.../time_windows/high_rms`` -- points at the centres of the
+      high-RMS windows, at their block RMS;
+    * ``discrepancy/<o>/localisation/operating_range/rms`` -- residual RMS per load
+      bin, each bar spanning 95 % of its bin, centred (x in load-signal units);
+    * ``discrepancy/<o>/localisation/report`` -- markdown: the localisation numbers
+      (signals, bands, change points, bins, candidate locations);
+    * ``discrepancy/candidates/{delta_bic,holdout_z}/{passed,failed}`` -- one bar per
+      candidate at x = its rank (1 = best criterion), split by whether it passed both
+      acceptance tests; ``discrepancy/candidates/table`` -- markdown ranking.
+
+    Bar charts are stored with the viewer's convention: ``abscissa`` is a bar's left
+    edge, so a bar centred on x with width w has abscissa x - w/2.
+
+    The default blueprint has tabs *Measured vs simulated* (one view per output, the
+    summary beside them), *Residual before/after*, *Localisation* and *Candidates*; it
+    opens on ``time_s`` with the hold-out selected in the time panel, and every
+    TimeSeriesView spans all data.  Series are sent with ``send_columns``; the recording
+    id derives from ``ident`` and no log time/tick is recorded.
+
+    Parameters
+    ----------
+    run_dir : Path
+        The discrepancy run directory (or the store's temporary directory).
+    out_name : str
+        File name inside ``run_dir``; written to a temporary name and renamed.
+    ident : str, optional
+        ``"<job>/<run_id>"`` for the recording id.  Default: ``job`` and ``run_id`` of
+        ``discrepancy.json``, else of ``manifest.json``, else the folder name.
+
+    Returns
+    -------
+    Path
+        The written recording.
+
+    Raises
+    ------
+    ConfigError
+        ``out_name`` is not a plain file name.
+    DataQualityError
+        ``discrepancy.json`` or ``discrepancy_series.parquet`` is missing, unreadable or
+        lacks required keys/columns, or holds values of the wrong kind.
+    """
+    run_dir = Path(run_dir)
+    _check_out_name(out_name)
+    summary = _read_discrepancy_json(run_dir)
+    series = _read_discrepancy_series(run_dir)
+    if ident is None:
+        ident = _ident_from(summary) or _ident_from(_read_json_or_none(run_dir / "manifest.json"))
+    ident = ident or run_dir.name
+
+    localization = summary.get("localization") or {}
+    outputs = list(dict.fromkeys([*series["output"].unique(maintain_order=True).to_list(),
+                                  *[o for o in localization if isinstance(localization[o], Mapping)]]))
+    per_output = {o: df.sort("time_s") for (o,), df in series.group_by(["output"], maintain_order=True)}
+    splits = {o: _split_times(df) for o, df in per_output.items()}
+    candidates = [c for c in summary.get("candidates") or [] if isinstance(c, Mapping)]
+    layout = {o: _localisation_layout(localization.get(o)) for o in outputs}
+
+    first = next(iter(splits.values()))
+    # Fit start of an output that has localisation but no series (not written by the job).
+    fit_samples = summary.get("fit_samples")
+    fit_start_json = (_num(fit_samples[0]) * _num(summary.get("dt_s")) if isinstance(fit_samples, list)
+                      and fit_samples else first[0])
+    if not math.isfinite(fit_start_json):
+        fit_start_json = first[0]
+    blueprint = _discrepancy_blueprint(ident, outputs, per_output, layout, bool(candidates), first)
+
+    def send(rec: rr.RecordingStream) -> None:
+        rec.log("discrepancy/summary", rr.TextDocument(_summary_markdown(ident, summary, outputs, splits),
+                                                       media_type=rr.MediaType.MARKDOWN), static=True, strict=True)
+        for output, df in per_output.items():
+            _send_discrepancy_series(rec, output, df, splits[output])
+        for output in outputs:
+            loc = localization.get(output)
+            if isinstance(loc, Mapping):
+                _send_localisation(rec, output, loc, splits[output][0] if output in splits else fit_start_json)
+        if candidates:
+            _send_candidates(rec, candidates)
+        rec.log("discrepancy/candidates/table", rr.TextDocument(_candidates_markdown(candidates),
+                                                                media_type=rr.MediaType.MARKDOWN),
+                static=True, strict=True)
+
+    return _write_recording(run_dir / out_name, ident, blueprint, send)
+
+
+def _read_json_or_none(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+    except (OSError, ValueError):
+        return None
+
+
+def _ident_from(doc: Any) -> str | None:
+    if isinstance(doc, Mapping) and doc.get("job") and doc.get("run_id"):
+        return f"{doc['job']}/{doc['run_id']}"
+    return None
+
+
+def _read_discrepancy_json(run_dir: Path) -> dict[str, Any]:
+    path = run_dir / _DISCREPANCY_FILES[0]
+    if not path.is_file():
+        raise DataQualityError(f"{path}: missing; render_discrepancy needs a discrepancy run directory "
+                               f"with {' and '.join(_DISCREPANCY_FILES)} (re-run the discrepancy job)")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise DataQualityError(f"{path}: not readable JSON ({exc}); the file is corrupt, "
+                               "re-run the discrepancy job") from None
+    if not isinstance(doc, dict):
+        raise DataQualityError(f"{path}: expected a JSON object, got {type(doc).__name__}")
+    missing = [k for k in ("verdict", "gap", "candidates", "localization") if k not in doc]
+    if missing:
+        raise DataQualityError(f"{path}: missing keys {missing}; it must hold DiscrepancyResult.to_dict() "
+                               "(verdict, effect, candidates, gap, localization, ...)")
+    for key, kind in (("gap", dict), ("candidates", list), ("localization", dict)):
+        if not isinstance(doc[key], kind):
+            raise DataQualityError(f"{path}: {key!r} must be a JSON {'object' if kind is dict else 'array'}, "
+                                   f"got {type(doc[key]).__name__}")
+    return doc
+
+
+def _read_discrepancy_series(run_dir: Path) -> pl.DataFrame:
+    path = run_dir / _DISCREPANCY_FILES[1]
+    if not path.is_file():
+        raise DataQualityError(f"{path}: missing; render_discrepancy needs a discrepancy run directory "
+                               f"with {' and '.join(_DISCREPANCY_FILES)} (re-run the discrepancy job)")
+    try:
+        df = pl.read_parquet(path)
+    except Exception as exc:  # polars raises several types for a damaged file
+        raise DataQualityError(f"{path}: not a readable parquet file ({type(exc).__name__}: {exc}); "
+                               "the file is corrupt, re-run the discrepancy job") from None
+    required = ("output", "time_s", "part", *_DISCREPANCY_VALUES)
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise DataQualityError(f"{path}: missing columns {missing}; expected {list(required)}")
+    if df.height == 0:
+        raise DataQualityError(f"{path}: has no rows; nothing to draw")
+    try:
+        df = df.select(pl.col("output").cast(pl.String), pl.col("part").cast(pl.String),
+                       *[pl.col(c).cast(pl.Float64, strict=True) for c in ("time_s", *_DISCREPANCY_VALUES)])
+    except Exception as exc:  # InvalidOperationError, ComputeError: a text column where numbers belong
+        raise DataQualityError(f"{path}: columns have the wrong types ({exc}); output and part must be "
+                               f"strings, {['time_s', *_DISCREPANCY_VALUES]} numbers") from None
+    for column in ("output", "part", "time_s"):
+        n_null = df[column].null_count()
+        if n_null:
+            raise DataQualityError(f"{path}: column {column!r} has {n_null} null value(s) of {df.height}")
+    bad_parts = sorted(set(df["part"].unique().to_list()) - set(_DISCREPANCY_PARTS))
+    if bad_parts:
+        raise DataQualityError(f"{path}: column 'part' holds {bad_parts}; allowed {list(_DISCREPANCY_PARTS)}")
+    if not df["time_s"].is_finite().all():
+        raise DataQualityError(f"{path}: column 'time_s' has non-finite values")
+    n_dup = df.height - df.select("output", "time_s").unique().height
+    if n_dup:
+        raise DataQualityError(f"{path}: {n_dup} duplicate (output, time_s) row(s); each sample must appear once")
+    return df
+
+
+def _num(value: Any) -> float:
+    """A JSON number as float; None and the strings 'nan'/'inf'/'-inf' (how
+    DiscrepancyResult.to_dict writes non-finite values) as NaN / ±inf."""
+    if value is None or isinstance(value, bool):
+        return float("nan")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def _split_times(df: pl.DataFrame) -> tuple[float, float, float]:
+    """(fit start, hold-out start, last sample) in s; a missing part starts at the end."""
+    times = df["time_s"].to_numpy()
+    parts = df["part"].to_numpy()
+    end = float(times[-1])
+
+    def start(part: str) -> float:
+        idx = np.flatnonzero(parts == part)
+        return float(times[idx[0]]) if idx.size else end
+
+    return start("fit"), start("holdout"), end
+
+
+def _durations(seconds: np.ndarray | Sequence[float]) -> np.ndarray:
+    """Seconds as timedelta64[ns], rounded to the nearest ns (the SDK truncates floats)."""
+    return np.rint(np.asarray(seconds, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
+
+
+def _time_index(seconds: np.ndarray | Sequence[float]) -> rr.TimeColumn:
+    return rr.TimeColumn(TIMELINES["discrepancy"], duration=_durations(seconds))
+
+
+def _split_lines(rec: rr.RecordingStream, base: str, values: Sequence[np.ndarray],
+                 split: tuple[float, float, float]) -> None:
+    """Vertical lines at the fit and hold-out starts spanning the finite range of ``values``."""
+    finite = np.concatenate([v[np.isfinite(v)] for v in values])
+    if finite.size == 0:
+        return
+    lo, hi = float(finite.min()), float(finite.max())
+    for key, t_s, label in (("fit_start", split[0], "fit starts"), ("holdout_start", split[1], "hold-out starts")):
+        if t_s >= split[2]:
+            continue
+        path = f"{base}/{key}"
+        rec.log(path, rr.SeriesLines(names=label, colors=[_SPLIT_COLOUR], widths=1.0,
+                                     aggregation_policy="Off"), static=True, strict=True)
+        rec.send_columns(path, indexes=[_time_index([t_s, t_s])],
+                         columns=rr.Scalars.columns(scalars=np.array([lo, hi])), strict=True)
+
+
+def _send_discrepancy_series(rec: rr.RecordingStream, output: str, df: pl.DataFrame,
+                             split: tuple[float, float, float]) -> None:
+    base = f"discrepancy/{_part(output)}"
+    index = _time_index(df["time_s"].to_numpy())
+    values = {c: _floats(df[c]) for c in _DISCREPANCY_VALUES}
+    for key in ("measured", "nominal", "augmented"):
+        _series(rec, f"{base}/signals/{key}", index, values[key], name=key, colour=_SIGNAL_COLOURS[key])
+    _split_lines(rec, f"{base}/signals", [values[k] for k in ("measured", "nominal", "augmented")], split)
+    _series(rec, f"{base}/residual/before", index, values["residual_before"], name="before (measured − nominal)",
+            colour=_BEFORE_COLOUR)
+    _series(rec, f"{base}/residual/after", index, values["residual_after"], name="after (measured − augmented)",
+            colour=_AFTER_COLOUR)
+    _split_lines(rec, f"{base}/residual", [values["residual_before"], values["residual_after"]], split)
+    _series(rec, f"{base}/rolling_rms", index, values["rolling_rms"], name="rolling RMS (before)",
+            colour=_ROLLING_COLOUR, width=2.0)
+
+
+def _bars(rec: rr.RecordingStream, path: str, values: Sequence[float], abscissa: Sequence[float],
+          widths: Sequence[float] | float, colour: tuple[int, int, int]) -> None:
+    """A static bar chart; bar k spans x from ``abscissa[k]`` to ``abscissa[k] + widths[k]``
+    (the viewer puts the abscissa at the bar's left edge, not its centre)."""
+    values = np.asarray(values, dtype=np.float64)
+    widths = np.broadcast_to(np.asarray(widths, dtype=np.float32), values.shape)
+    rec.log(path, rr.BarChart(values, abscissa=np.asarray(abscissa, dtype=np.float64), widths=widths,
+                              color=colour), static=True, strict=True)
+
+
+def _signals_of(loc: Mapping[str, Any] | None) -> dict[str, Mapping[str, Any]]:
+    signals = loc.get("signals") if isinstance(loc, Mapping) else None
+    return {str(k): v for k, v in signals.items() if isinstance(v, Mapping)} if isinstance(signals, Mapping) else {}
+
+
+def _bands_of(entry: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    bands = entry.get("frequency_bands")
+    return [b for b in bands if isinstance(b, Mapping)] if isinstance(bands, list) else []
+
+
+def _bins_of(loc: Mapping[str, Any] | None) -> tuple[str | None, list[Mapping[str, Any]]]:
+    rng = loc.get("operating_range") if isinstance(loc, Mapping) else None
+    if not isinstance(rng, Mapping) or not isinstance(rng.get("bins"), list):
+        return None, []
+    return rng.get("load_signal"), [b for b in rng["bins"] if isinstance(b, Mapping)]
+
+
+def _block_rms_of(loc: Mapping[str, Any] | None) -> tuple[float, list[float]]:
+    tw = loc.get("time_windows") if isinstance(loc, Mapping) else None
+    if not isinstance(tw, Mapping) or not isinstance(tw.get("block_rms"), list):
+        return float("nan"), []
+    return _num(tw.get("window_s")), [_num(v) for v in tw["block_rms"]]
+
+
+def _localisation_layout(loc: Any) -> dict[str, Any]:
+    """What the localisation of one output draws (for the blueprint)."""
+    if not isinstance(loc, Mapping):
+        return {"signals": [], "bands": [], "blocks": False, "load_signal": None}
+    signals = _signals_of(loc)
+    window_s, blocks = _block_rms_of(loc)
+    load_signal, bins = _bins_of(loc)
+    return {"signals": list(signals), "bands": [s for s, e in signals.items() if _bands_of(e)],
+            "blocks": bool(blocks) and window_s > 0, "load_signal": load_signal if bins else None}
+
+
+def _send_localisation(rec: rr.RecordingStream, output: str, loc: Mapping[str, Any], fit_start_s: float) -> None:
+    base = f"discrepancy/{_part(output)}/localisation"
+    signals = _signals_of(loc)
+    for j, (name, entry) in enumerate(signals.items()):
+        colour = _WINDOW_COLOURS[j % len(_WINDOW_COLOURS)]
+        _bars(rec, f"{base}/partial_r2/{_part(name)}", [_num(entry.get("partial_r2"))], [j - 0.4], 0.8, colour)
+        p = _num(entry.get("p_value"))
+        _bars(rec, f"{base}/neg_log10_p/{_part(name)}", [-math.log10(p) if p > 0 else float("nan")], [j - 0.4],
+              0.8, colour)
+        bands = _bands_of(entry)
+        if bands:
+            lo = np.array([_num(b.get("f_lo_hz")) for b in bands])
+            hi = np.array([_num(b.get("f_hi_hz")) for b in bands])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                left, width = np.log10(lo), np.log10(hi) - np.log10(lo)
+            for key, shift, colour in (("model_gain", 0.05, _MODEL_COLOUR), ("data_gain", 0.5, _DATA_COLOUR)):
+                _bars(rec, f"{base}/frequency_bands/{_part(name)}/{key}", [_num(b.get(key)) for b in bands],
+                      left + shift * width, 0.45 * width, colour)
+
+    window_s, block_rms = _block_rms_of(loc)
+    if block_rms and window_s > 0:
+        starts = fit_start_s + window_s * np.arange(len(block_rms) + 1)
+        path = f"{base}/time_windows/block_rms"
+        rec.log(path, rr.SeriesLines(names=f"block RMS ({window_s:g} s blocks)", colors=[_BLOCK_COLOUR], widths=2.0,
+                                     interpolation_mode="StepAfter"), static=True, strict=True)
+        rec.send_columns(path, indexes=[_time_index(starts)],
+                         columns=rr.Scalars.columns(scalars=np.array([*block_rms, block_rms[-1]])), strict=True)
+        high = loc["time_windows"].get("high_rms_windows_s") or []
+        ks = [int(round((_num(w[0]) - fit_start_s) / window_s)) for w in high
+              if isinstance(w, list) and len(w) == 2 and math.isfinite(_num(w[0]))]
+        ks = [k for k in ks if 0 <= k < len(block_rms)]
+        if ks:
+            path = f"{base}/time_windows/high_rms"
+            rec.log(path, rr.SeriesPoints(names="high-RMS window", colors=[_SPLIT_COLOUR], markers="diamond",
+                                          marker_sizes=6.0), static=True, strict=True)
+            rec.send_columns(path, indexes=[_time_index(fit_start_s + window_s * (np.array(ks) + 0.5))],
+                             columns=rr.Scalars.columns(scalars=np.array([block_rms[k] for k in ks])), strict=True)
+
+    _, bins = _bins_of(loc)
+    if bins:
+        lo = np.array([_num(b.get("load_lo")) for b in bins])
+        hi = np.array([_num(b.get("load_hi")) for b in bins])
+        _bars(rec, f"{base}/operating_range/rms", [_num(b.get("rms")) for b in bins], lo + 0.025 * (hi - lo),
+              0.95 * (hi - lo), _BLOCK_COLOUR)
+    rec.log(f"{base}/report", rr.TextDocument(_localisation_markdown(output, loc), media_type=rr.MediaType.MARKDOWN),
+            static=True, strict=True)
+
+
+def _send_candidates(rec: rr.RecordingStream, candidates: Sequence[Mapping[str, Any]]) -> None:
+    rank = np.arange(1, len(candidates) + 1, dtype=np.float64)
+    passed = np.array([c.get("passed") is True for c in candidates])
+    for key in ("delta_bic", "holdout_z"):
+        values = np.array([_num(c.get(key)) for c in candidates])
+        for group, sel, colour in (("passed", passed, _PASSED_COLOUR), ("failed", ~passed, _FAILED_COLOUR)):
+            if sel.any():
+                _bars(rec, f"discrepancy/candidates/{key}/{group}", values[sel], rank[sel] - 0.4, 0.8, colour)
+
+
+# ---------------------------------------------------------------- markdown documents
+
+
+def _cell(value: Any) -> str:
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def _g(value: Any, digits: int = 4) -> str:
+    x = _num(value)
+    return "–" if math.isnan(x) else f"{x:.{digits}g}"
+
+
+def _effect_text(effect: Mapping[str, Any]) -> str:
+    params = effect.get("parameters") or {}
+    text = f"`{_cell(effect.get('name'))}` at `{_cell(effect.get('location'))}`"
+    if isinstance(params, Mapping) and params:
+        text += " (" + ", ".join(f"{k} = {_g(v) if not isinstance(v, str) else v}" for k, v in params.items()) + ")"
+    eq = effect.get("equivalent_locations") or []
+    if eq:
+        text += f"; equivalent locations: {', '.join(map(str, eq))}"
+    return text
+
+
+def _summary_markdown(ident: str, doc: Mapping[str, Any], outputs: Sequence[str],
+                      splits: Mapping[str, tuple[float, float, float]]) -> str:
+    lines = [f"# Discrepancy: {doc.get('verdict')}", "",
+             f"Run `{ident}`" + (f", model `{doc['model']}`" if doc.get("model") else "")
+             + f", outputs {', '.join(f'`{o}`' for o in outputs)}.", ""]
+    effect = doc.get("effect")
+    if isinstance(effect, Mapping):
+        lines.append(f"**Effect found:** {_effect_text(effect)}.")
+    elif doc.get("verdict") == "inconclusive":
+        lines.append("**Inconclusive:** look-alike candidates fit about equally well:")
+        lines += [f"- {_effect_text(c)}" for c in doc.get("lookalikes") or [] if isinstance(c, Mapping)]
+    else:
+        lines.append("**No effect accepted**: the nominal model stays.")
+    gap = doc["gap"]
+    lines += ["", "## Held-out gap", "", "| output | RMS before | RMS after | reduction |", "|---|---|---|---|"]
+    per_output = gap.get("per_output") if isinstance(gap.get("per_output"), Mapping) else {}
+    for name, g in per_output.items():
+        if isinstance(g, Mapping):
+            lines.append(f"| {_cell(name)} | {_g(g.get('holdout_rms_before'))} | {_g(g.get('holdout_rms_after'))} "
+                         f"| {100 * _num(g.get('reduction')):.1f} % |")
+    lines.append(f"| **overall** | {_g(gap.get('holdout_rms_before'))} | {_g(gap.get('holdout_rms_after'))} "
+                 f"| {100 * _num(gap.get('reduction')):.1f} % |")
+    if gap.get("units"):
+        lines += ["", f"Units: {gap['units']}."]
+    if splits:
+        fit_s, hold_s, end_s = next(iter(splits.values()))
+        lines += ["", "## Split", "",
+                  f"Warm-up 0–{fit_s:g} s, fit {fit_s:g}–{hold_s:g} s, hold-out {hold_s:g}–{end_s:g} s "
+                  "(red vertical lines in the plots; the hold-out is the time panel's selection)."]
+    cands = [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
+    if cands:
+        lines += ["", "## Best candidates", "", "| # | effect | ΔBIC | held-out z | passed |", "|---|---|---|---|---|"]
+        lines += [f"| {k} | {_cell(c.get('name'))} @ {_cell(c.get('location'))} | {_g(c.get('delta_bic'))} "
+                  f"| {_g(c.get('holdout_z'), 3)} "
+                  f"| {'yes' if c.get('passed') is True else 'no'} |" for k, c in enumerate(cands[:5], 1)]
+        lines += ["", "All candidates: tab *Candidates*."]
+    return "\n".join(lines) + "\n"
+
+
+def _candidates_markdown(candidates: Sequence[Mapping[str, Any]]) -> str:
+    if not candidates:
+        return "# Candidates\n\nNo candidate effect was fitted.\n"
+    outs = list(dict.fromkeys(o for c in candidates if isinstance(c.get("holdout_rms"), Mapping)
+                              for o in c["holdout_rms"]))
+    head = ["#", "effect", "criterion (BIC)", "ΔBIC", "held-out z", *[f"held-out RMS {o}" for o in outs], "passed"]
+    lines = ["# Candidates", "", "Ranked by the whitened BIC on the fit part (rank = x of the bar charts; "
+             "ΔBIC = nominal − candidate, larger is better).", "",
+             "| " + " | ".join(map(_cell, head)) + " |", "|" + "---|" * len(head)]
+    for k, c in enumerate(candidates, 1):
+        rms = c.get("holdout_rms") if isinstance(c.get("holdout_rms"), Mapping) else {}
+        row = [str(k), _effect_text(c), _g(c.get("criterion"), 6), _g(c.get("delta_bic"), 5),
+               _g(c.get("holdout_z"), 3), *[_g(rms.get(o)) for o in outs], "yes" if c.get("passed") is True else "no"]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _localisation_markdown(output: str, loc: Mapping[str, Any]) -> str:
+    lines = [f"# Localisation: {output}", ""]
+    lines.append(f"Residual RMS {_g(loc.get('residual_rms'))}, mean {_g(loc.get('residual_mean'))}, "
+                 f"{100 * _num(loc.get('relative_residual')):.1f} % of the measured std; explained by: "
+                 f"{', '.join(map(str, loc.get('explained_by') or [])) or 'no signal (p < 0.05)'}.")
+    signals = _signals_of(loc)
+    if signals:
+        lines += ["", "## Signals (x = bar position)", "",
+                  "| x | signal | partial R² | p | significant | peak lag s | first significant lag s |",
+                  "|---|---|---|---|---|---|---|"]
+        for j, (name, e) in enumerate(signals.items()):
+            lines.append(f"| {j} | {_cell(name)} | {_g(e.get('partial_r2'))} | {_g(e.get('p_value'), 3)} | "
+                         f"{'yes' if e.get('significant') is True else 'no'} | {_g(e.get('peak_lag_s'))} | "
+                         f"{_g(e.get('first_significant_lag_s'))} |")
+        for name, e in signals.items():
+            bands = _bands_of(e)
+            if bands:
+                lines += ["", f"### Frequency bands, {_cell(name)} → {_cell(output)}", "",
+                          "| band Hz | model gain | data gain | relative difference |", "|---|---|---|---|"]
+                lines += [f"| {_g(b.get('f_lo_hz'), 3)}–{_g(b.get('f_hi_hz'), 3)} | {_g(b.get('model_gain'))} | "
+                          f"{_g(b.get('data_gain'))} | {_g(b.get('relative_difference'), 3)} |" for b in bands]
+    tw = loc.get("time_windows")
+    if isinstance(tw, Mapping):
+        def spans(key: str) -> str:
+            items = tw.get(key) or []
+            text = ", ".join(f"{_g(w[0], 6)}–{_g(w[1], 6)}" if isinstance(w, list) else _g(w, 6) for w in items)
+            return text or "none"
+        lines += ["", "## Time windows", "", f"Blocks of {_g(tw.get('window_s'))} s. High-RMS windows (s): "
+                  f"{spans('high_rms_windows_s')}. Mean change points (s): {spans('mean_change_points_s')}. "
+                  f"Level change points (s): {spans('level_change_points_s')}."]
+    load_signal, bins = _bins_of(loc)
+    if bins:
+        lines += ["", f"## Operating range (load signal {_cell(load_signal)})", "",
+                  "| bin | n | mean | RMS |", "|---|---|---|---|"]
+        lines += [f"| {_g(b.get('load_lo'))} – {_g(b.get('load_hi'))} | {b.get('n')} | {_g(b.get('mean'))} | "
+                  f"{_g(b.get('rms'))} |" for b in bins]
+    locations = [x for x in loc.get("locations") or [] if isinstance(x, Mapping)]
+    if locations:
+        lines += ["", "## Candidate locations (screening score)", "", "| effect | location | score |", "|---|---|---|"]
+        lines += [f"| {_cell(x.get('name'))} | {_cell(x.get('location'))} | {_g(x.get('score'))} |"
+                  for x in locations]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------- discrepancy blueprint
+
+
+def _discrepancy_blueprint(ident: str, outputs: Sequence[str], per_output: Mapping[str, pl.DataFrame],
+                           layout: Mapping[str, dict[str, Any]], has_candidates: bool,
+                           split: tuple[float, float, float]) -> rrb.Blueprint:
+    timeline = TIMELINES["discrepancy"]
+
+    def fixed(item: Any, key: str) -> Any:
+        return _with_fixed_ids(item, ident, f"discrepancy:{key}")
+
+    def series_view(key: str, **kwargs: Any) -> rrb.TimeSeriesView:
+        return fixed(rrb.TimeSeriesView(**kwargs, **_full_range(timeline)), key)
+
+    def bars_view(key: str, **kwargs: Any) -> rrb.BarChartView:
+        return fixed(rrb.BarChartView(**kwargs), key)
+
+    def text_view(key: str, origin: str, name: str) -> rrb.TextDocumentView:
+        return fixed(rrb.TextDocumentView(origin=origin, name=name), key)
+
+    drawn = [o for o in outputs if o in per_output]
+    summary = text_view("summary", "/discrepancy/summary", "Summary")
+    signal_views = [series_view(f"signals/{o}", origin=f"/discrepancy/{_part(o)}/signals",
+                                name=f"{o}: measured, nominal, augmented") for o in drawn]
+    tabs = [fixed(rrb.Horizontal(fixed(rrb.Vertical(*signal_views), "signals_column"), summary,
+                                 column_shares=[3, 1], name="Measured vs simulated"), "tab:signals")]
+    residual_views = [series_view(f"residual/{o}", origin=f"/discrepancy/{_part(o)}",
+                                  contents=[f"/discrepancy/{_part(o)}/residual/**", f"/discrepancy/{_part(o)}/rolling_rms"],
+                                  name=f"{o}: residual before/after") for o in drawn]
+    if residual_views:
+        tabs.append(fixed(rrb.Vertical(*residual_views, name="Residual before/after"), "tab:residual"))
+    loc_views: list[Any] = []
+    for o in outputs:
+        lay, base = layout[o], f"/discrepancy/{_part(o)}/localisation"
+        views: list[Any] = []
+        if lay["signals"]:
+            views.append(bars_view(f"partial_r2/{o}", origin=f"{base}/partial_r2", name=f"{o}: partial R² per signal"))
+            views.append(bars_view(f"neg_log10_p/{o}", origin=f"{base}/neg_log10_p",
+                                   name=f"{o}: −log10 p per signal (1.3 = p 0.05)"))
+        for s in lay["bands"]:
+            views.append(bars_view(f"bands/{o}/{s}", origin=f"{base}/frequency_bands/{_part(s)}",
+                                   name=f"{o} ← {s}: |H| model vs data (x: log10 f/Hz)"))
+        if lay["blocks"] or o in per_output:
+            views.append(series_view(f"time_windows/{o}", origin=f"/discrepancy/{_part(o)}",
+                                     contents=[f"{base}/time_windows/**", f"/discrepancy/{_part(o)}/rolling_rms"],
+                                     name=f"{o}: residual level over time"))
+        if lay["load_signal"] is not None:
+            views.append(bars_view(f"operating_range/{o}", origin=f"{base}/operating_range",
+                                   name=f"{o}: residual RMS per {lay['load_signal']} bin (x: load)"))
+        if lay["signals"] or lay["blocks"] or lay["load_signal"] is not None:
+            views.append(text_view(f"report/{o}", f"{base}/report", f"{o}: localisation numbers"))
+        loc_views.extend(views)
+    if loc_views:
+        tabs.append(fixed(rrb.Grid(*loc_views, name="Localisation"), "tab:localisation"))
+    cand_views: list[Any] = []
+    if has_candidates:
+        cand_views += [bars_view("delta_bic", origin="/discrepancy/candidates/delta_bic",
+                                 name="ΔBIC per candidate (x: rank; green: passed)"),
+                       bars_view("holdout_z", origin="/discrepancy/candidates/holdout_z",
+                                 name="held-out z per candidate (x: rank)")]
+    cand_tab = fixed(rrb.Horizontal(*([fixed(rrb.Vertical(*cand_views), "candidates_column")] if cand_views else []),
+                                    text_view("candidates", "/discrepancy/candidates/table", "Candidate ranking"),
+                                    column_shares=[2, 3] if cand_views else None, name="Candidates"),
+                     "tab:candidates")
+    tabs.append(cand_tab)
+    fit_s, hold_s, end_s = split
+    ns = _durations([hold_s, end_s]).astype(np.int64)
+    holdout = rr.encodings.AbsoluteTimeRange(int(ns[0]), int(ns[1])) if hold_s < end_s else None
+    panel = rrb.TimePanel(timeline=timeline, play_state="paused", time_selection=holdout)
+    return rrb.Blueprint(fixed(rrb.Tabs(*tabs, name="plantdyn discrepancy"), "tabs"), panel, collapse_panels=False)

@@ -1,0 +1,99 @@
+"""The ``discrepancy`` flow: ingest -> model -> prepare -> analyse -> store + Rerun.
+
+Each task body is one call into :mod:`pipeline.discrepancy_job` (the same stages
+:func:`pipeline.discrepancy_job.run_discrepancy` runs without Prefect)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from prefect import flow, task
+from prefect.artifacts import (
+    create_markdown_artifact,
+    create_progress_artifact,
+    create_table_artifact,
+    update_progress_artifact,
+)
+from prefect.cache_policies import NO_CACHE
+
+from flows.common import console_without_user_error_tracebacks, retry_transient_io
+from pipeline import discrepancy_job as dj
+from pipeline import jobs
+from pipeline.adapters.config import load_job
+
+_T = {"cache_policy": NO_CACHE, "persist_result": False}
+
+
+@task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
+def ingest_task(cfg, files):
+    return jobs.load_recording(cfg, files)
+
+
+@task(name="model", **_T)
+def model_task(cfg):
+    return dj.load_discrepancy_model(cfg)
+
+
+@task(name="prepare", **_T)
+def prepare_task(cfg, rec, model):
+    return dj.prepare_discrepancy(cfg, rec, model)
+
+
+@task(name="analyse", **_T)
+def analyse_task(cfg, model, data):
+    start = time.perf_counter()
+    return dj.analyse(cfg, model, data, progress=lambda stage, message: print(
+        f"[{time.perf_counter() - start:7.1f} s] analyse/{stage}: {message}", file=sys.stderr,
+        flush=True))
+
+
+@task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
+def store_task(cfg, model, source, data, result, timings, run_id):
+    return dj.finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
+
+
+def _key(job: str, suffix: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in f"{job}-{suffix}".lower())
+
+
+@flow(name="discrepancy", log_prints=True)
+def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
+    """Compare a job's simulation model with its measured data; name the missing effect."""
+    cfg = load_job(job_path)
+    timings: dict[str, float] = {}
+    progress = create_progress_artifact(0.0, key=_key(cfg.job, "progress"),
+                                        description=f"{cfg.job}: discrepancy progress")
+    t0 = time.perf_counter()
+    rec = ingest_task(cfg, [Path(f) for f in files] if files else None)
+    timings["ingest"] = time.perf_counter() - t0
+    update_progress_artifact(progress, 10.0, description="ingested")
+    t0 = time.perf_counter()
+    model, source = model_task(cfg)
+    data = prepare_task(cfg, rec, model)
+    timings["prepare"] = time.perf_counter() - t0
+    update_progress_artifact(progress, 20.0, description=f"{data.summary['analysed_samples']} "
+                                                         "samples prepared")
+    t0 = time.perf_counter()
+    result = analyse_task(cfg, model, data)
+    timings["analyse"] = time.perf_counter() - t0
+    update_progress_artifact(progress, 90.0, description=f"verdict {result.verdict}")
+    report = store_task(cfg, model, source, data, result, timings, run_id)
+    update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
+    create_markdown_artifact(dj.report_markdown(cfg, model, source, data, result),
+                             key=_key(cfg.job, "report"),
+                             description=f"{cfg.job} run {report.run_id}")
+    create_table_artifact(
+        [{"effect": c.effect.describe(), "delta_bic": round(c.delta_bic, 2),
+          "holdout_z": round(c.holdout_z, 2), "passed": c.passed}
+         for c in result.candidates[:10]],
+        key=_key(cfg.job, "candidates"), description="candidate effects, best first")
+    return report
+
+
+def run_discrepancy_flow(job_path: str | Path, *, files=None, run_id=None):
+    """Run the discrepancy flow (the CLI's ``plantdyn discrepancy``)."""
+    load_job(job_path)  # validate before Prefect starts: fast, clear errors
+    console_without_user_error_tracebacks()
+    return discrepancy_flow(str(job_path), [str(f) for f in files] if files else None, run_id)

@@ -1,0 +1,518 @@
+"""Composition: ``run_discrepancy(config) -> DiscrepancyReport``, callable from a REPL.
+
+The discrepancy job compares a simulation model with measured data (issue 4,
+design.md "Model YAML" and "Effect catalogue").  It is a readable sequence of stage
+functions; the Prefect flow in ``flows/discrepancy.py`` wraps each in a task.
+
+    load_recording (jobs) -> load_discrepancy_model -> prepare_discrepancy
+      -> analyse (pipeline.discrepancy.analyse_discrepancy) -> write_discrepancy_run
+
+Decisions (also in the README):
+
+* Grid: the recording's uniform grid (as for estimation jobs); ``sampling.dt_s``
+  averages-then-decimates to a coarser period.  The α_T criterion is not used: a
+  simulation is compared sample by sample and every model delay must be a whole number
+  of samples, so the finest honest grid is the right one.
+* Gaps: simulation needs continuous inputs.  Short bad runs (at most
+  :data:`MAX_FILL_SAMPLES` consecutive bad samples of a signal, e.g. an isolated "Bad
+  Input" state) are bridged by linear interpolation; then the analysis uses the longest
+  stretch where every job signal is good (grid gaps up to ``max_gap_s`` are already
+  bridged by the grid).  Filled and left-out samples are counted in
+  ``discrepancy.json`` ``data``.
+* Operating point: models are written in deviation variables (the shipped ones are).
+  ``operating_point: mean`` (default) subtracts each input's mean over the analysed
+  stretch, and from each output the value that makes the nominal model's residual
+  zero-mean over the fit part.  (Subtracting the output's plain mean is wrong: the means
+  of a finite record do not satisfy the model's static relation -- end effects of order
+  K·τ/T·Δu -- and the leftover constant, many noise standard errors on a long record,
+  was named a sensor bias on a perfect model.)  Given values ``{signal: value}`` are
+  used as they are; ``none`` subtracts nothing.  A constant sensor bias can therefore
+  only be named against given operating-point values; against ``mean`` only its drift.
+* External simulators: with ``discrepancy.simulator_outputs: {output: signal}`` the
+  "model" is a pass-through block named after each output, fed by the recorded
+  simulator output; catalogue effects then apply at the outputs (gain, dead time, lag,
+  inverse response, deadband, saturation, operating-point gain at that block, sensor
+  bias/drift) and as ``unmodelled_input`` from any other recorded input.
+* ``sensor_bias_drift`` changes the measurement, not the blocks: ``model_augmented.yaml``
+  keeps the blocks and adds a top-level ``measurement:`` section (``bias``,
+  ``drift_per_h`` from the first analysed sample), which
+  :func:`pipeline.effects.output_offsets` applies.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import polars as pl
+
+from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
+from pipeline.errors import ConfigError, InsufficientDataError
+from pipeline.jobs import Recording, _longest_common_good, load_recording
+from pipeline.model import Model, model_from_dict, model_to_dict
+from pipeline.sampling import resample_average_masked
+
+__all__ = [
+    "DiscrepancyData",
+    "DiscrepancyReport",
+    "check_job",
+    "load_discrepancy_model",
+    "prepare_discrepancy",
+    "analyse",
+    "series_table",
+    "report_markdown",
+    "write_discrepancy_run",
+    "run_discrepancy",
+]
+
+Progress = Callable[[str, str], None]
+
+#: Fewest samples in the analysed stretch (the core needs >= 300 in its fit part).
+MIN_SAMPLES = 600
+
+#: Longest run of bad samples bridged by interpolation (a few samples of a digital
+#: state change nothing a simulation comparison can see; longer outages split the record).
+MAX_FILL_SAMPLES = 5
+
+
+def _quiet(stage: str, message: str) -> None:
+    pass
+
+
+@dataclass(frozen=True)
+class DiscrepancyData:
+    """The analysed stretch: deviation signals on one grid, and where they came from."""
+
+    inputs: dict[str, np.ndarray]  # every job input (model inputs and extra signals)
+    measured: dict[str, np.ndarray]  # measured outputs the model predicts
+    dt_s: float
+    time: np.ndarray  # datetime64[us] UTC of each analysed sample
+    operating_point: dict[str, float]
+    summary: dict  # JSON-ready: span, samples left out, decimation, operating point
+    files: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class DiscrepancyReport:
+    """What a discrepancy run produced (printable)."""
+
+    job: str
+    run_id: str
+    run_dir: Path
+    status: str
+    verdict: str
+    effect: dict | None
+    gap: dict
+    dt_s: float
+    n_samples: int
+    files: tuple[str, ...]
+    recording: Path | None
+    result: DiscrepancyResult | None = field(default=None, repr=False)
+    timings_s: dict = field(default_factory=dict)
+
+    def __str__(self) -> str:
+        g = self.gap
+        lines = [f"discrepancy {self.job}/{self.run_id}: {self.verdict}",
+                 f"  results: {self.run_dir}",
+                 f"  {self.n_samples} samples at dt = {self.dt_s:g} s"]
+        if self.result is not None and self.result.effect is not None:
+            lines.append(f"  effect: {self.result.effect.describe()}")
+        elif self.effect:
+            lines.append(f"  effect: {self.effect['name']} at {self.effect['location']}")
+        lines.append(f"  held-out RMS {g['holdout_rms_before']:.4g} -> "
+                     f"{g['holdout_rms_after']:.4g} ({100 * g['reduction']:.1f} % smaller)")
+        if self.recording:
+            lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
+        return "\n".join(lines)
+
+
+# -------------------------------------------------------------------------- stages
+def _simulator_model(cfg) -> dict:
+    """Pass-through model of an external simulator's recorded outputs."""
+    sim = cfg.discrepancy.simulator_outputs
+    return {
+        "name": f"{cfg.job}_external_simulator",
+        "inputs": sorted(set(sim.values())),
+        "outputs": list(sim),
+        "blocks": [{"name": out, "type": "gain", "input": sig, "k": 1.0}
+                   for out, sig in sim.items()],
+    }
+
+
+def load_discrepancy_model(cfg) -> tuple[Model, str]:
+    """The job's model (``model:`` path or mapping, or the external-simulator wrapper).
+
+    Returns ``(model, source)`` with ``source`` = ``"model"`` or ``"external_simulator"``.
+    Checks that model inputs are job signals and job outputs are model outputs.
+    """
+    from pipeline.adapters.config import load_model_spec
+
+    section = cfg.discrepancy
+    if section is not None and section.simulator_outputs:
+        spec, source = _simulator_model(cfg), "external_simulator"
+    else:
+        spec, source = load_model_spec(cfg), "model"
+    model = model_from_dict({"model": spec})
+    ins, outs = list(cfg.signals.inputs), list(cfg.signals.outputs)
+    missing = [u for u in model.inputs if u not in ins]
+    if missing:
+        raise ConfigError(
+            f"model {model.name!r}: inputs {missing} are not signals of job {cfg.job!r} "
+            f"(signals.inputs: {ins}); add them under signals.inputs with their tags, or "
+            "rename the model's inputs to the job's signal names")
+    stray = [o for o in outs if o not in model.outputs]
+    if stray:
+        raise ConfigError(
+            f"model {model.name!r} has no output {stray} (model outputs: {list(model.outputs)}); "
+            "remove them from signals.outputs or name the model block that predicts each "
+            "after the measured signal")
+    return model, source
+
+
+def _bridge_short_gaps(values: np.ndarray, good: np.ndarray, max_run: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Interpolate interior runs of at most `max_run` bad samples, column by column.
+
+    Returns ``(values, good, filled)``: filled samples become good; ``filled`` marks them.
+    """
+    values = np.array(values, dtype=float, copy=True)
+    good = np.array(good, dtype=bool, copy=True)
+    filled = np.zeros_like(good)
+    idx = np.arange(values.shape[0])
+    for c in range(values.shape[1]):
+        bad = ~good[:, c]
+        if not bad.any() or bad.all():
+            continue
+        edges = np.diff(np.concatenate(([0], bad.astype(np.int8), [0])))
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        for a, b in zip(starts, stops):
+            if b - a <= max_run and a > 0 and b < values.shape[0]:
+                filled[a:b, c] = True
+        if filled[:, c].any():
+            g = good[:, c]
+            values[filled[:, c], c] = np.interp(idx[filled[:, c]], idx[g], values[g, c])
+            good[filled[:, c], c] = True
+    return values, good, filled
+
+
+def _output_offsets_from_nominal(cfg, model: Model, inputs: dict, measured: dict,
+                                 outputs: list[str], dt_s: float) -> dict[str, float]:
+    """Mean of measured - nominal over the fit part (after the warm-up) per output."""
+    from pipeline.simulate import simulate
+
+    if not outputs:
+        return {}
+    core = _core_config(cfg)
+    sim = simulate(model, {u: inputs[u] for u in model.inputs}, dt_s=dt_s,
+                   initial=core.initial).signals
+    n = next(iter(measured.values())).size
+    # the fit part as the core will use it, conservatively: skip the first 10 % (the
+    # core's longest automatic warm-up) unless a warm-up is configured
+    start = (int(round(core.warmup_s / dt_s)) if core.warmup_s is not None
+             else int(0.10 * n))
+    stop = int(round(n * (1.0 - core.holdout_fraction)))
+    return {o: float(np.mean(measured[o][start:stop] - sim[o][start:stop])) for o in outputs}
+
+
+def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
+    """Longest all-good stretch, optional decimation, operating point removed."""
+    section = cfg.discrepancy
+    factor = 1
+    if cfg.sampling.dt_s is not None:
+        factor = max(1, int(round(cfg.sampling.dt_s / rec.dt_s)))
+        if abs(factor * rec.dt_s - cfg.sampling.dt_s) > 1e-6 * cfg.sampling.dt_s:
+            raise ConfigError(
+                f"sampling.dt_s={cfg.sampling.dt_s} is not an integer multiple of the grid "
+                f"period {rec.dt_s} s; choose a multiple (e.g. {factor * rec.dt_s:g}) or set "
+                "source.grid_dt_s")
+    vals, good = rec.values, rec.good
+    if factor > 1:
+        vals, good = resample_average_masked(np.nan_to_num(vals), good, factor)
+    t = rec.time[::factor][: vals.shape[0]]
+    vals, good, filled = _bridge_short_gaps(vals, good, MAX_FILL_SAMPLES)
+    a, b = _longest_common_good(good)
+    n_grid = vals.shape[0]
+    dt_s = float(factor * rec.dt_s)
+    if b - a < MIN_SAMPLES:
+        bad = {n: int((~good[:, k]).sum()) for k, n in enumerate(rec.names)}
+        raise InsufficientDataError(
+            f"the longest stretch where every signal is good has {b - a} samples at "
+            f"{dt_s:g} s (of {n_grid}); the discrepancy workflow needs at least {MIN_SAMPLES}. "
+            f"Bad samples per signal: {bad} — drop a signal with many bad samples from the "
+            "job, or supply a cleaner export")
+    seg = vals[a:b]
+    op_mode = section.operating_point if section is not None else "mean"
+    op: dict[str, float] = {}
+    for k, name in enumerate(rec.names):
+        if op_mode == "none":
+            op[name] = 0.0
+        elif isinstance(op_mode, dict) and name in op_mode:
+            op[name] = float(op_mode[name])
+        else:
+            op[name] = float(np.mean(seg[:, k]))
+    if isinstance(op_mode, dict):
+        unknown = sorted(set(op_mode) - set(rec.names))
+        if unknown:
+            raise ConfigError(
+                f"discrepancy.operating_point names {unknown}, which are not job signals "
+                f"({list(rec.names)}); fix the names")
+    dev = {name: seg[:, k] - op[name] for k, name in enumerate(rec.names)}
+    inputs = {n: dev[n] for n, r in zip(rec.names, rec.roles) if r == "input"}
+    measured = {n: dev[n] for n, r in zip(rec.names, rec.roles)
+                if r == "output" and n in model.outputs}
+    if op_mode != "none":
+        given = op_mode if isinstance(op_mode, dict) else {}
+        free = [o for o in measured if o not in given]
+        for o, shift in _output_offsets_from_nominal(cfg, model, inputs, measured, free,
+                                                     dt_s).items():
+            measured[o] = measured[o] - shift
+            op[o] += shift
+    summary = {
+        "grid_dt_s": rec.dt_s, "dt_s": dt_s, "decimation": factor,
+        "grid_samples": int(n_grid), "analysed_samples": int(b - a),
+        "left_out_samples": int(n_grid - (b - a)),
+        "filled_samples": {n: int(filled[a:b, k].sum()) for k, n in enumerate(rec.names)},
+        "start_utc": str(t[a]) + "Z", "end_utc": str(t[b - 1]) + "Z",
+        "operating_point": {"mode": op_mode if isinstance(op_mode, str) else "given",
+                            "values": op},
+        "quality": rec.quality,
+    }
+    return DiscrepancyData(inputs, measured, dt_s, t[a:b], op, summary, rec.files)
+
+
+def _core_config(cfg) -> DiscrepancyConfig:
+    settings = cfg.discrepancy.core_settings() if cfg.discrepancy is not None else {}
+    return DiscrepancyConfig(**settings)
+
+
+def check_job(cfg) -> tuple[Model, str]:
+    """Validate a discrepancy job before any data is read: the model, its names, the
+    core settings.  Returns :func:`load_discrepancy_model`'s ``(model, source)``."""
+    model, source = load_discrepancy_model(cfg)
+    _core_config(cfg)
+    return model, source
+
+
+def analyse(cfg, model: Model, data: DiscrepancyData, *,
+            progress: Progress = _quiet) -> DiscrepancyResult:
+    """Run the discrepancy core on the prepared data."""
+    seed = cfg.discrepancy.seed if cfg.discrepancy is not None else 0
+    return analyse_discrepancy(model, inputs=data.inputs, measured=data.measured,
+                               dt_s=data.dt_s, config=_core_config(cfg), seed=seed,
+                               progress=progress)
+
+
+def series_table(result: DiscrepancyResult) -> pl.DataFrame:
+    """``discrepancy_series.parquet``: one row per (output, sample).
+
+    Columns ``output``, ``time_s``, ``part`` (warmup | fit | holdout), ``measured``,
+    ``nominal``, ``augmented``, ``residual_before``, ``residual_after``, ``rolling_rms``.
+    """
+    s = result.series
+    n = s.t_s.size
+    part = np.full(n, "fit", dtype=object)
+    part[: s.fit_start] = "warmup"
+    part[s.holdout_start:] = "holdout"
+    frames = []
+    for out in s.measured:
+        frames.append(pl.DataFrame({
+            "output": [out] * n,
+            "time_s": s.t_s.astype(float),
+            "part": part.tolist(),
+            "measured": s.measured[out], "nominal": s.nominal[out],
+            "augmented": s.augmented[out], "residual_before": s.residual_before[out],
+            "residual_after": s.residual_after[out], "rolling_rms": s.rolling_rms[out],
+        }, schema={"output": pl.String, "time_s": pl.Float64, "part": pl.String,
+                   **{c: pl.Float64 for c in ("measured", "nominal", "augmented",
+                                              "residual_before", "residual_after",
+                                              "rolling_rms")}}))
+    return pl.concat(frames)
+
+
+def augmented_model_document(result: DiscrepancyResult) -> dict:
+    """``model_augmented.yaml`` content: the augmented model (+ ``measurement:``)."""
+    doc = model_to_dict(result.augmented_model)
+    eff = result.effect
+    if eff is not None and eff.name == "sensor_bias_drift":
+        doc["measurement"] = {eff.location: {
+            "bias": float(eff.parameters["bias"]),
+            "drift_per_h": float(eff.parameters["drift_per_h"]),
+        }}
+    return doc
+
+
+def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: DiscrepancyResult,
+                           ) -> dict[str, float]:
+    """Held-out RMS of an augmented-model document re-simulated from scratch.
+
+    An independent check that ``model_augmented.yaml`` reproduces the reported
+    ``gap.holdout_rms_after`` (the run records both).
+    """
+    from pipeline.effects import predict_outputs
+
+    model = model_from_dict({"model": doc["model"]})
+    sim = predict_outputs(model, None, data.inputs, dt_s=data.dt_s,
+                          outputs=list(data.measured), initial=result.config.initial)
+    n = next(iter(data.measured.values())).size
+    meas = doc.get("measurement") or {}
+    offsets = {o: np.zeros(n) for o in data.measured}
+    for o, p in meas.items():
+        offsets[o] = p["bias"] + p["drift_per_h"] * np.arange(n) * data.dt_s / 3600.0
+    h = result.series.holdout_start
+    return {o: float(np.sqrt(np.mean((data.measured[o][h:] - sim[o][h:] - offsets[o][h:]) ** 2)))
+            for o in data.measured}
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if isinstance(v, float):
+        return f"{v:.{digits}g}"
+    return str(v)
+
+
+def report_markdown(cfg, model: Model, source: str, data: DiscrepancyData,
+                    result: DiscrepancyResult) -> str:
+    """``report.md``: verdict, effect, gap, candidates and localisation in a page."""
+    g = result.gap
+    lines = [f"# Discrepancy run: {cfg.job}", "",
+             f"Model `{model.name}` ({'external simulator outputs' if source != 'model' else 'block diagram'}), "
+             f"{data.summary['analysed_samples']} samples at {data.dt_s:g} s "
+             f"({data.summary['start_utc']} to {data.summary['end_utc']}), "
+             f"hold-out from sample {result.series.holdout_start}.", "",
+             f"**Verdict: `{result.verdict}`**", ""]
+    if result.effect is not None:
+        lines += [f"Effect: **{result.effect.describe()}** — added to `model_augmented.yaml`.", ""]
+    if result.lookalikes:
+        lines += ["Look-alike candidates (too close to tell apart on this record):", ""]
+        lines += [f"- {c.effect.describe()} (ΔBIC {c.delta_bic:.1f})" for c in result.lookalikes]
+        lines.append("")
+    lines += ["## Gap on held-out data", "",
+              "| output | RMS nominal | RMS augmented | reduction |", "|---|---|---|---|"]
+    for o, pg in g["per_output"].items():
+        lines.append(f"| {o} | {_fmt(pg['holdout_rms_before'])} | "
+                     f"{_fmt(pg['holdout_rms_after'])} | {100 * pg['reduction']:.1f} % |")
+    lines += ["", "## Candidates (best first)", "",
+              "| effect | ΔBIC | held-out z | passed |", "|---|---|---|---|"]
+    for c in result.candidates[:8]:
+        lines.append(f"| {c.effect.describe()} | {c.delta_bic:.1f} | {c.holdout_z:.1f} | "
+                     f"{'yes' if c.passed else 'no'} |")
+    lines += ["", "## Localisation", ""]
+    for o, loc in result.localization.items():
+        lines.append(f"**{o}**: residual RMS {_fmt(loc['residual_rms'])} "
+                     f"({100 * loc['relative_residual']:.1f} % of the measured std), "
+                     f"explained by {loc.get('explained_by') or 'no input'}.")
+        for sname, sig in loc["signals"].items():
+            if not sig.get("significant"):
+                continue
+            text = (f"- `{sname}`: partial R² {sig['partial_r2']:.3f}, p = {sig['p_value']:.3g}, "
+                    f"peak lag {_fmt(sig.get('peak_lag_s'))} s")
+            band = sig.get("band_of_largest_discrepancy_hz")
+            if band:
+                text += f", largest model-vs-data difference in {band[0]:.3g}–{band[1]:.3g} Hz"
+            lines.append(text)
+        tw = loc.get("time_windows", {})
+        if tw.get("mean_change_points_s") or tw.get("level_change_points_s"):
+            lines.append(f"- change points (s): mean {tw.get('mean_change_points_s')}, "
+                         f"level {tw.get('level_change_points_s')}")
+        orr = loc.get("operating_range")
+        if orr:
+            lines.append(f"- by {orr['load_signal']}: residual RMS spread over bins "
+                         f"{_fmt(orr['rms_spread'])}")
+        lines.append("")
+    lines += ["Files: `discrepancy.json` (everything above, machine-readable), "
+              "`model_augmented.yaml`, `discrepancy_series.parquet` (measured, nominal, "
+              "augmented, residuals), `recording.rrd` (open with `rerun`).", ""]
+    return "\n".join(lines)
+
+
+def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
+                          result: DiscrepancyResult, *, timings: dict[str, float],
+                          run_id: str | None = None) -> tuple[str, Path, Path | None, dict]:
+    """Write the run directory atomically (store) with its Rerun recording.
+
+    Returns ``(run_id, run_dir, recording_path, discrepancy_json)``.
+    """
+    from pipeline.adapters.config import dump_yaml
+    from pipeline.adapters.store import ResultStore
+
+    store = ResultStore(cfg.storage_root)
+    doc = augmented_model_document(result)
+    check = resimulate_holdout_rms(doc, data, result)
+    reported = {o: v["holdout_rms_after"] for o, v in result.gap["per_output"].items()}
+    body = result.to_dict()
+    with store.new_run(cfg.job, run_id=run_id, config=cfg.model_dump(mode="json"),
+                       inputs=list(data.files)) as run:
+        for stage, sec in timings.items():
+            run.record_timing(stage, sec)
+        out = {"job": cfg.job, "run_id": run.run_id, "kind": "discrepancy",
+               "model": model.name, "model_source": source,
+               "inputs": list(data.inputs), "outputs": list(data.measured),
+               "data": data.summary,
+               "augmented_model_check": {"holdout_rms_resimulated": check,
+                                         "holdout_rms_reported": reported},
+               **body}
+        run.write_json("discrepancy.json", out)
+        header = (f"{cfg.job} run {run.run_id}: nominal model {model.name!r} "
+                  f"+ {result.effect.describe() if result.effect else 'no effect'} "
+                  f"(verdict {result.verdict}).\nRe-simulated held-out RMS {check}.")
+        run.write_text("model_augmented.yaml", dump_yaml(doc, header=header))
+        run.write_parquet("discrepancy_series.parquet", series_table(result))
+        run.write_report(report_markdown(cfg, model, source, data, result))
+        run.set_status(result.verdict)
+        metrics = []
+        for o, pg in result.gap["per_output"].items():
+            for key in ("holdout_rms_before", "holdout_rms_after", "reduction"):
+                metrics.append({"window": "holdout", "output": o, "input": "model",
+                                "metric": key, "value": pg[key]})
+        metrics.append({"window": "all", "output": "model", "input": "model",
+                        "metric": "verdict", "value": result.verdict})
+        run.add_metrics(metrics)
+        if cfg.rerun.enabled:
+            from pipeline.adapters.rerun_sink import render_discrepancy
+
+            t0 = time.perf_counter()
+            render_discrepancy(run.path, ident=f"{cfg.job}/{run.run_id}")
+            run.record_timing("rerun", time.perf_counter() - t0)
+        rid = run.run_id
+    run_dir = cfg.storage_root / cfg.job / rid
+    rrd = run_dir / "recording.rrd" if cfg.rerun.enabled else None
+    return rid, run_dir, rrd, out
+
+
+def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
+                       result: DiscrepancyResult, timings: dict, *,
+                       run_id: str | None = None) -> DiscrepancyReport:
+    """Write the results and build the :class:`DiscrepancyReport`."""
+    t0 = time.perf_counter()
+    rid, run_dir, rrd, _ = write_discrepancy_run(cfg, model, source, data, result,
+                                                 timings=timings, run_id=run_id)
+    timings["store"] = time.perf_counter() - t0
+    return DiscrepancyReport(cfg.job, rid, run_dir, result.verdict, result.verdict,
+                             None if result.effect is None else result.effect.to_dict(),
+                             result.gap, data.dt_s, int(result.series.t_s.size), data.files,
+                             rrd, result, timings)
+
+
+def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
+                    progress: Progress = _quiet) -> DiscrepancyReport:
+    """Run a discrepancy job end to end (no Prefect): the stages the flow runs."""
+    timings: dict[str, float] = {}
+
+    def stage(name, fn, *a, **k):
+        progress(name, "start")
+        t0 = time.perf_counter()
+        out = fn(*a, **k)
+        timings[name] = time.perf_counter() - t0
+        progress(name, f"done in {timings[name]:.2f} s")
+        return out
+
+    rec = stage("ingest", load_recording, cfg, files)
+    model, source = stage("model", load_discrepancy_model, cfg)
+    data = stage("prepare", prepare_discrepancy, cfg, rec, model)
+    result = stage("analyse", analyse, cfg, model, data, progress=progress)
+    progress("store", "writing run directory and Rerun recording")
+    return finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
+
