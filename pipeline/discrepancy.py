@@ -95,7 +95,13 @@ from pipeline.effects import (
     output_offsets,
     predict_outputs,
 )
-from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError, PipelineError
+from pipeline.errors import (
+    ConfigError,
+    DataQualityError,
+    InsufficientDataError,
+    PipelineError,
+    SingularSystemError,
+)
 from pipeline.estimate import estimate_step_responses
 from pipeline.estimate import residuals as fir_residuals
 from pipeline.model import Model, Sum, Term, insert_after, insert_before
@@ -134,7 +140,10 @@ class DiscrepancyConfig:
         Last fraction of the record held out for selection and the gap, in (0.1, 0.6).
     warmup_s : float or None
         Samples at the start ignored by every criterion (the simulation starts at rest
-        while the plant may not).  None: the model's settling time, at most 5 % of the
+        while the plant may not).  None: three times the model's 2 % settling time (an
+        initial-state mismatch decays to ~1e-5 of itself for a first-order lag; 2 % would
+        leave a transient that real records, which never start at rest, show as a
+        spurious bias or drift), at most 10 % of the
         record.
     initial : {"rest", "steady"}
         Initial state of every simulation (:func:`pipeline.simulate.simulate`).
@@ -659,6 +668,35 @@ def _change_points(series: np.ndarray, max_points: int = 3, min_seg: int = 3,
     return sorted(found)
 
 
+def _fir_signals(P: _Problem, signals: list[str], x: np.ndarray, r: np.ndarray
+                 ) -> tuple[list[str], dict[str, list[str]]]:
+    """Signals the residual FIR regression can use jointly, and those left out.
+
+    All signals when their lagged normal equations are regular (the usual case).
+    Otherwise (e.g. an external simulator's recorded output is a linear filter of a
+    recorded plant input) signals join greedily, model inputs first, and a signal that
+    makes the system singular is left out and reported as collinear with those kept.
+    """
+    try:
+        estimate_step_responses(x, r, n_p=P.n_p, dt=P.dt_s)
+        return list(signals), {}
+    except SingularSystemError:
+        pass
+    order = [s for s in signals if s in P.model.inputs] + \
+        [s for s in signals if s not in P.model.inputs]
+    kept: list[str] = []
+    left: dict[str, list[str]] = {}
+    for name in order:
+        trial = kept + [name]
+        try:
+            estimate_step_responses(x[:, [signals.index(s) for s in trial]], r, n_p=P.n_p,
+                                    dt=P.dt_s)
+            kept = trial
+        except SingularSystemError:
+            left[name] = list(kept)
+    return [s for s in signals if s in kept], left
+
+
 def _localise(P: _Problem, resid: np.ndarray, rng: np.random.Generator
               ) -> tuple[dict[str, Any], list[np.ndarray], dict[str, np.ndarray]]:
     """Localisation per output; returns (dict, FIR residual per output, rolling RMS)."""
@@ -674,9 +712,11 @@ def _localise(P: _Problem, resid: np.ndarray, rng: np.random.Generator
     x_d = proj(x)
     r_all = resid[start:]
     r_d = proj(r_all)
+    fir_signals, collinear = _fir_signals(P, signals, x_d, r_d)
+    cols = [signals.index(s) for s in fir_signals]
     try:
-        est = estimate_step_responses(x_d, r_d, n_p=P.n_p, dt=P.dt_s)
-        fir_res = fir_residuals(est, x_d, r_d)
+        est = estimate_step_responses(x_d[:, cols], r_d, n_p=P.n_p, dt=P.dt_s)
+        fir_res = fir_residuals(est, x_d[:, cols], r_d)
     except PipelineError as exc:
         raise DataQualityError(
             f"discrepancy localisation: the residual FIR regression failed ({exc}); the "
@@ -702,7 +742,17 @@ def _localise(P: _Problem, resid: np.ndarray, rng: np.random.Generator
         relevance_all[out] = rel
         fir_out.append(np.nan_to_num(fir_res[:, i]))
         per_signal = {}
-        for j, name in enumerate(signals):
+        for name in signals:
+            if name not in fir_signals:  # left out of the FIR regression (collinear)
+                entry = dict(rel[name])
+                entry.update(significant=bool(rel[name]["p_value"] < 0.05),
+                             first_significant_lag_s=None, peak_lag_s=None,
+                             significant_lags=0, discrepancy_step_final=None,
+                             discrepancy_step_final_std=None,
+                             fir_left_out=f"collinear with {collinear[name]}")
+                per_signal[name] = entry
+                continue
+            j = fir_signals.index(name)
             dh = est.delta_h[i, j]
             sd = est.delta_h_std[i, j]
             z = np.abs(dh) / np.where(sd > 0, sd, np.inf)
@@ -1515,7 +1565,8 @@ def analyse_discrepancy(
     nominal = simulate(model, drive, dt_s=dt_s, initial=config.initial)
     y_nom = np.column_stack([nominal.signals[o] for o in outputs])
     settling = _settling_time(model, dt_s, n)
-    warmup = (min(settling, 0.05 * n * dt_s) if config.warmup_s is None else config.warmup_s)
+    warmup = (min(3.0 * settling, 0.10 * n * dt_s) if config.warmup_s is None
+              else config.warmup_s)
     fit_start = int(round(warmup / dt_s))
     holdout_start = int(round(n * (1.0 - config.holdout_fraction)))
     if holdout_start - fit_start < 300:
