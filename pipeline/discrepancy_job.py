@@ -465,7 +465,7 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
         metrics = []
         for o, pg in result.gap["per_output"].items():
             for key in ("holdout_rms_before", "holdout_rms_after", "reduction"):
-                metrics.append({"window": "holdout", "output": o, "input": "model",
+                metrics.append({"window": "all", "output": o, "input": "model",
                                 "metric": key, "value": pg[key]})
         metrics.append({"window": "all", "output": "model", "input": "model",
                         "metric": "verdict", "value": result.verdict})

@@ -158,6 +158,12 @@ def test_bundled_demo_names_controller_gain(tmp_path, capsys):
     ctrl = next(b for b in doc["model"]["blocks"] if b["name"] == "controller")
     assert ctrl["kp"] == pytest.approx(-0.554 * d["effect"]["parameters"]["factor"], rel=1e-9)
     assert (run_dir / "recording.rrd").stat().st_size > 0
+    # the catalog trends the gap across runs (plantdyn runs JOB)
+    from pipeline.adapters.store import ResultStore
+
+    trend = ResultStore(run_dir.parents[1]).trend("demo_discrepancy",
+                                                 metric="holdout_rms_after")
+    assert trend["value"].to_list() == [pytest.approx(d["gap"]["holdout_rms_after"])]
 
 
 # ------------------------------------------------------------------ bad input
