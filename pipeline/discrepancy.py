@@ -105,7 +105,7 @@ from pipeline.errors import (
 from pipeline.estimate import estimate_step_responses
 from pipeline.estimate import residuals as fir_residuals
 from pipeline.model import Model, Sum, Term, insert_after, insert_before
-from pipeline.simulate import simulate
+from pipeline.simulate import discrete_state_space, simulate
 
 __all__ = [
     "Candidate",
@@ -125,6 +125,14 @@ _EQUIVALENT_RTOL = 1e-7
 #: Residual value standing in for a simulation that blew up (unstable parameter trial),
 #: in multiples of the nominal model's whitened RMS residual: least squares backs off.
 _BLOWUP_RESIDUAL = 1e4
+#: Relative tolerances (ftol, xtol) of the least-squares fits.  A whitened sum of squares
+#: of a noisy record is ~ its number of samples (1e3-1e5), so 1e-6 stops when a step
+#: changes it by < 0.1: far below the BIC margins (3, 10) and, in the parameters, far
+#: below their noise-induced spread.  Noise-free records converge quadratically, so
+#: the parameters end much closer than 1e-6 (relative) to the truth.
+_LSQ_TOL = 1e-6
+#: Innovation stds are floored at this fraction of the output's std (:func:`_sigma_floor`).
+_SIGMA_FLOOR_RTOL = 1e-6
 
 
 # ---------------------------------------------------------------------------- config
@@ -454,9 +462,16 @@ class _Problem:
 
 
 def _sigma_floor(y: np.ndarray) -> float:
-    """Smallest innovation std used for whitening: 1e-9 of the output's spread (noise-free
-    simulations have a zero residual; dividing by it would turn every statistic inf)."""
-    return 1e-9 * float(np.std(y)) + 1e-300
+    """Smallest innovation std used for whitening: :data:`_SIGMA_FLOOR_RTOL` of the
+    output's spread.
+
+    Noise-free records (simulations) have a zero FIR residual, and the right candidate
+    reproduces them up to the optimiser's tolerance (relative ``_LSQ_TOL`` in the
+    parameters); dividing by such a "noise" std would turn every statistic into
+    rounding noise.  No sensor resolves a millionth of its signal's spread, so on real
+    data the floor never binds.
+    """
+    return _SIGMA_FLOOR_RTOL * float(np.std(y)) + 1e-300
 
 
 def _validate(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
@@ -1035,9 +1050,21 @@ class _Screener:
                         dw = self.w(self.conv(H, dv))
                         grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
                 # A saturation inside a loop with integral action winds up: the first-
-                # order picture underestimates it badly, so three limit pairs (quantiles
-                # of the nominal signal) are also simulated exactly.
-                for ql, qh in ((0.05, 0.95), (0.12, 0.88), (0.25, 0.75), (0.0, 0.9), (0.1, 1.0)):
+                # order picture underestimates it badly, so the one-sided limit profiles
+                # are simulated exactly (:func:`_saturation_profile`, cached) -- or, for
+                # a nonlinear nominal model, five limit pairs (quantiles of the signal).
+                profile = _saturation_profile(P, self._h, loc, self.stop)
+                if profile is not None:
+                    p_lows, p_highs, y_corr = profile
+                    p_sse = _batch_sse(P, y_corr, self.stop)
+                    rr = float(self.r_w @ self.r_w)
+                    for j in np.argsort(p_sse)[:3]:
+                        dw = self.w(y_corr[:, :, j])
+                        grid.append((rr - float(p_sse[j]),
+                                     {"low": float(p_lows[j]), "high": float(p_highs[j])}, dw))
+                pairs = () if profile is not None else (
+                    (0.05, 0.95), (0.12, 0.88), (0.25, 0.75), (0.0, 0.9), (0.1, 1.0))
+                for ql, qh in pairs:
                     low, high = (float(x) for x in np.quantile(v, [ql, qh]))
                     low = -math.inf if ql == 0.0 else low
                     high = math.inf if qh == 1.0 else high
@@ -1064,6 +1091,156 @@ class _Screener:
         starts = [g[1] for g in grid[:3]]
         return _Screen(name=name, location=loc, score=best[0] - n_par * self.penalty,
                        n_parameters=n_par, starts=starts, direction=best[2], members=[loc])
+
+
+class _StaticMapPath:
+    """The nominal model with a static map at one signal, exact for many parameter values.
+
+    ``saturation`` (a clip of block B's output), ``deadband`` (of B's summed input) and
+    ``operating_point_gain`` are static maps ``s -> phi(s, t)`` of one signal ``s``.  The
+    augmented model is then the nominal (linear) model plus an injection
+    ``d = phi(s) - s`` at ``s`` (Lur'e form), and superposition is exact: the outputs are
+    the nominal outputs plus the injection's response, and ``s`` is its nominal value plus
+    the response to *earlier* injections (strictly causal: the nominal model has no
+    algebraic loop).  One pass over time with a state matrix of K columns therefore
+    simulates K parameter values of the map exactly (equal to
+    :func:`pipeline.effects.predict_outputs` to rounding) for about the cost of one
+    per-sample simulation -- which is what makes dense searches over saturation limits,
+    whose error valleys are narrow when a loop winds up, affordable.
+
+    Raises ModelError when the nominal model is not linear (the caller then simulates
+    each parameter value exactly).
+    """
+
+    #: Above this many states the K-column state update costs more than simulating.
+    MAX_STATES = 200
+
+    def __init__(self, P: _Problem, block: str, side: str, s_nominal: np.ndarray,
+                 stop: int) -> None:
+        model = _inject_model(P.model, block, side=side)
+        system = discrete_state_space(model, dt_s=P.dt_s)
+        if system.a.shape[0] > self.MAX_STATES:
+            raise ModelError(f"{system.a.shape[0]} states: simulate candidates one by one")
+        j = system.input_names.index("__inject")
+        name = f"{block}__inject_upstream" if side == "output" else f"{block}__inject_sum"
+        row = system.signal_names.index(name)
+        # the map's own signal must not depend on the current injection (the summing
+        # point on a block's input passes it through with gain 1, which is excluded)
+        through = 0.0 if side == "output" else 1.0
+        if abs(system.d[row, j] - through) > 1e-12:  # pragma: no cover - algebraic loop
+            raise ModelError(f"signal {name!r} depends algebraically on the injection")
+        rows = [row] + [system.signal_names.index(o) for o in P.outputs]
+        self.a = system.a
+        self.b = system.b[:, j].copy()
+        self.c = system.c[rows]
+        self.d_out = system.d[rows[1:], j].copy()
+        self.s_nominal = np.asarray(s_nominal[:stop], dtype=float)
+        self.stop = stop
+
+    def corrections(self, phi: Callable[[np.ndarray, int], np.ndarray], k: int,
+                    first: int = 0) -> np.ndarray:
+        """Output changes (stop, n_y, k) caused by the map ``phi(s, t)`` (k columns).
+
+        `first`: no column's injection is nonzero before this sample.
+        """
+        a, b, c = self.a, self.b[:, None], self.c
+        d_out = self.d_out[:, None]
+        s_nom = self.s_nominal
+        y = np.zeros((self.stop, len(self.d_out), k))
+        x = np.zeros((a.shape[0], k))
+        for t in range(first, self.stop):
+            m = c @ x
+            s = s_nom[t] + m[0]
+            d = phi(s, t) - s
+            y[t] = m[1:] + d_out * d
+            x = a @ x + b * d
+        return y
+
+
+def _batch_sse(P: _Problem, y_corr: np.ndarray, stop: int) -> np.ndarray:
+    """Whitened SSE on the fit part of ``y - y_nominal - y_corr[:, :, j]`` per column j
+    (the same numbers as ``_Fitter.sse`` of each candidate)."""
+    first = P.fit_start + max(len(a) for a in P.ar) - 1
+    total = np.zeros(y_corr.shape[2])
+    for i in range(P.n_y):
+        e = (P.y[:stop, i] - P.y_nominal[:stop, i])[:, None] - y_corr[:, i, :]
+        w = scipy.signal.lfilter(P.ar[i], [1.0], e, axis=0)[first:stop] / P.sigma[i]
+        total += np.einsum("ij,ij->j", w, w)
+    return np.where(np.isfinite(total), total, np.inf)
+
+
+def _clip_map(lows: np.ndarray, highs: np.ndarray) -> Callable[[np.ndarray, int], np.ndarray]:
+    return lambda s, t: np.minimum(np.maximum(s, lows), highs)
+
+
+def _saturation_grids(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate low and high limits for the one-sided profiles of a signal `v`.
+
+    Quantiles 0.5 %-50 % (low) and 50 %-99.5 % (high) in steps of 0.5 %, joined with
+    values every 1 % of the range: dense where the signal spends its time and in its
+    tails.  (A limit outside the range is never met by the nominal signal, and before a
+    saturation has acted the plant's signal IS the nominal one, so the limit met first
+    lies inside the range.)
+    """
+    lo, hi = float(v.min()), float(v.max())
+    med = float(np.median(v))
+    q = np.arange(0.005, 0.5001, 0.005)
+    lows = np.concatenate([np.quantile(v, q), np.linspace(lo, med, 51)[1:]])
+    highs = np.concatenate([np.quantile(v, 1.0 - q), np.linspace(med, hi, 51)[:-1]])
+    spacing = 1e-6 * max(hi - lo, 1e-300)
+    lows = np.unique(np.round(lows / spacing)) * spacing
+    highs = np.unique(np.round(highs / spacing)) * spacing
+    return lows[(lows > lo) & (lows <= med)], highs[(highs < hi) & (highs >= med)]
+
+
+def _saturation_profile(P: _Problem, cache: dict, loc: str, stop: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One-sided limit profiles at `loc`: (lows, highs, output changes (stop, n_y, K)).
+
+    Column j has limits ``(lows[j], highs[j])`` with one of them infinite.  Computed
+    once per location and cached (the changes do not depend on the noise model).  None
+    when the nominal model is not linear.
+    """
+    key = ("saturation_profile", loc, stop)
+    if key not in cache:
+        v = P.nominal_signals[loc][:stop]
+        grid_lo, grid_hi = _saturation_grids(v)
+        lows = np.concatenate([grid_lo, np.full(grid_hi.size, -np.inf)])
+        highs = np.concatenate([np.full(grid_lo.size, np.inf), grid_hi])
+        path = _static_path(P, cache, loc, stop)
+        if path is None or lows.size == 0:
+            cache[key] = None
+        else:
+            with np.errstate(all="ignore"):
+                y = path.corrections(_clip_map(lows, highs), lows.size,
+                                     first=_first_crossing(v, lows, highs))
+            cache[key] = (lows, highs, y)
+    return cache[key]
+
+
+def _static_path(P: _Problem, cache: dict, loc: str, stop: int) -> _StaticMapPath | None:
+    """The cached :class:`_StaticMapPath` at the output of `loc` (None: not available)."""
+    key = ("static_path", loc, stop)
+    if key not in cache:
+        try:
+            cache[key] = _StaticMapPath(P, loc, "output", P.nominal_signals[loc], stop)
+        except PipelineError:
+            cache[key] = None
+    return cache[key]
+
+
+def _near(a: float, b: float, tol: float) -> bool:
+    """a and b equal (also both the same infinity) or within tol."""
+    return a == b or abs(a - b) <= tol
+
+
+def _first_crossing(v: np.ndarray, lows: np.ndarray, highs: np.ndarray) -> int:
+    """First sample where the nominal `v` leaves any of the intervals [low, high] (before
+    it, no clip acts, so every simulated signal is still the nominal one)."""
+    if not lows.size:
+        return v.size
+    out = np.flatnonzero((v < np.max(lows)) | (v > np.min(highs)))
+    return int(out[0]) if out.size else v.size
 
 
 def _screen_all(P: _Problem, resid: np.ndarray,
@@ -1142,6 +1319,11 @@ def _merge_saturation_chains(model: Model, classes: list[_Screen]) -> list[_Scre
         for loc in drop.members:
             by_loc[loc] = keep
     return classes
+
+
+def _class_key(c: _Screen) -> tuple[str, str, Any]:
+    """Identity of a screened class across passes: effect, location, schedule signal."""
+    return (c.name, c.location, c.starts[0].get("signal") if c.starts else None)
 
 
 def _kept_classes(classes: list[_Screen], k: int) -> list[_Screen]:
@@ -1251,6 +1433,7 @@ class _Fitter:
                 sol = scipy.optimize.least_squares(
                     lambda x: self.residual(make(x)), x0, bounds=(lower, upper),
                     max_nfev=self.P.config.max_nfev, x_scale="jac", diff_step=diff_step,
+                    ftol=_LSQ_TOL, xtol=_LSQ_TOL,
                 )
             except (ValueError, PipelineError):
                 sol = None
@@ -1263,11 +1446,19 @@ class _Fitter:
                                 upper - margin))
         return best
 
-    def fit(self, s: _Screen) -> Effect:
+    def fit(self, s: _Screen, warm: Effect | None = None) -> Effect:
+        """Fit class `s` exactly.
+
+        `warm`: this class's fit under the previous noise model.  It is added as a start
+        and least squares then runs from the best start only (the multi-start search
+        was done in the previous pass; only the weighting changed).
+        """
         P, dt = self.P, self.P.dt_s
         name, loc = s.name, s.location
         eq = tuple(m for m in s.members if m != loc)
         mk = lambda params: Effect(name, loc, params, eq)  # noqa: E731
+        w = warm.parameters if warm is not None and warm.name == name else None
+        n_starts = 1 if w is not None else 2
         tau_lo, tau_hi = 0.05 * dt, 20.0 * max(P.settling_s, dt)
         if name == "sensor_bias_drift":
             # linear in both parameters: exact closed form on the whitened residual
@@ -1288,6 +1479,8 @@ class _Fitter:
             # delays, then an integer walk downhill from the best
             tried: dict[int, float] = {}
             grid = {int(round(st["delay_s"] / dt)) for st in s.starts}
+            if w is not None:
+                grid.add(int(round(w["delay_s"] / dt)))
             grid |= {int(round(v)) for v in np.geomspace(1, P.max_delay, 10)}
             for d in sorted(grid):
                 if 1 <= d <= P.max_delay:
@@ -1307,61 +1500,53 @@ class _Fitter:
         if name == "gain":
             starts = [np.array([math.log(max(st["factor"], 0.05))]) for st in s.starts[:1]]
             starts += [np.array([math.log(f)]) for f in (0.5, 0.7, 0.85, 1.2, 1.45, 1.8)]
+            if w is not None:
+                starts.insert(0, np.array([math.log(max(w["factor"], 0.05))]))
             return self._lsq(lambda x: mk({"factor": float(math.exp(x[0]))}), starts,
-                             np.array([math.log(0.05)]), np.array([math.log(20.0)]))
+                             np.array([math.log(0.05)]), np.array([math.log(20.0)]),
+                             n_starts=n_starts)
         if name == "extra_lag":
             starts = [np.array([math.log(st["tau_s"])]) for st in s.starts[:2]]
             starts += [np.array([math.log(t)]) for t in tau_grid]
+            if w is not None:
+                starts.insert(0, np.array([math.log(max(w["tau_s"], tau_lo))]))
             return self._lsq(lambda x: mk({"tau_s": float(math.exp(x[0]))}), starts,
-                             np.array([math.log(tau_lo)]), np.array([math.log(tau_hi)]))
+                             np.array([math.log(tau_lo)]), np.array([math.log(tau_hi)]),
+                             n_starts=n_starts)
         if name == "inverse_response":
             starts = [np.array([math.log(st["tau_s"]), max(st["magnitude"], 0.05)])
                       for st in s.starts[:2]]
             starts += [np.array([math.log(t), m]) for t in tau_grid[::2] for m in (0.3, 1.0)]
+            if w is not None:
+                starts.insert(0, np.array([math.log(max(w["tau_s"], tau_lo)), w["magnitude"]]))
             return self._lsq(
                 lambda x: mk({"tau_s": float(math.exp(x[0])), "magnitude": float(x[1])}), starts,
-                np.array([math.log(tau_lo), 0.0]), np.array([math.log(tau_hi), 50.0]))
+                np.array([math.log(tau_lo), 0.0]), np.array([math.log(tau_hi), 50.0]),
+                n_starts=n_starts)
         if name == "operating_point_gain":
             signal = s.starts[0]["signal"]
             spread = float(np.std(P.inputs[signal])) or 1.0
             starts = [np.array([st["slope"] * spread]) for st in s.starts[:1]]
             starts += [np.array([v]) for v in (-0.4, -0.2, 0.2, 0.4)]
+            if w is not None and w["signal"] == signal:
+                starts.insert(0, np.array([w["slope"] * spread]))
             return self._lsq(lambda x: mk({"slope": float(x[0] / spread), "signal": signal}),
-                             starts, np.array([-5.0]), np.array([5.0]))
+                             starts, np.array([-5.0]), np.array([5.0]), n_starts=n_starts)
         if name == "deadband":
             u = self._screener().block_input(loc)
             scale = float(np.max(np.abs(u))) or 1.0
             starts = [np.array([st["width"] / scale]) for st in s.starts[:2]]
             starts += [np.array([v]) for v in (0.05, 0.15, 0.3, 0.5)]
+            if w is not None:
+                starts.insert(0, np.array([w["width"] / scale]))
             return self._lsq(lambda x: mk({"width": float(x[0] * scale)}), starts,
-                             np.array([0.0]), np.array([2.0]), diff_step=1e-2)
+                             np.array([0.0]), np.array([2.0]), diff_step=1e-2,
+                             n_starts=n_starts)
         if name == "saturation":
-            v = P.nominal_signals[loc][: self.stop]
-            span = float(v.max() - v.min()) or 1.0
-            lo_b, hi_b = float(v.min()) - 0.5 * span, float(v.max()) + 0.5 * span
-            mid = float(np.median(v))
-            starts = []
-            for st in s.starts[:2]:
-                low = st["low"] if math.isfinite(st["low"]) else lo_b + 0.01 * span
-                high = st["high"] if math.isfinite(st["high"]) else hi_b - 0.01 * span
-                starts.append(np.array([(low - mid) / span, (high - mid) / span]))
-            # plus limits at quantiles of the nominal signal: the first-order screening
-            # misjudges saturations that change a loop's behaviour a lot (windup)
-            for ql in (0.03, 0.1, 0.25):
-                for qh in (0.75, 0.9, 0.97):
-                    starts.append((np.quantile(v, [ql, qh]) - mid) / span)
-
-            def make(x: np.ndarray) -> Effect:
-                low, high = mid + x[0] * span, mid + x[1] * span
-                if not low < high:
-                    high = low + 1e-9 * span
-                return mk({"low": float(low), "high": float(high)})
-
-            best = self._lsq(make, starts, np.array([(lo_b - mid) / span, -0.02]),
-                             np.array([0.02, (hi_b - mid) / span]), diff_step=1e-2)
+            low, high = self._fit_saturation(s, mk, w, n_starts)
             # a limit the fitted signal never reaches is not identified: report it as
             # absent (+-inf), which simulates identically
-            low, high = best.parameters["low"], best.parameters["high"]
+            best = mk({"low": low, "high": high})
             up = self._upstream_signal(best)
             if up is not None:
                 if low <= float(up.min()):
@@ -1370,6 +1555,155 @@ class _Fitter:
                     high = math.inf
             return mk({"low": low, "high": high})
         raise ConfigError(f"effect {name!r} is not in the catalogue")  # pragma: no cover
+
+    def _fit_saturation(self, s: _Screen, mk: Callable[[dict], Effect],
+                        warm: Mapping[str, Any] | None, n_starts: int) -> tuple[float, float]:
+        """Saturation limits by a global search on exact simulations.
+
+        Inside a loop with integral action a saturation winds the loop up, and the sum
+        of squares is a narrow valley in the limits (a 1 % change of a limit can
+        multiply it), and the two limits interact (one limit alone can make the fit
+        much worse than none while both together explain the data): gradient steps
+        from a few starts miss it.  So candidates are simulated exactly, many limit
+        pairs per pass (:class:`_StaticMapPath`):
+
+        1. one-sided profiles: each limit alone on a dense grid (:func:`_saturation_grids`);
+        2. coordinate descent on the grids from the best limit of each side: the other
+           limit scanned over its whole grid with this one fixed, then the first one
+           rescanned, until nothing changes (at most three scans);
+        3. the best `n_starts` pairs (also among pairs of the profiles' local minima,
+           the screening's best points and the previous pass's fit) refined on
+           shrinking 7 x 7 grids (the centre is kept, so the sum of squares never
+           rises) down to 1e-4 of the signal's range.
+        """
+        P, stop, loc = self.P, self.stop, s.location
+        v = P.nominal_signals[loc][:stop]
+        span = float(v.max() - v.min()) or 1.0
+        cache = self.scr._h
+        path = _static_path(P, cache, loc, stop)
+        inf = math.inf
+
+        def evaluate(lows: Sequence[float], highs: Sequence[float]) -> np.ndarray:
+            lo, hi = np.asarray(lows, dtype=float), np.asarray(highs, dtype=float)
+            if lo.size == 0:
+                return np.zeros(0)
+            if path is None:  # nonlinear nominal model: one exact simulation each
+                return np.array([self.sse(mk({"low": float(a), "high": float(b)}))
+                                 for a, b in zip(lo, hi, strict=True)])
+            self.n_eval += 1  # one pass simulates the whole batch
+            with np.errstate(all="ignore"):
+                y = path.corrections(_clip_map(lo, hi), lo.size, first=_first_crossing(v, lo, hi))
+            return _batch_sse(P, y, stop)
+
+        profile = _saturation_profile(P, cache, loc, stop)
+        grid_lo, grid_hi = _saturation_grids(v)
+        if profile is None:  # exact simulations one by one: coarser grids
+            grid_lo, grid_hi = grid_lo[::6], grid_hi[::6]
+            p_lows = np.concatenate([grid_lo, np.full(grid_hi.size, -inf)])
+            p_highs = np.concatenate([np.full(grid_lo.size, inf), grid_hi])
+            p_sse = evaluate(p_lows, p_highs)
+        else:
+            p_lows, p_highs, y_corr = profile
+            p_sse = _batch_sse(P, y_corr, stop)
+        tried: dict[tuple[float, float], float] = {
+            (float(a), float(b)): float(e) for a, b, e in zip(p_lows, p_highs, p_sse, strict=True)}
+        tried[(-inf, inf)] = self.sse(mk({"low": -inf, "high": inf}))
+
+        def run(pairs: Sequence[tuple[float, float]]) -> None:
+            new = [pq for pq in dict.fromkeys(pairs) if pq not in tried and pq[0] < pq[1]]
+            for pq, e in zip(new, evaluate([a for a, _ in new], [b for _, b in new]),
+                             strict=True):
+                tried[pq] = float(e)
+
+        def minima(values: np.ndarray, sse: np.ndarray, m: int = 3) -> list[float]:
+            order = np.argsort(values)
+            x, e = values[order], sse[order]
+            local = [i for i in range(e.size)
+                     if (i == 0 or e[i] <= e[i - 1]) and (i == e.size - 1 or e[i] <= e[i + 1])]
+            return [float(x[i]) for i in sorted(local, key=lambda i: e[i])[:m]]
+
+        one_low = np.isfinite(p_lows)
+        lows_min = minima(p_lows[one_low], p_sse[one_low])
+        highs_min = minima(p_highs[~one_low], p_sse[~one_low])
+        # 2. coordinate descent on the grids from the best one-sided limit of each side
+        # each chain: [low, high, side scanned next]
+        chains: list[list[Any]] = [[lows_min[0], inf, "high"]] if lows_min else []
+        chains += [[-inf, highs_min[0], "low"]] if highs_min else []
+        for sweep in range(3):
+            run([(float(x), c[1]) if c[2] == "low" else (c[0], float(x))
+                 for c in chains for x in (grid_lo if c[2] == "low" else grid_hi)])
+            moved = False
+            for c in chains:
+                if c[2] == "low":
+                    options = [(float(x), c[1]) for x in grid_lo] + [(c[0], c[1])]
+                else:
+                    options = [(c[0], float(x)) for x in grid_hi] + [(c[0], c[1])]
+                low, high = min((pq for pq in options if pq in tried), key=lambda pq: tried[pq])
+                moved |= (low, high) != (c[0], c[1])
+                c[:] = [low, high, "high" if c[2] == "low" else "low"]
+            if not moved and sweep:
+                break
+        # 3. pairs of local minima, the screening's best points and the previous fit
+        pairs = [(a, b) for a in [*lows_min, -inf] for b in [*highs_min, inf]]
+        for st in ([warm] if warm is not None else []) + list(s.starts[:2]):
+            pairs.append((float(st["low"]), float(st["high"])))
+        run(pairs)
+        centres: list[list[float]] = []
+        for (a, b), _ in sorted(tried.items(), key=lambda kv: kv[1]):
+            if len(centres) >= n_starts:
+                break
+            if math.isinf(a) and math.isinf(b):
+                continue
+            if not any(_near(a, c[0], 1e-3 * span) and _near(b, c[1], 1e-3 * span)
+                       for c in centres):
+                centres.append([a, b])
+        if not centres:
+            return -inf, inf
+
+        def gap(grid: np.ndarray, x: float) -> float:
+            """Twice the spacing of the profile grid around x."""
+            g = np.sort(grid)
+            if not math.isfinite(x) or g.size < 2:
+                return 0.0
+            i = int(np.clip(np.searchsorted(g, x), 1, g.size - 1))
+            return 2.0 * float(max(g[i] - g[i - 1], g[min(i + 1, g.size - 1)] - g[i]))
+
+        widths = [[max(gap(grid_lo, a), 1e-3 * span), max(gap(grid_hi, b), 1e-3 * span)]
+                  for a, b in centres]
+        offsets = np.linspace(-1.0, 1.0, 7)
+        for round_ in range(40):
+            batch = []
+            for (a, b), (wa, wb) in zip(centres, widths, strict=True):
+                grid_a = [a] if math.isinf(a) else [a + wa * o for o in offsets]
+                grid_b = [b] if math.isinf(b) else [b + wb * o for o in offsets]
+                batch.append([(x, y_) for x in grid_a for y_ in grid_b if x < y_])
+            run([pq for part in batch for pq in part])
+            for j, part in enumerate(batch):
+                centres[j] = list(min(part, key=lambda pq: tried[pq]))
+                widths[j] = [0.4 * widths[j][0], 0.4 * widths[j][1]]
+            if round_ == 2 and len(centres) > 1:  # keep refining the best valley only
+                k = int(np.argmin([tried[tuple(c)] for c in centres]))
+                centres, widths = [centres[k]], [widths[k]]
+            if max(max(wa, wb) for wa, wb in widths) < 1e-4 * span:
+                break
+        (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+        if math.isfinite(low) and math.isfinite(high):
+            # 4. with integral action, shifting both limits together changes little (the
+            # integrator re-centres the loop): the valley runs along the shift, and its
+            # floor is rugged (episodes start and end on whole samples).  Scan it.
+            shifts = np.linspace(-0.08, 0.08, 41) * span
+            spreads = np.linspace(-0.01, 0.01, 9) * span
+            run([(low + d - e, high + d + e) for d in shifts for e in spreads])
+            (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+            widths_l = [0.005 * span, 0.005 * span]
+            for _ in range(8):
+                part = [(low + widths_l[0] * x, high + widths_l[1] * y_)
+                        for x in offsets for y_ in offsets]
+                run(part)
+                low, high = min(part, key=lambda pq: tried[pq])
+                widths_l = [0.4 * w_ for w_ in widths_l]
+            (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+        return low, high
 
     def _screener(self) -> _Screener:
         return self.scr
@@ -1482,8 +1816,11 @@ def _holdout_z(nominal: list[np.ndarray], candidate: list[np.ndarray]) -> float:
     delta2 = sum(float((a - b) @ (a - b)) for a, b in zip(nominal, candidate, strict=True))
     size = sum(b.size for b in candidate)
     sigma = math.sqrt(sum(float(b @ b) for b in candidate) / max(size, 1))
-    if delta2 == 0.0 or sigma == 0.0:
+    if delta2 == 0.0:
         return 0.0
+    if sigma == 0.0:
+        # the candidate reproduces the held-out record exactly (noise-free data)
+        return math.inf if drop > 0 else 0.0
     return drop / (2.0 * sigma * math.sqrt(delta2))
 
 
@@ -1612,17 +1949,22 @@ def analyse_discrepancy(
     h_cache: dict[tuple[str, str], np.ndarray] = {}
     fir_std = np.array([max(float(np.std(f[n_p: holdout_start - fit_start])),
                             _sigma_floor(y[:, i])) for i, f in enumerate(fir_res)])
+    # A second screening with white noise weights (each output scaled by its FIR residual
+    # std): when a large nonlinear discrepancy dominates the FIR residual, the AR noise
+    # model fitted to it whitens the discrepancy itself away.  Its two best classes are
+    # fitted too (with white weights: under an AR model that whitened the discrepancy
+    # away their fit would not see it either); the noise-model update below then takes
+    # over.  Neither depends on the AR noise model, so both are computed once.
+    white = dataclasses.replace(P, ar=[np.array([1.0])] * len(outputs), sigma=fir_std)
+    white_classes, white_screener = _screen_all(white, resid, h_cache)
+    white_fitter = _Fitter(white, white_screener)
+    white_fits: dict[tuple[str, str, Any], tuple[Effect, np.ndarray | None]] = {}
+    previous: dict[tuple[str, str, Any], Effect] = {}  # last pass's fits (warm starts)
     for noise_pass in range(3):
         say("screen", "first-order screening of every catalogue effect at every location"
             + (f" (noise model pass {noise_pass + 1})" if noise_pass else ""))
         classes, screener = _screen_all(P, resid, h_cache)
         kept = _kept_classes(classes, config.n_fit_candidates)
-        # A second screening with white noise weights (each output scaled by its FIR
-        # residual std): when a large nonlinear discrepancy dominates the FIR residual,
-        # the AR noise model fitted to it whitens the discrepancy itself away.  Its two
-        # best classes are fitted too; the noise-model update below then takes over.
-        white = dataclasses.replace(P, ar=[np.array([1.0])] * len(outputs), sigma=fir_std)
-        white_classes, white_screener = _screen_all(white, resid, h_cache)
         extra = [c for c in white_classes
                  if not any(k.name == c.name and set(k.members) & set(c.members) for k in kept)]
         extra = extra[:2]
@@ -1630,34 +1972,48 @@ def analyse_discrepancy(
         say("fit", f"exact fits of {len(kept) + len(extra)} candidates: "
             + ", ".join(f"{c.name}@{c.location}" for c in kept + extra))
         fitter = _Fitter(P, screener)
-        # the white-screened extras are fitted with white weights too: under an AR model
-        # that whitened the discrepancy away their fit would not see it either
-        white_fitter = _Fitter(white, white_screener)
         preds = []
-        for c, f in [(c, fitter) for c in kept] + [(c, white_fitter) for c in extra]:
-            effect = f.fit(c)
-            y_pred = f.predict(effect, full=True)
+        for c in kept:
+            # a class fitted in the previous pass starts from that fit (the multi-start
+            # search was done there; only the noise weighting changed)
+            effect = fitter.fit(c, warm=previous.get(_class_key(c)))
+            y_pred = fitter.predict(effect, full=True)
+            if y_pred is not None:
+                preds.append((c, effect, y_pred))
+        for c in extra:
+            if _class_key(c) not in white_fits:
+                effect = white_fitter.fit(c)
+                white_fits[_class_key(c)] = (effect, white_fitter.predict(effect, full=True))
+            effect, y_pred = white_fits[_class_key(c)]
             if y_pred is not None:
                 preds.append((c, effect, y_pred))
         _refit_nested_lags(fitter, preds)
-        fits_total += fitter.n_eval + white_fitter.n_eval
+        fits_total += fitter.n_eval
+        previous = {_class_key(c): e for c, e, _ in preds}
         if not preds or noise_pass == 2:
             break
-        changed = False
+        changed, floored = False, 0
         for i in range(len(outputs)):
             # the candidate whose residual looks most like noise (smallest innovation
             # variance) describes the noise best
             a_i, s_i, p_i = min(
                 (_fit_ar((y - yp)[fit_start:holdout_start, i], config.ar_order_max)
                  for _, _, yp in preds), key=lambda asp: asp[1])
-            s_i = max(s_i, _sigma_floor(y[:, i]))
+            if s_i <= _sigma_floor(y[:, i]):
+                # a residual at the floor is the optimiser's tolerance on a noise-free
+                # record, not noise: nothing to model
+                a_i, s_i, p_i = np.array([1.0]), _sigma_floor(y[:, i]), 0
+                floored += 1
             if s_i < 0.9 * P.sigma[i]:
                 P.ar[i], P.sigma[i] = a_i, s_i
                 noise[outputs[i]] = {"ar_order": p_i, "ar_coefficients": [float(-c) for c in a_i[1:]],
                                      "innovation_std": s_i, "from": "best candidate's residual"}
                 changed = True
-        if not changed:
+        if not changed or floored == len(outputs):
+            # every output reproduced to the floor (a noise-free record explained
+            # exactly): a further pass cannot explain it better
             break
+    fits_total += white_fitter.n_eval
     noise["passes"] = noise_pass + 1
     screening = tuple(
         {"name": c.name, "location": c.location, "equivalent_locations": c.members,
