@@ -93,6 +93,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 import scipy.signal
+from threadpoolctl import threadpool_limits
 
 from pipeline.effects import (
     EFFECT_NAMES,
@@ -1712,8 +1713,8 @@ class _Fitter:
             for _ in range(8):
                 part = [(low + widths_l[0] * x, high + widths_l[1] * y_)
                         for x in offsets for y_ in offsets]
-                run(part)
-                low, high = min(part, key=lambda pq: tried[pq])
+                run(part)  # (pairs with low >= high are skipped: not in `tried`)
+                low, high = min((pq for pq in part if pq in tried), key=lambda pq: tried[pq])
                 widths_l = [0.4 * w_ for w_ in widths_l]
             (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
         return low, high
@@ -1904,6 +1905,20 @@ def analyse_discrepancy(
     ModelError
         A model delay that is not a whole number of samples at `dt_s`.
     """
+    # The analysis is thousands of small vector operations (dot products and filters
+    # over ~1e4 samples), where multi-threaded BLAS costs more than it gives: a dot
+    # product of 2e4 doubles took 50 us with OpenBLAS's two threads and 3.7 us with one
+    # on the 2-core machine, and milliseconds when other processes compete for the
+    # cores.  So BLAS runs single-threaded inside it (threadpoolctl; restored after).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _analyse(model, inputs=inputs, measured=measured, dt_s=dt_s, config=config,
+                        seed=seed, progress=progress)
+
+
+def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, Any],
+             dt_s: float, config: DiscrepancyConfig | None, seed: int,
+             progress: Callable[[str, str], None] | None) -> DiscrepancyResult:
+    """:func:`analyse_discrepancy` (BLAS thread limits already set)."""
     config = config or DiscrepancyConfig()
     say = progress or (lambda stage, message: None)
     timings: dict[str, float] = {}

@@ -267,6 +267,25 @@ def test_noise_free_gain_is_recovered_exactly(drum):
     assert result.gap["reduction"] > 0.99
 
 
+def test_saturation_refinement_near_crossed_limits_does_not_crash(drum):
+    """Hidden-effect trial 104017 (a sensor bias/drift on the drum level): a saturation
+    candidate's final refinement grid held limit pairs with low >= high, which are never
+    simulated, and the search looked them up (KeyError).  The trial must now name its
+    hidden effect, the known answer of the trial generator."""
+    trial = make_hidden_effect_trial(drum, "sensor_bias_drift", seed=104017, n=10_000)
+    result = analyse_discrepancy(drum, inputs=trial.inputs, measured=trial.measured,
+                                 dt_s=trial.dt_s, seed=104017)
+    assert result.verdict == "effect_found"
+    assert (result.effect.name, result.effect.location) == (trial.effect.name,
+                                                             trial.effect.location)
+    # AR(1)/white noise at 10-30 % of the level's std over 1e4 samples: the offset
+    # (22.45) is good to ~2 % and the drift (-1.10 per h) to ~20 %
+    assert result.effect.parameters["bias"] == pytest.approx(trial.effect.parameters["bias"],
+                                                             rel=0.05)
+    assert result.effect.parameters["drift_per_h"] == pytest.approx(
+        trial.effect.parameters["drift_per_h"], rel=0.25)
+
+
 def test_one_sample_dead_time_and_a_very_short_lag_are_lookalikes(boiler):
     # With a zero-order hold, a first-order lag with tau << dt IS a one-sample delay, so
     # the data cannot tell dead_time (1 sample) from extra_lag (tiny tau) at the same
