@@ -458,7 +458,8 @@ class HiddenEffectTrial:
         per output is ``relative_std`` times the std of that output's noise-free signal.
     redraws : int
         How many effect draws were rejected (unstable loop, or an effect whose output
-        contribution is below :data:`MIN_VISIBILITY` of the noise std).
+        contribution is below :data:`MIN_VISIBILITY` of the noise std, over the whole
+        record or over its last :data:`HOLDOUT_FRACTION`).
     seed : int
     visibility : float
         RMS of the effect's contribution over the noise std, on the output where it
@@ -482,6 +483,14 @@ class HiddenEffectTrial:
 #: below this.  At 0.25 an effect changes the outputs by a quarter of the sensor noise:
 #: smaller "effects" are not discrepancies an engineer would act on.
 MIN_VISIBILITY = 0.25
+#: ... and also when it is below MIN_VISIBILITY on the last third of the record alone
+#: (the discrepancy workflow's default held-out part).  An effect can vanish there: a
+#: deadband inside a loop with integral action acts only while the block's input
+#: crosses zero; once the input stays on one side the deadband is a constant offset
+#: that the integrator absorbs *exactly* (truth - nominal ~ 1e-14 for the rest of the
+#: record).  No held-out selection can judge such a trial; 4 of the first published
+#: run's 50 deadband trials were of this kind, so the generator redraws them.
+HOLDOUT_FRACTION = 1.0 / 3.0
 
 
 def _ar1(rng: np.random.Generator, n: int, tau_samples: float) -> np.ndarray:
@@ -605,7 +614,7 @@ def make_hidden_effect_trial(
         ``U(0.1, 0.3)`` times the std of each noise-free output.
     max_redraws : int
         Effects drawn until the loop is stable and the effect visible
-        (:data:`MIN_VISIBILITY`).
+        (:data:`MIN_VISIBILITY`, on the whole record and on its held-out last third).
 
     Notes
     -----
@@ -652,12 +661,15 @@ def make_hidden_effect_trial(
             if not all(np.all(np.isfinite(v)) and np.std(v) < 20 * np.std(nominal.signals[k]) + 1e-12
                        for k, v in out.items()):
                 continue
-            vis = []
+            vis, vis_held = [], []
+            held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
             for name in model.outputs:
                 sigma = rel * float(np.std(out[name]))
-                vis.append(float(np.sqrt(np.mean((out[name] - nominal.signals[name]) ** 2))) / sigma)
+                diff = out[name] - nominal.signals[name]
+                vis.append(float(np.sqrt(np.mean(diff ** 2))) / sigma)
+                vis_held.append(float(np.sqrt(np.mean(diff[held] ** 2))) / sigma)
             visibility = max(vis)
-            if visibility < MIN_VISIBILITY:
+            if visibility < MIN_VISIBILITY or max(vis_held) < MIN_VISIBILITY:
                 continue
             effect, truth = candidate, out
             break

@@ -286,6 +286,23 @@ def test_saturation_refinement_near_crossed_limits_does_not_crash(drum):
         trial.effect.parameters["drift_per_h"], rel=0.25)
 
 
+def test_hidden_effects_are_visible_in_the_held_out_third(boiler):
+    """Trial 106010 first drew a deadband at `fuel` that the PI loop's integrator
+    absorbed exactly after ~5500 samples (truth = nominal to 1e-14 on the held-out
+    third): no held-out selection can judge that.  The generator redraws such effects;
+    the drawn effect must show on the last third by at least MIN_VISIBILITY noise stds."""
+    from pipeline.effects import HOLDOUT_FRACTION, MIN_VISIBILITY
+
+    trial = make_hidden_effect_trial(boiler, "deadband", seed=106010, n=10_000)
+    nominal = simulate(boiler, {k: trial.inputs[k] for k in boiler.inputs}, dt_s=trial.dt_s)
+    held = slice(10_000 - round(HOLDOUT_FRACTION * 10_000), None)
+    shown = max(
+        np.sqrt(np.mean((trial.truth[o][held] - nominal.signals[o][held]) ** 2))
+        / (trial.noise["relative_std"] * np.std(trial.truth[o])) for o in boiler.outputs)
+    assert trial.redraws >= 1
+    assert shown >= MIN_VISIBILITY
+
+
 def test_one_sample_dead_time_and_a_very_short_lag_are_lookalikes(boiler):
     # With a zero-order hold, a first-order lag with tau << dt IS a one-sample delay, so
     # the data cannot tell dead_time (1 sample) from extra_lag (tiny tau) at the same
