@@ -43,10 +43,12 @@ workflow"):
    before the noise is described -- so coloured sensor noise (AR(1) with phi up to
    0.9) is whitened and not mistaken for an effect.  A large *nonlinear* discrepancy
    survives the FIR regression and would be taken for noise, so (a) the two best
-   classes of a second screening with white weights are fitted too, and (b) when some
+   classes of a second screening with white weights, and the two best of those the
+   AR screening did not keep, are fitted with white weights too, and (b) when some
    fitted candidate leaves a residual whose AR innovation std is below 0.9 of the
-   noise model's, the noise model is refitted on it and the search repeated (at most
-   three passes; ``noise["passes"]``).
+   noise model's, or whose variance is below half the variance of the residual the
+   noise model was fitted on, the noise model is refitted on it and the search
+   repeated (at most three passes; ``noise["passes"]``, ``noise[output]["from"]``).
 4. **Select** on held-out data: the record is split in time, the first
    ``1 - holdout_fraction`` is fitted and the last ``holdout_fraction`` judges.  An
    effect is accepted only if (a) its whitened BIC on the fit part beats the nominal

@@ -395,10 +395,13 @@ def report_markdown(cfg, model: Model, source: str, data: DiscrepancyData,
         lines.append(f"| {o} | {_fmt(pg['holdout_rms_before'])} | "
                      f"{_fmt(pg['holdout_rms_after'])} | {100 * pg['reduction']:.1f} % |")
     lines += ["", "## Candidates (best first)", "",
-              "| effect | ΔBIC | held-out z | passed |", "|---|---|---|---|"]
+              f"Accepted: ΔBIC ≥ {result.config.bic_margin:g}, held-out z ≥ "
+              f"{result.config.holdout_z_min:g} and a held-out gap below the nominal "
+              f"{_fmt(result.gap['holdout_rms_before'])}.", "",
+              "| effect | ΔBIC | held-out z | held-out gap | passed |", "|---|---|---|---|---|"]
     for c in result.candidates[:8]:
         lines.append(f"| {c.effect.describe()} | {c.delta_bic:.1f} | {c.holdout_z:.1f} | "
-                     f"{'yes' if c.passed else 'no'} |")
+                     f"{_fmt(c.holdout_gap)} | {'yes' if c.passed else 'no'} |")
     lines += ["", "## Localisation", ""]
     for o, loc in result.localization.items():
         lines.append(f"**{o}**: residual RMS {_fmt(loc['residual_rms'])} "
