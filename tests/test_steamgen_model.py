@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 import yaml
 
+from pipeline.adapters.daisy import STEAMGEN_COLUMNS, convert, read_daisy
 from pipeline.cli import main
 from pipeline.conditioning import condition
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
@@ -40,7 +41,7 @@ from tests.helpers_steamgen import require_steamgen
 ROOT = Path(__file__).resolve().parents[1]
 MODEL_YAML = ROOT / "configs" / "models" / "steamgen.yaml"
 JOB_YAML = ROOT / "configs" / "steamgen_discrepancy.yaml"
-COLUMNS = ["fuel", "air", "level_ref", "load", "pressure", "o2", "level", "steam"]
+COLUMNS = [c for c in STEAMGEN_COLUMNS if c != "time"]
 N_P = 120  # 6 min at 3 s: the energy loop settles in ~4 time constants of 60-75 s
 
 
@@ -51,8 +52,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def record():
-    d = np.loadtxt(require_steamgen())
-    return {n: d[:, k + 1] for k, n in enumerate(COLUMNS)}
+    return read_daisy(require_steamgen()).values  # steamgen's column names by default
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +143,6 @@ def test_a_flattening_o2_clip_is_rejected_on_the_held_out_gap(model, deviations)
 
 
 def test_discrepancy_job_runs_end_to_end_on_the_real_record(tmp_path, capsys):
-    from pipeline.adapters.daisy import convert
-
     convert(require_steamgen(), tmp_path / "data" / "steamgen.csv")
     job = yaml.safe_load(JOB_YAML.read_text())
     job.update(source={**job["source"], "path": "data/steamgen.csv"}, storage="storage",
