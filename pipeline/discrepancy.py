@@ -1110,11 +1110,11 @@ class _Screener:
 
 
 class _StaticMapPath:
-    """The nominal model with a static map at one signal, exact for many parameter values.
+    """The nominal model with a static map on one block's output, exact for many
+    parameter values at once.
 
-    ``saturation`` (a clip of block B's output), ``deadband`` (of B's summed input) and
-    ``operating_point_gain`` are static maps ``s -> phi(s, t)`` of one signal ``s``.  The
-    augmented model is then the nominal (linear) model plus an injection
+    A ``saturation`` of block B is a static map ``s -> phi(s, t)`` of B's output ``s``
+    (a clip).  The augmented model is then the nominal (linear) model plus an injection
     ``d = phi(s) - s`` at ``s`` (Lur'e form), and superposition is exact: the outputs are
     the nominal outputs plus the injection's response, and ``s`` is its nominal value plus
     the response to *earlier* injections (strictly causal: the nominal model has no
@@ -1131,19 +1131,16 @@ class _StaticMapPath:
     #: Above this many states the K-column state update costs more than simulating.
     MAX_STATES = 200
 
-    def __init__(self, P: _Problem, block: str, side: str, s_nominal: np.ndarray,
-                 stop: int) -> None:
-        model = _inject_model(P.model, block, side=side)
+    def __init__(self, P: _Problem, block: str, s_nominal: np.ndarray, stop: int) -> None:
+        model = _inject_model(P.model, block, side="output")
         system = discrete_state_space(model, dt_s=P.dt_s)
         if system.a.shape[0] > self.MAX_STATES:
             raise ModelError(f"{system.a.shape[0]} states: simulate candidates one by one")
         j = system.input_names.index("__inject")
-        name = f"{block}__inject_upstream" if side == "output" else f"{block}__inject_sum"
+        name = f"{block}__inject_upstream"
         row = system.signal_names.index(name)
-        # the map's own signal must not depend on the current injection (the summing
-        # point on a block's input passes it through with gain 1, which is excluded)
-        through = 0.0 if side == "output" else 1.0
-        if abs(system.d[row, j] - through) > 1e-12:  # pragma: no cover - algebraic loop
+        # the map's own signal must not depend on the current injection
+        if abs(system.d[row, j]) > 1e-12:  # pragma: no cover - algebraic loop
             raise ModelError(f"signal {name!r} depends algebraically on the injection")
         rows = [row] + [system.signal_names.index(o) for o in P.outputs]
         self.a = system.a
@@ -1209,6 +1206,13 @@ def _saturation_grids(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return lows[(lows > lo) & (lows <= med)], highs[(highs < hi) & (highs >= med)]
 
 
+def _one_sided(grid_lo: np.ndarray, grid_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lows, highs) of the one-sided limit pairs: each low with no high, then each high
+    with no low."""
+    return (np.concatenate([grid_lo, np.full(grid_hi.size, -np.inf)]),
+            np.concatenate([np.full(grid_lo.size, np.inf), grid_hi]))
+
+
 def _saturation_profile(P: _Problem, cache: dict, loc: str, stop: int
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """One-sided limit profiles at `loc`: (lows, highs, output changes (stop, n_y, K)).
@@ -1220,9 +1224,7 @@ def _saturation_profile(P: _Problem, cache: dict, loc: str, stop: int
     key = ("saturation_profile", loc, stop)
     if key not in cache:
         v = P.nominal_signals[loc][:stop]
-        grid_lo, grid_hi = _saturation_grids(v)
-        lows = np.concatenate([grid_lo, np.full(grid_hi.size, -np.inf)])
-        highs = np.concatenate([np.full(grid_lo.size, np.inf), grid_hi])
+        lows, highs = _one_sided(*_saturation_grids(v))
         path = _static_path(P, cache, loc, stop)
         if path is None or lows.size == 0:
             cache[key] = None
@@ -1239,7 +1241,7 @@ def _static_path(P: _Problem, cache: dict, loc: str, stop: int) -> _StaticMapPat
     key = ("static_path", loc, stop)
     if key not in cache:
         try:
-            cache[key] = _StaticMapPath(P, loc, "output", P.nominal_signals[loc], stop)
+            cache[key] = _StaticMapPath(P, loc, P.nominal_signals[loc], stop)
         except PipelineError:
             cache[key] = None
     return cache[key]
@@ -1584,13 +1586,16 @@ class _Fitter:
         pairs per pass (:class:`_StaticMapPath`):
 
         1. one-sided profiles: each limit alone on a dense grid (:func:`_saturation_grids`);
-        2. coordinate descent on the grids from the best limit of each side: the other
-           limit scanned over its whole grid with this one fixed, then the first one
-           rescanned, until nothing changes (at most three scans);
+        2. coordinate descent from the best limit of each side: the other limit scanned
+           over its grid extended half a range beyond the nominal extremes, with this
+           one fixed, then the first one rescanned, until nothing changes (at most
+           three scans);
         3. the best `n_starts` pairs (also among pairs of the profiles' local minima,
            the screening's best points and the previous pass's fit) refined on
            shrinking 7 x 7 grids (the centre is kept, so the sum of squares never
-           rises) down to 1e-4 of the signal's range.
+           rises) down to 1e-4 of the signal's range;
+        4. for two finite limits, a scan along the common shift of both (the valley an
+           integrating loop leaves) and a last shrinking-grid refinement.
         """
         P, stop, loc = self.P, self.stop, s.location
         v = P.nominal_signals[loc][:stop]
@@ -1615,8 +1620,7 @@ class _Fitter:
         grid_lo, grid_hi = _saturation_grids(v)
         if profile is None:  # exact simulations one by one: coarser grids
             grid_lo, grid_hi = grid_lo[::6], grid_hi[::6]
-            p_lows = np.concatenate([grid_lo, np.full(grid_hi.size, -inf)])
-            p_highs = np.concatenate([np.full(grid_lo.size, inf), grid_hi])
+            p_lows, p_highs = _one_sided(grid_lo, grid_hi)
             p_sse = evaluate(p_lows, p_highs)
         else:
             p_lows, p_highs, y_corr = profile
