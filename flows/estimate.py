@@ -45,8 +45,8 @@ def search_task(cfg, prep):
 
 
 @task(name="estimate-window", **_T)
-def estimate_task(prep, window, n_p):
-    return jobs.estimate_window(prep, window, n_p)
+def estimate_task(prep, window, n_p, n_k, noise, use_instruments):
+    return jobs.estimate_window(prep, window, n_p, n_k, noise, use_instruments)
 
 
 @task(name="summarise", **_T)
@@ -97,7 +97,8 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
          f"{len(sr.windows)} windows")
     t0 = time.perf_counter()
     windows = [None] + [tuple(w) for w in sr.windows]
-    futures = estimate_task.map(unmapped(prep), windows, unmapped(sr.n_p))
+    futures = estimate_task.map(unmapped(prep), windows, unmapped(sr.n_p), unmapped(sr.n_k),
+                                unmapped(sr.noise), unmapped(sr.instruments))
     ests = futures.result()
     timings["estimate"] = time.perf_counter() - t0
     update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
@@ -112,7 +113,11 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
                              description=f"{cfg.job} run {report.run_id}")
     create_table_artifact(
         [{"output": p["output"], "input": p["input"], "n_p": p["n_p"],
-          "final_step": round(p["final_step"], 6), "verdict": p["agreement"]["verdict"]}
+          "gain": None if p["gain"] is None else round(p["gain"], 6),
+          "rate": None if p["rate"] is None else round(p["rate"], 9),
+          "verdict": p["agreement"]["verdict"],
+          "feedback": None if p["feedback"] is None else p["feedback"]["detected"],
+          "warnings": ", ".join(w["code"] for w in p["warnings"])}
          for p in summary.checks["pairs"]],
         key=_artifact_key(cfg.job, "pairs"), description="pairs and window-agreement verdicts")
     return report

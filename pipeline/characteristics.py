@@ -55,7 +55,7 @@ then well determined.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import scipy.optimize
@@ -103,6 +103,11 @@ class SelfRegulatingCharacteristics:
     threshold : float
         Relative threshold used for the dead time, ``threshold_rel·|gain|`` (the
         per-sample ``threshold_std·step_std`` may be larger).
+    undefined : dict
+        Quantities that do not exist for this response, each with the reason (their
+        values are NaN): all times when the gain is indistinguishable from zero; the
+        overshoot and time constant of a response that peaks at more than twice its
+        final value and returns towards it (no "overshoot" of a settling response).
     """
 
     gain: float
@@ -114,10 +119,16 @@ class SelfRegulatingCharacteristics:
     peak_time_s: float
     settled: bool
     threshold: float
+    undefined: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (NaN → None)."""
-        return {k: (v if isinstance(v, bool) else _json_float(v)) for k, v in asdict(self).items()}
+        """JSON-ready dict (NaN → None; ``undefined`` keeps the reasons)."""
+        out = {k: (v if isinstance(v, bool) else _json_float(v))
+               for k, v in asdict(self).items() if k != "undefined"}
+        for k in self.undefined:
+            out[k] = None
+        out["undefined"] = dict(self.undefined)
+        return out
 
 
 @dataclass(frozen=True)
@@ -225,6 +236,8 @@ def self_regulating_characteristics(
     threshold_rel: float = 0.01,
     threshold_std: float = 2.0,
     settling_band: float = 0.02,
+    gain: float | None = None,
+    gain_std: float | None = None,
 ) -> SelfRegulatingCharacteristics:
     """Gain, dead time, time constant, settling time and overshoot (module notes).
 
@@ -245,6 +258,9 @@ def self_regulating_characteristics(
         Dead-time threshold in standard deviations of the point (default 2).
     settling_band : float
         Settling band as a fraction of ``|gain|`` (default 2 %).
+    gain, gain_std : float, optional
+        The static gain and its std if already known (the estimate's final step
+        ``step[-1]``, the FIR model's own DC gain); default: the tail mean (notes).
 
     Returns
     -------
@@ -254,14 +270,23 @@ def self_regulating_characteristics(
     """
     h, s, t = _prepare(step, step_std, dt_s)
     tail = _tail(h.size, tail_fraction)
-    gain = float(h[tail].mean())
-    if s is not None:
-        gain_std = float(np.sqrt(np.mean(s[tail] ** 2)))
+    if gain is None:
+        gain = float(h[tail].mean())
+        if s is not None:
+            gain_std = float(np.sqrt(np.mean(s[tail] ** 2)))
+        else:
+            gain_std = float(np.std(h[tail], ddof=1))
     else:
-        gain_std = float(np.std(h[tail], ddof=1))
+        gain = float(gain)
+        gain_std = float("nan") if gain_std is None else float(gain_std)
     nan = float("nan")
     if gain == 0 or abs(gain) <= threshold_std * gain_std:
-        return SelfRegulatingCharacteristics(gain, gain_std, nan, nan, nan, 0.0, nan, False, nan)
+        why = (f"the gain {gain:.3g} is within {threshold_std:g} standard deviations "
+               f"({gain_std:.2g}) of zero: there is no response to time")
+        undefined = dict.fromkeys(("dead_time_s", "time_constant_s", "settling_time_s",
+                                   "overshoot_pct", "peak_time_s"), why)
+        return SelfRegulatingCharacteristics(gain, gain_std, nan, nan, nan, nan, nan, False,
+                                             nan, undefined)
     sign = 1.0 if gain > 0 else -1.0
     k_abs = abs(gain)
     thr = np.full(h.size, threshold_rel * k_abs)
@@ -310,6 +335,16 @@ def self_regulating_characteristics(
     noise = 0.0 if s is None else threshold_std * float(s[k_peak])
     overshoot = float(excess / k_abs * 100.0) if excess > noise and tail.start > 0 else 0.0
     peak_time = float(t[k_peak]) if overshoot > 0 else nan
+    undefined = {}
+    if math.isnan(dead_time):
+        undefined["dead_time_s"] = "the response never reaches half its gain"
+    peak_ratio = float(np.max(sign * h)) / k_abs
+    if peak_ratio > 2.0:
+        why = (f"the response peaks at {peak_ratio:.3g} times its final value and returns "
+               "towards it: it is not a settling response with an overshoot (read the "
+               "peak off the step response)")
+        undefined.update({"overshoot_pct": why, "peak_time_s": why, "time_constant_s": why})
+        overshoot, peak_time, tau = nan, nan, nan
     return SelfRegulatingCharacteristics(
         gain=gain,
         gain_std=gain_std,
@@ -320,6 +355,7 @@ def self_regulating_characteristics(
         peak_time_s=peak_time,
         settled=settled,
         threshold=threshold_rel * k_abs,
+        undefined=undefined,
     )
 
 

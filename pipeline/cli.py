@@ -85,7 +85,7 @@ def _cmd_runs(args) -> int:
         if trend.height:
             keep = [c for c in ("run_id", "created_utc", "output", "input", "metric", "value")
                     if c in trend.columns]
-            metrics = args.metric or ["final_step", "rate", "dead_time_s", "static_gain",
+            metrics = args.metric or ["gain", "rate", "dead_time_s", "static_gain",
                                       "holdout_rms_before", "holdout_rms_after", "reduction"]
             print(trend.filter(pl.col("metric").is_in(metrics)).select(keep))
     return 0

@@ -44,6 +44,7 @@ import scipy.fft
 import scipy.linalg
 import scipy.optimize
 
+from pipeline.lag_products import assemble_gram, first_block_row
 from pipeline.errors import (
     ConfigError,
     DataQualityError,
@@ -66,6 +67,7 @@ __all__ = [
     "estimate_regularized",
     "predict",
     "residuals",
+    "innovations",
     "good_segments",
     "lag_times",
 ]
@@ -192,8 +194,17 @@ class StepResponseEstimate:
         Residual variance ``RSS / (n_d - n_unknowns)``.
     integrating : tuple of bool
     method : str
-        ``"least_squares"``, ``"correlation"`` or ``"regularized_tc"``.
+        ``"least_squares"`` (the thesis), ``"prediction_error"`` (FIR + AR noise model),
+        ``"instrumental_variables"``, ``"correlation"`` or ``"regularized_tc"``.
     diagnostics : Diagnostics
+    noise_model : tuple of NoiseModel
+        Per output: kind, form, order, coefficients, innovation std
+        (:class:`pipeline.noise_model.NoiseModel`); white for the thesis' estimate.
+    n_k : ndarray of int (n_y, n_x)
+        Known delays: ``delta_h[..., :n_k]`` were fixed at zero (std 0).
+    step_cov : ndarray (n_y, n_x, n_p_max, n_p_max) or None
+        Covariance of each pair's step response across lags (of the method used) —
+        what a Wald test on a difference of step responses needs.
     """
 
     delta_h: np.ndarray
@@ -212,6 +223,9 @@ class StepResponseEstimate:
     method: str
     diagnostics: Diagnostics
     extra: dict = field(default_factory=dict)
+    noise_model: tuple = ()
+    n_k: np.ndarray | None = None
+    step_cov: np.ndarray | None = None
 
     @property
     def time_s(self) -> np.ndarray:
@@ -330,77 +344,13 @@ def _check_finite(arr: np.ndarray, good: np.ndarray | None, name: str) -> None:
         )
 
 
-# ------------------------------------------------------------ lag products (block FFT)
-def _lag_products(w: np.ndarray, x: np.ndarray, k0: int, n_lags: int) -> np.ndarray:
-    """``r[p, n, j] = sum_{k=k0}^{N-1} w[k, n] * x[k-p, j]`` for ``p < n_lags``.
-
-    Block FFT (overlap-save): each block of ``B`` observations is correlated against
-    the ``B + n_lags - 1`` input samples it needs, the cross-spectra are summed over
-    blocks and a single inverse FFT per pair returns every lag.  Hand-written because
-    scipy.signal.correlate has no "sum over observation range with lag window" form and
-    would need one full-length FFT per pair.
-    """
-    n, n_w = w.shape
-    n_x = x.shape[1]
-    n_obs = n - k0
-    P = n_lags
-    L = scipy.fft.next_fast_len(max(8 * P, 512), real=True)
-    B = L - P + 1
-    nb = -(-n_obs // B)
-    # x padded so every block's segment [s - P + 1, s - P + 1 + L) exists.
-    first = k0 - P + 1
-    need = first + (nb - 1) * B + L
-    xp = x[first:] if need <= n else np.concatenate([x[first:], np.zeros((need - n, n_x))])
-    wp = w[k0:]
-    if wp.shape[0] < nb * B:
-        wp = np.concatenate([wp, np.zeros((nb * B - wp.shape[0], n_w))])
-    F = L // 2 + 1
-    S = np.zeros((F, n_w, n_x), dtype=complex)
-    # chunk of blocks per pass: bounds memory to ~ chunk * L * (n_w + n_x) complex numbers
-    chunk = max(1, int(4_000_000 // (L * (n_w + n_x))))
-    for b0 in range(0, nb, chunk):
-        b1 = min(nb, b0 + chunk)
-        nbc = b1 - b0
-        seg = np.lib.stride_tricks.sliding_window_view(
-            xp[b0 * B : (b1 - 1) * B + L], L, axis=0
-        )[::B]  # (nbc, n_x, L)
-        X = scipy.fft.rfft(seg, axis=2)  # (nbc, n_x, F)
-        wb = np.zeros((nbc, n_w, L))
-        wb[:, :, P - 1 : P - 1 + B] = wp[b0 * B : b1 * B].reshape(nbc, B, n_w).transpose(0, 2, 1)
-        W = scipy.fft.rfft(wb, axis=2)  # (nbc, n_w, F)
-        # S[f] += W[:, :, f]^T @ conj(X[:, :, f])  — a batched GEMM over frequencies
-        S += np.matmul(W.transpose(2, 1, 0), X.conj().transpose(2, 0, 1))
-    r = scipy.fft.irfft(S, n=L, axis=0)[:P]
-    return r
-
-
-def _assemble_A(r_xx: np.ndarray, x: np.ndarray, k0: int, n: int, P: int) -> np.ndarray:
-    """Full lag-major A from its first block row by the diagonal recursion (method.md §2)."""
-    n_x = x.shape[1]
-    A4 = np.empty((P, P, n_x, n_x))
-    A4[0] = r_xx  # A[0, p] = sum_k x(k) x(k-p)'
-    if P > 1:
-        back = np.arange(P - 1)
-        head = x[k0 - 1 - back]  # x(k0-1-q), q = 0..P-2 (exists: k0 >= P-1)
-        tail = x[n - 1 - back]  # x(N-1-q)
-        for q in range(P - 1):
-            A4[q + 1, 1:] = (
-                A4[q, :-1]
-                + head[q][None, :, None] * head[:, None, :]
-                - tail[q][None, :, None] * tail[:, None, :]
-            )
-            A4[q + 1, 0] = r_xx[q + 1].T
-    A = A4.transpose(0, 2, 1, 3).reshape(P * n_x, P * n_x)
-    return 0.5 * (A + A.T)  # exact symmetry (the recursion is symmetric up to round-off)
-
-
 def _segment_normal_equations(
     x: np.ndarray, y_eff: np.ndarray, k0: int, P: int, integrating: tuple[bool, ...]
 ) -> NormalEquations:
     n, n_x = x.shape
     w = np.concatenate([x, y_eff], axis=1)
-    r = _lag_products(w, x, k0, P)  # (P, n_x+n_y, n_x)
-    A = _assemble_A(r[:, :n_x, :], x, k0, n, P)
+    r = first_block_row(w, x, k0, P)  # (P, n_x+n_y, n_x)
+    A = assemble_gram(r[:, :n_x, :], x, k0, n, P)
     C = r[:, n_x:, :].transpose(1, 0, 2).reshape(y_eff.shape[1], P * n_x)
     yy = np.einsum("ki,ki->i", y_eff[k0:], y_eff[k0:])
     return NormalEquations(A, C, yy, n - k0, n_x, P, integrating, 1)
@@ -484,12 +434,17 @@ def normal_equations(
 
 
 # ----------------------------------------------------------------- solving the system
-def _unknown_index(n_p_row: np.ndarray, n_x: int) -> np.ndarray:
-    """Lag-major indices of the unknowns of one output with per-input orders n_p_row."""
-    P = int(n_p_row.max())
+def _unknown_index(n_p_row: np.ndarray, n_x: int, n_k_row: np.ndarray | None = None,
+                   n_lags: int | None = None) -> np.ndarray:
+    """Lag-major indices of the unknowns of one output with per-input orders n_p_row
+    (lags ``n_k_row[j] <= l < n_p_row[j]``) in a block of ``n_lags`` lags."""
+    P = int(n_p_row.max()) if n_lags is None else int(n_lags)
     lag = np.repeat(np.arange(P), n_x)
     inp = np.tile(np.arange(n_x), P)
-    return np.flatnonzero(lag < n_p_row[inp])
+    ok = lag < n_p_row[inp]
+    if n_k_row is not None:
+        ok &= lag >= n_k_row[inp]
+    return np.flatnonzero(ok)
 
 
 def _collinear_message(A: np.ndarray, n_x: int) -> str:
@@ -588,12 +543,91 @@ def _propagation(n: int, integrating: bool) -> tuple[np.ndarray, np.ndarray]:
     return np.eye(n), T
 
 
+@dataclass
+class _PairArrays:
+    """Mutable result arrays filled output by output (see :func:`_fill_output`)."""
+
+    n_y: int
+    n_x: int
+    P: int
+
+    def __post_init__(self):
+        shape = (self.n_y, self.n_x, self.P)
+        self.delta_h = np.zeros(shape)
+        self.step = np.zeros(shape)
+        self.step_std = np.zeros(shape)
+        self.dh_std = np.zeros(shape)
+        self.delta_g = np.full(shape, np.nan)
+        self.rate = np.full((self.n_y, self.n_x), np.nan)
+        self.rate_std = np.full((self.n_y, self.n_x), np.nan)
+        self.step_cov = np.zeros((self.n_y, self.n_x, self.P, self.P))
+
+
+def _fill_output(arr: _PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: float,
+                 inp_of: np.ndarray, lag_of: np.ndarray, n_p_row: np.ndarray, form: str,
+                 dt: float) -> None:
+    """Map one output's unknowns to step responses, their stds and per-pair covariance.
+
+    ``b`` (m,) unknowns with covariance ``sigma2 * F' F``; unknown ``u`` belongs to input
+    ``inp_of[u]`` at 0-based lag ``lag_of[u]`` of ``delta_h`` (forms ``direct``,
+    ``level``) or of ``delta_g`` (form ``differenced``).  Lags absent from the unknowns
+    (a known delay) are zero with zero std.
+    """
+    sd = np.sqrt(sigma2)
+    for j in range(arr.n_x):
+        n = int(n_p_row[j])
+        sel = np.flatnonzero(inp_of == j)
+        sel = sel[np.argsort(lag_of[sel])]
+        theta = np.zeros(n)
+        theta[lag_of[sel]] = b[sel]
+        Ft = np.zeros((F.shape[0], n))
+        Ft[:, lag_of[sel]] = F[:, sel]  # factor of the placed unknowns
+        if form == "differenced":
+            dh, Fdh = np.cumsum(theta), np.cumsum(Ft, axis=1)
+        else:
+            dh, Fdh = theta, Ft
+        Fs = np.cumsum(Fdh, axis=1)
+        arr.delta_h[i, j, :n] = dh
+        arr.step[i, j, :n] = np.cumsum(dh)
+        arr.dh_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fdh, Fdh))
+        arr.step_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fs, Fs))
+        arr.step_cov[i, j, :n, :n] = sigma2 * (Fs.T @ Fs)
+        if form in ("differenced", "level"):
+            arr.delta_g[i, j, :] = 0.0
+            arr.delta_g[i, j, :n] = theta if form == "differenced" else np.diff(dh, prepend=0.0)
+            arr.rate[i, j] = dh[-1] / dt
+            arr.rate_std[i, j] = arr.dh_std[i, j, n - 1] / dt
+
+
+def _n_k_matrix(n_k, n_p: np.ndarray) -> np.ndarray:
+    n_y, n_x = n_p.shape
+    arr = np.asarray(0 if n_k is None else n_k)
+    if arr.ndim == 0:
+        arr = np.full((n_y, n_x), arr)
+    if arr.shape != (n_y, n_x):
+        raise ConfigError(
+            f"n_k must be an int or an int array of shape (n_y, n_x) = ({n_y}, {n_x}); "
+            f"got shape {arr.shape}")
+    if not np.all(np.equal(np.mod(arr, 1), 0)) or np.any(arr < 0):
+        raise ConfigError(f"n_k must be non-negative integers (known delay in samples); "
+                          f"got {arr.tolist()}")
+    arr = arr.astype(int)
+    bad = np.argwhere(arr >= n_p)
+    if bad.size:
+        i, j = bad[0]
+        raise ConfigError(
+            f"n_k={arr[i, j]} fixes every one of the n_p={n_p[i, j]} increments of pair "
+            f"(output {i}, input {j}) at zero; n_k must be smaller than n_p")
+    return arr
+
+
 def estimate_from_normal_equations(
     ne: NormalEquations,
     *,
     n_p,
     dt: float,
     method: str = "least_squares",
+    n_k=0,
 ) -> StepResponseEstimate:
     """Solve ``b_i = A^-1 c_i`` per output and propagate ``sigma^2 A^-1`` (eq. 3.28, 3.43).
 
@@ -606,29 +640,28 @@ def estimate_from_normal_equations(
         Sample period (s).
     method : str
         Label stored in the result.
+    n_k : int or int array (n_y, n_x)
+        Known delay in samples: ``delta_h[:n_k]`` (``delta_g`` for integrating outputs)
+        fixed at zero.
     """
+    from pipeline.noise_model import NoiseModel
+
     if not (np.isfinite(dt) and dt > 0):
         raise ConfigError(f"dt must be a positive number of seconds; got {dt!r}")
     n_x, n_y, P = ne.n_x, ne.n_y, ne.n_p_max
     npm = _n_p_matrix(n_p, n_y, n_x)
+    nkm = _n_k_matrix(n_k, npm)
     if npm.max() > P:
         raise ConfigError(
             f"n_p={int(npm.max())} exceeds n_p_max={P} of the normal equations; "
             "recompute them with a larger n_p_max"
         )
-    shape = (n_y, n_x, P)
-    delta_h = np.zeros(shape)
-    step = np.zeros(shape)
-    step_std = np.zeros(shape)
-    dh_std = np.zeros(shape)
-    delta_g = np.full(shape, np.nan)
-    rate = np.full((n_y, n_x), np.nan)
-    rate_std = np.full((n_y, n_x), np.nan)
+    arr = _PairArrays(n_y, n_x, P)
     sigma2 = np.zeros(n_y)
     rms = np.zeros(n_y)
     cache: dict[bytes, tuple] = {}
     for i in range(n_y):
-        idx = _unknown_index(npm[i], n_x)
+        idx = _unknown_index(npm[i], n_x, nkm[i])
         m = idx.size
         if ne.n_d <= m:
             raise InsufficientDataError(
@@ -654,39 +687,18 @@ def estimate_from_normal_equations(
         rss = max(float(ne.yy[i] - b @ ci), 0.0)
         sigma2[i] = rss / (ne.n_d - m)
         rms[i] = np.sqrt(rss / ne.n_d)
-        sd = np.sqrt(sigma2[i])
-        lag_of = idx // n_x
-        inp_of = idx % n_x
-        for j in range(n_x):
-            sel = np.flatnonzero(inp_of == j)
-            sel = sel[np.argsort(lag_of[sel])]
-            nij = sel.size
-            bj = b[sel]
-            V = V_all[:, sel]  # cov of this pair's unknowns = s2 * V' V
-            W1 = np.cumsum(V, axis=1)  # columns of cumsum: one level of summation
-            if ne.integrating[i]:
-                W2 = np.cumsum(W1, axis=1)
-                delta_g[i, j, :] = 0.0
-                delta_g[i, j, :nij] = bj
-                delta_h[i, j, :nij] = np.cumsum(bj)
-                step[i, j, :nij] = np.cumsum(np.cumsum(bj))
-                dh_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", W1, W1))
-                step_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", W2, W2))
-                rate[i, j] = bj.sum() / dt
-                rate_std[i, j] = sd * np.linalg.norm(W1[:, -1]) / dt
-            else:
-                delta_h[i, j, :nij] = bj
-                step[i, j, :nij] = np.cumsum(bj)
-                dh_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", V, V))
-                step_std[i, j, :nij] = sd * np.sqrt(np.einsum("ka,ka->a", W1, W1))
+        form = "differenced" if ne.integrating[i] else "direct"
+        _fill_output(arr, i, b, V_all, sigma2[i], idx % n_x, idx // n_x, npm[i], form, dt)
+    noise = tuple(NoiseModel("white", "differenced" if f else "direct", 0, (),
+                             float(np.sqrt(s2))) for f, s2 in zip(ne.integrating, sigma2))
     return StepResponseEstimate(
-        delta_h=delta_h,
-        step=step,
-        step_std=step_std,
-        delta_h_std=dh_std,
-        delta_g=delta_g,
-        rate=rate,
-        rate_std=rate_std,
+        delta_h=arr.delta_h,
+        step=arr.step,
+        step_std=arr.step_std,
+        delta_h_std=arr.dh_std,
+        delta_g=arr.delta_g,
+        rate=arr.rate,
+        rate_std=arr.rate_std,
         n_p=npm,
         n_d=ne.n_d,
         dt=float(dt),
@@ -695,6 +707,9 @@ def estimate_from_normal_equations(
         integrating=ne.integrating,
         method=method,
         diagnostics=_diagnostics(ne, cache.get(np.arange(P * n_x).tobytes(), (None,))[0]),
+        noise_model=noise,
+        n_k=nkm,
+        step_cov=arr.step_cov,
     )
 
 
@@ -706,8 +721,11 @@ def estimate_step_responses(
     dt: float,
     integrating=False,
     mask=None,
+    noise="white",
+    n_k=0,
+    instruments=None,
 ) -> StepResponseEstimate:
-    """Least-squares step responses of every output/input pair (eq. 3.12/3.15, 3.28).
+    """Step responses of every output/input pair (eq. 3.12/3.15, 3.28; method.md §10).
 
     Parameters
     ----------
@@ -721,15 +739,31 @@ def estimate_step_responses(
     dt : float
         Sample period (s).
     integrating : bool or sequence of n_y bools
-        Difference these outputs (non-self-regulating, eq. 3.15).
+        Non-self-regulating outputs (eq. 3.15).
     mask : bool array (N,) or (N, n_x+n_y), optional
         ``True`` = good sample.  Bad samples may hold NaN.
+    noise : ``"white"``, ``"auto"`` or int
+        ``"white"``: the thesis' least squares (covariance ``sigma^2 A^-1``, right for
+        white noise only).  ``"auto"``: per output an AR noise model ``1/D(q)`` chosen by
+        BIC (order 0..20) and fitted jointly with the FIR (prediction-error method);
+        for integrating outputs the differenced form (eq. 3.15) or the level form (level
+        on cumulated inputs with a constant per segment, exact for white level-sensor
+        noise) is chosen by BIC.  An int fixes the AR order.
+    n_k : int or int array (n_y, n_x)
+        Known delay in samples: ``delta_h[:n_k]`` fixed at zero.  ``n_k >= 1`` removes
+        the same-sample term, which feedback makes unidentifiable.
+    instruments : array (N, n_r), optional
+        External signals that move the inputs but not the noise (setpoints, measured
+        disturbances).  When given, the estimate is instrumental-variable (two-stage
+        least squares on lags ``0..2 n_p - 1`` of the instruments, refined with the noise
+        model of ``noise``): consistent under feedback whatever the noise colour.
 
     Returns
     -------
     StepResponseEstimate
         Uses every observation whose required samples all lie inside the arrays (and
-        are good).
+        are good).  ``step_std`` and ``step_cov`` are those of the method used
+        (``method``); ``noise_model`` holds the noise model of each output.
 
     Raises
     ------
@@ -739,8 +773,316 @@ def estimate_step_responses(
     y2 = _as_2d(y, "y")
     x2 = _as_2d(x, "x")
     npm = _n_p_matrix(n_p, y2.shape[1], x2.shape[1])
-    ne = normal_equations(x2, y2, n_p_max=int(npm.max()), integrating=integrating, mask=mask)
-    return estimate_from_normal_equations(ne, n_p=npm, dt=dt)
+    order = noise_order(noise)
+    if order == 0 and instruments is None:
+        ne = normal_equations(x2, y2, n_p_max=int(npm.max()), integrating=integrating,
+                              mask=mask)
+        return estimate_from_normal_equations(ne, n_p=npm, dt=dt, n_k=n_k)
+    nkm = _n_k_matrix(n_k, npm)
+    n_lags = _lags_needed(npm, instruments is not None, order)
+    ctx = lag_gram_context(x2, y2, integrating=integrating, mask=mask,
+                           instruments=instruments, n_lags=n_lags,
+                           level_form=instruments is None)
+    return estimate_from_context(ctx, n_p=npm, n_k=nkm, dt=dt, noise=noise)
+
+
+NOISE_AUTO = "auto"
+
+
+def noise_order(noise) -> int | None:
+    """``noise`` keyword -> fixed AR order (0 = white) or None (chosen by BIC)."""
+    if isinstance(noise, str):
+        if noise == "white":
+            return 0
+        if noise == NOISE_AUTO:
+            return None
+        raise ConfigError(f"noise={noise!r} is not allowed; use 'white', 'auto' or an AR "
+                          "order (a non-negative integer)")
+    if isinstance(noise, (bool, np.bool_)) or not float(noise).is_integer() or noise < 0:
+        raise ConfigError(f"noise={noise!r} is not allowed; use 'white', 'auto' or an AR "
+                          "order (a non-negative integer)")
+    return int(noise)
+
+
+def _lags_needed(npm: np.ndarray, iv: bool, order: int | None, leads: int = 0) -> int:
+    from pipeline.noise_model import DEFAULT_AR_ORDER_MAX
+
+    p = DEFAULT_AR_ORDER_MAX if order is None else order
+    P = int(npm.max())
+    return max(P + leads, 2 * P if iv else 0) + p + 1
+
+
+@dataclass(frozen=True)
+class GramContext:
+    """A lag Gram of ``[x, y_fit, y_level, S, r]`` with its column layout.
+
+    ``y_fit`` is ``y`` (self-regulating) or ``Δy`` (integrating); ``y_level`` the level of
+    each integrating output and ``S`` the inputs cumulated from each segment's start (the
+    level form); ``r`` the instruments.
+    """
+
+    lg: object  # pipeline.lag_products.LagGram
+    n_x: int
+    n_y: int
+    n_r: int
+    integrating: tuple[bool, ...]
+    level_col: dict
+    s_lo: int | None
+    r_lo: int | None
+
+    @property
+    def y_col(self) -> range:
+        return range(self.n_x, self.n_x + self.n_y)
+
+    def white_normal_equations(self, P: int) -> NormalEquations:
+        """The thesis' (unfiltered) normal equations at ``P`` lags, from the Gram."""
+        G = self.lg.G
+        n_x = self.n_x
+        A = G[:P, :n_x, :P, :n_x].reshape(P * n_x, P * n_x)
+        C = np.stack([G[0, c, :P, :n_x].reshape(-1) for c in self.y_col])
+        yy = np.array([G[0, c, 0, c] for c in self.y_col])
+        return NormalEquations(A, C, yy, self.lg.n_d, n_x, P, self.integrating,
+                               self.lg.n_segments)
+
+
+def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
+                     n_lags: int, level_form: bool = True) -> GramContext:
+    """Build the lag Gram every non-white estimate, the search and the feedback test use."""
+    from pipeline.lag_products import build_lag_gram
+
+    x = _as_2d(x, "x")
+    y = _as_2d(y, "y")
+    if x.shape[0] != y.shape[0]:
+        raise DataQualityError(
+            f"x has {x.shape[0]} samples but y has {y.shape[0]}; inputs and outputs must "
+            "cover the same sample times (resample them onto one grid first)")
+    n, n_x = x.shape
+    n_y = y.shape[1]
+    flags = _integrating_flags(integrating, n_y)
+    good = _combined_good(mask, n, n_x + n_y)
+    _check_finite(x, good, "x")
+    _check_finite(y, good, "y")
+    r = None
+    if instruments is not None:
+        r = _as_2d(instruments, "instruments")
+        if r.shape[0] != n:
+            raise DataQualityError(
+                f"instruments have {r.shape[0]} samples but x and y have {n}; give the "
+                "instruments on the same sample times")
+        fin = np.isfinite(r).all(axis=1)
+        good = fin if good is None else good & fin
+        r = np.where(np.isfinite(r), r, 0.0)
+    ints = [i for i, f in enumerate(flags) if f]
+    use_level = level_form and bool(ints)
+    segs = [(0, n)] if good is None else good_segments(good)
+
+    def segments():
+        for s0, s1 in segs:
+            xs = x[s0:s1]
+            ys = y[s0:s1].copy()
+            lev = ys[:, ints].copy()
+            if ints:
+                ys[1:, ints] = np.diff(ys[:, ints], axis=0)
+                ys[0, ints] = 0.0  # never used: observations start one sample later
+            parts = [xs, ys]
+            if use_level:
+                parts += [lev, np.cumsum(xs, axis=0)]
+            if r is not None:
+                parts.append(r[s0:s1])
+            yield np.concatenate(parts, axis=1)
+
+    lg = build_lag_gram(segments(), n_lags=n_lags, k0_extra=1 if ints else 0,
+                        centred=use_level)
+    if lg is None:
+        longest = max((b - a for a, b in segs), default=0)
+        raise InsufficientDataError(
+            f"no usable observation: {n_lags} lags (n_p, noise-model order and delays) need "
+            f"contiguous good segments of at least {n_lags + (1 if ints else 0)} samples, "
+            f"the longest has {longest} (of {n} samples); lower n_p or supply more data")
+    col = n_x + n_y
+    level_col = {}
+    s_lo = None
+    if use_level:
+        level_col = {i: col + k for k, i in enumerate(ints)}
+        col += len(ints)
+        s_lo = col
+        col += n_x
+    r_lo = col if r is not None else None
+    return GramContext(lg, n_x, n_y, 0 if r is None else r.shape[1], flags, level_col,
+                       s_lo, r_lo)
+
+
+def output_design(ctx: GramContext, i: int, n_p_row: np.ndarray, n_k_row: np.ndarray,
+                  form: str, *, leads: int = 0):
+    """Regression of output ``i`` in a form, optionally with ``leads`` future input lags.
+
+    With ``leads = M`` the output enters at lag ``M`` and the inputs at lags ``0..M-1``
+    are its future (the non-causal part of a feedback test); causal lags shift by ``M``.
+    Returns ``(design, inp_of, lag_of, is_lead)``; ``lag_of`` is the causal lag.
+    """
+    from pipeline.lag_products import Block
+    from pipeline.prediction_error import Design
+
+    n_x = ctx.n_x
+    P = int(n_p_row.max())
+    M = int(leads)
+    lead_idx = np.arange(M * n_x)
+    if form == "level":
+        lo = int(n_p_row.min()) - 1
+        blocks = []
+        xs = np.array([], dtype=int)
+        if P - 1 + M > 0:
+            blocks.append(Block(0, n_x, 0, P - 1 + M))
+            xs = _unknown_index(n_p_row - 1 + M, n_x, n_k_row + M, n_lags=P - 1 + M)
+        off = P - 1 + M
+        off_u = off * n_x if P - 1 + M > 0 else 0
+        blocks.append(Block(ctx.s_lo, ctx.s_lo + n_x, lo + M, P + M))
+        ss = np.array([off_u + (int(n_p_row[j]) - 1 - lo) * n_x + j for j in range(n_x)])
+        sel = np.concatenate([lead_idx, xs, ss]) if M else np.concatenate([xs, ss])
+        inp = np.concatenate([lead_idx % n_x, xs % n_x, np.arange(n_x)]) if M else \
+            np.concatenate([xs % n_x, np.arange(n_x)])
+        lag = np.concatenate([lead_idx // n_x - M, xs // n_x - M, n_p_row - 1]) if M else \
+            np.concatenate([xs // n_x, n_p_row - 1])
+        yb = Block(ctx.level_col[i], ctx.level_col[i] + 1, M, M + 1)
+        design = Design(yb, tuple(blocks), sel.astype(int), nuisance=2)
+    else:
+        c = ctx.n_x + i
+        idx = _unknown_index(n_p_row + M, n_x, n_k_row + M, n_lags=P + M)
+        sel = np.concatenate([lead_idx, idx]) if M else idx
+        # differenced form under a noise model: a constant per segment (the level's drift;
+        # the thesis' eq. 3.15 has none, so the white path keeps none)
+        nuis = 1 if (form == "differenced" and ctx.s_lo is not None) else 0
+        design = Design(Block(c, c + 1, M, M + 1), (Block(0, n_x, 0, P + M),), sel,
+                        nuisance=nuis)
+        inp = sel % n_x
+        lag = sel // n_x - M
+    return design, inp.astype(int), lag.astype(int), lag < 0
+
+
+def _forms_for(ctx: GramContext, i: int, instruments: bool) -> list[str]:
+    if not ctx.integrating[i]:
+        return ["direct"]
+    if instruments or ctx.s_lo is None:
+        return ["differenced"]
+    return ["differenced", "level"]
+
+
+def fit_output(ctx: GramContext, i: int, n_p_row, n_k_row, *, noise=NOISE_AUTO,
+               form: str | None = None, d_fixed: np.ndarray | None = None,
+               sigma2_fixed: float | None = None, instruments: bool = False):
+    """Fit output ``i`` (every candidate form; the lowest BIC wins).
+
+    Returns ``(fit, design, inp_of, lag_of, form, selection, first_stage)``.
+    """
+    from pipeline.lag_products import Block
+    from pipeline.prediction_error import (
+        fit_fixed_noise,
+        fit_instrumental,
+        fit_prediction_error,
+    )
+
+    order = noise_order(noise)
+    what = f"output {i}"
+    best = None
+    by_form = {}
+    forms = [form] if form is not None else _forms_for(ctx, i, instruments)
+    for fm in forms:
+        design, inp, lag, _ = output_design(ctx, i, np.asarray(n_p_row), np.asarray(n_k_row), fm)
+        first = {}
+        try:
+            if d_fixed is not None:
+                fit = fit_fixed_noise(ctx.lg, design, d_fixed, what=what, sigma2=sigma2_fixed)
+            elif instruments:
+                rb = Block(ctx.r_lo, ctx.r_lo + ctx.n_r, 0, 2 * int(np.max(n_p_row)))
+                fit, first = fit_instrumental(ctx.lg, design, rb, what=what, order=order)
+            else:
+                fit = fit_prediction_error(ctx.lg, design, what=what, order=order)
+        except SingularSystemError as exc:
+            P = int(np.max(n_p_row))
+            A = ctx.white_normal_equations(P).A
+            raise SingularSystemError(f"{exc}: {_collinear_message(A, ctx.n_x)}") from None
+        by_form[fm] = fit.bic
+        if best is None or fit.bic < best[0].bic:
+            best = (fit, design, inp, lag, fm, first)
+    selection = {"form_bic": by_form} if len(forms) > 1 else {}
+    return (*best[:5], selection, best[5])
+
+
+def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_AUTO,
+                          forms: Sequence[str] | None = None,
+                          d_fixed: Sequence[np.ndarray] | None = None,
+                          sigma2_fixed: Sequence[float] | None = None,
+                          use_instruments: bool | None = None) -> StepResponseEstimate:
+    """Noise-model or instrument-based estimate of every pair from a :class:`GramContext`.
+
+    ``forms``/``d_fixed``/``sigma2_fixed`` (per output) fix the output form, noise filter
+    and innovation variance (the search judges candidate orders with the noise model
+    found at ``n_p_max``).
+    """
+    from pipeline.noise_model import NoiseModel
+    from pipeline.prediction_error import WEAK_INSTRUMENT_F
+
+    if not (np.isfinite(dt) and dt > 0):
+        raise ConfigError(f"dt must be a positive number of seconds; got {dt!r}")
+    n_x, n_y = ctx.n_x, ctx.n_y
+    npm = _n_p_matrix(n_p, n_y, n_x)
+    nkm = _n_k_matrix(n_k, npm)
+    iv = ctx.r_lo is not None if use_instruments is None else use_instruments
+    P = int(npm.max())
+    arr = _PairArrays(n_y, n_x, P)
+    sigma2 = np.zeros(n_y)
+    rms = np.zeros(n_y)
+    models = []
+    first_stage = {}
+    method = "instrumental_variables" if iv else "prediction_error"
+    for i in range(n_y):
+        if iv:
+            _check_instruments_move(ctx, i)
+        fit, design, inp, lag, form, sel, first = fit_output(
+            ctx, i, npm[i], nkm[i], noise=noise,
+            form=None if forms is None else forms[i],
+            d_fixed=None if d_fixed is None else d_fixed[i],
+            sigma2_fixed=None if sigma2_fixed is None else sigma2_fixed[i], instruments=iv)
+        if first:
+            weak = {s: v for s, v in first.items() if v["F"] < WEAK_INSTRUMENT_F}
+            if weak:
+                s, v = next(iter(weak.items()))
+                raise InsufficientDataError(
+                    f"instruments are weak for input {s}: first-stage F = {v['F']:.3g} "
+                    f"(R^2 = {v['r2']:.3g} with {v['n_instruments']} instrument lags) is "
+                    f"below {WEAK_INSTRUMENT_F:g}; the instruments barely move that input, "
+                    "so an instrument-based estimate would be biased and its uncertainty "
+                    "unreliable — use an instrument that moves the input (a setpoint "
+                    "with steps, a measured disturbance), or drop the instruments")
+            first_stage = {int(s): v for s, v in first.items()}
+        sigma2[i] = fit.sigma2
+        rms[i] = np.sqrt(fit.V / fit.n_d)
+        _fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, inp, lag, npm[i], form, dt)
+        models.append(NoiseModel("white" if fit.order == 0 else "ar", form, fit.order,
+                                 tuple(float(v) for v in fit.d[1:]), float(np.sqrt(fit.sigma2)),
+                                 {**fit.selection, **sel, "iterations": fit.iterations},
+                                 design.nuisance))
+    ne = ctx.white_normal_equations(P)
+    return StepResponseEstimate(
+        delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
+        delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
+        n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
+        integrating=ctx.integrating, method=method, diagnostics=_diagnostics(ne),
+        extra={"first_stage": first_stage} if first_stage else {},
+        noise_model=tuple(models), n_k=nkm, step_cov=arr.step_cov)
+
+
+def _check_instruments_move(ctx: GramContext, i: int) -> None:
+    G = ctx.lg.gram(False)
+    for k in range(ctx.n_r):
+        c = ctx.r_lo + k
+        v0 = G[0, c, 0, c]
+        v1 = G[0, c, 1, c] if G.shape[0] > 1 else 0.0
+        if v0 <= 0 or v1 > (1 - 1e-9) * v0:
+            raise DataQualityError(
+                f"instrument {k} does not move over the used observations (constant or "
+                "zero); an instrument must vary to explain the inputs — choose a signal "
+                "that moves (a setpoint with steps) or drop it from the instruments")
 
 
 def estimate_merged(
@@ -855,6 +1197,44 @@ def residuals(est: StepResponseEstimate, x, y) -> np.ndarray:
             y[1:, i] = np.diff(y[:, i])
             y[0, i] = np.nan
     return y - predict(est, x)
+
+
+def innovations(est: StepResponseEstimate, x, y, *, good=None) -> np.ndarray:
+    """One-step prediction errors of each output under its noise model (NaN where undefined).
+
+    ``D(q)`` applied to the residual of the fitted form: :func:`residuals` for
+    ``direct``/``differenced`` outputs; for ``level`` outputs the cumulated differenced
+    residual (the level residual).  The per-segment nuisance terms of the fit (a
+    constant, or a constant and a trend) are removed after filtering.  Filtering restarts
+    at every gap (``good`` False, or a NaN residual) and the first ``p`` samples of each
+    stretch are undefined.  White outputs return :func:`residuals`.  These are what
+    whiteness tests must see: the residual of a noise-model fit is coloured by design.
+    """
+    import scipy.signal
+
+    e = residuals(est, x, y)
+    if good is not None:
+        e[~np.asarray(good, dtype=bool)] = np.nan
+    out = np.full_like(e, np.nan)
+    for i in range(e.shape[1]):
+        nm = est.noise_model[i] if est.noise_model else None
+        d = np.ones(1) if nm is None else nm.d
+        level = nm is not None and nm.form == "level"
+        for a, b in good_segments(np.isfinite(e[:, i])):
+            seg = e[a:b, i]
+            if level:
+                seg = np.cumsum(seg)
+            f = scipy.signal.lfilter(d, [1.0], seg)
+            f[: d.size - 1] = np.nan
+            nuis = 0 if nm is None else nm.nuisance
+            ok = np.isfinite(f)
+            if nuis and ok.sum() > nuis:
+                t = np.arange(f.size, dtype=float)
+                basis = np.column_stack([np.ones(f.size), t][:nuis])
+                coef, *_ = np.linalg.lstsq(basis[ok], f[ok], rcond=None)
+                f = f - basis @ coef
+            out[a:b, i] = f
+    return out
 
 
 # ------------------------------------------------------------ correlation method

@@ -39,6 +39,7 @@ from pipeline.estimate import (
     StepResponseEstimate,
     estimate_step_responses,
     good_segments,
+    innovations,
     lag_times,
     residuals,
 )
@@ -105,6 +106,7 @@ class Prepared:
     good: np.ndarray  # (N, k) bool
     conditioning: dict
     integrating: tuple[bool, ...]
+    r: np.ndarray | None = None  # (N, n_r) conditioned instruments (NaN where bad)
 
     @property
     def inputs(self) -> list[str]:
@@ -113,6 +115,16 @@ class Prepared:
     @property
     def outputs(self) -> list[str]:
         return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "output"]
+
+    @property
+    def instruments(self) -> list[str]:
+        return [n for n, r in zip(self.recording.names, self.recording.roles)
+                if r == "instrument"]
+
+    @property
+    def good_xy(self) -> np.ndarray:
+        """Quality of the inputs and outputs (the estimator's mask)."""
+        return self.good[:, : len(self.inputs) + len(self.outputs)]
 
 
 @dataclass(frozen=True)
@@ -163,7 +175,8 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
 
     files = list(files) if files is not None else resolve_sources(cfg)
     sig = {**{n: ("input", s) for n, s in cfg.signals.inputs.items()},
-           **{n: ("output", s) for n, s in cfg.signals.outputs.items()}}
+           **{n: ("output", s) for n, s in cfg.signals.outputs.items()},
+           **{n: ("instrument", s) for n, s in cfg.signals.instruments.items()}}
     tags = [s.tag for _, s in sig.values()]
     mcap = cfg.source.mcap.model_dump() if cfg.source.mcap else None
     table, report = read_recordings(files, layout=cfg.source.layout,
@@ -174,6 +187,8 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
     grid_dt = cfg.source.grid_dt_s or _median_spacing_s(table)
     spec = {}
     for name, (role, s) in sig.items():
+        # inputs are continuous (linear); PVs are exception-reported and setpoints
+        # (instruments) are step signals: hold
         interp = s.interpolation or ("linear" if role == "input" else "hold")
         spec[s.tag] = {"interpolation": interp,
                        "max_gap_s": s.max_gap_s or max(10 * grid_dt, DEFAULT_MAX_GAP_S)}
@@ -286,6 +301,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
     tgrid = rec.time[: n * factor : factor] if factor > 1 else rec.time[:n]
     dt_s = factor * rec.dt_s
     n_x = sum(r == "input" for r in rec.roles)
+    n_y = sum(r == "output" for r in rec.roles)
     filled = _fill(vals, good)
     c = cfg.conditioning
     params: dict[str, Any] = {}
@@ -294,7 +310,9 @@ def prepare(cfg, rec: Recording) -> Prepared:
     if c.method == "highpass":
         params["cutoff_period_s"] = c.cutoff_period_s or 50 * dt_s * 10
         params["order"] = c.order
-    cond = condition(filled[:, :n_x], filled[:, n_x:], method=c.method, dt_s=dt_s, **params)
+    # instruments are conditioned like the inputs (the same transform on every signal)
+    xr = np.concatenate([filled[:, :n_x], filled[:, n_x + n_y:]], axis=1)
+    cond = condition(xr, filled[:, n_x:n_x + n_y], method=c.method, dt_s=dt_s, **params)
     g = good
     t = tgrid
     raw = np.where(good, vals, np.nan)
@@ -303,11 +321,12 @@ def prepare(cfg, rec: Recording) -> Prepared:
         g = good[k:] & good[:-k]
         t = tgrid[: g.shape[0]]
         raw = raw[: g.shape[0]]
-    xc = np.where(g[:, :n_x], cond.x, np.nan)
-    yc = np.where(g[:, n_x:], cond.y, np.nan)
+    xc = np.where(g[:, :n_x], cond.x[:, :n_x], np.nan)
+    yc = np.where(g[:, n_x:n_x + n_y], cond.y, np.nan)
+    rc = np.where(g[:, n_x + n_y:], cond.x[:, n_x:], np.nan) if cond.x.shape[1] > n_x else None
     integ = tuple(cfg.signals.outputs[o].integrating for o in cfg.signals.outputs)
     return Prepared(rec, float(dt_s), factor, sampling, t, raw, xc, yc, g,
-                    {"method": c.method, **params}, integ)
+                    {"method": c.method, **params}, integ, rc)
 
 
 def search_orders(cfg, prep: Prepared) -> SearchResult:
@@ -316,10 +335,12 @@ def search_orders(cfg, prep: Prepared) -> SearchResult:
     n_p = s.n_p
     if n_p is None and s.settling_time_s is not None:
         n_p = max(1, int(np.ceil(s.settling_time_s / prep.dt_s)))
+    e = cfg.estimation
     return search(
         np.nan_to_num(prep.x), np.nan_to_num(prep.y), dt=prep.dt_s,
-        integrating=prep.integrating, mask=prep.good, n_p_max=s.n_p_max, n_p_min=s.n_p_min,
-        n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows, estimate_windows=False)
+        integrating=prep.integrating, mask=prep.good_xy, n_p_max=s.n_p_max, n_p_min=s.n_p_min,
+        n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows, estimate_windows=False,
+        noise=e.noise, n_k=cfg.n_k_matrix(), instruments=prep.r, feedback=e.feedback)
 
 
 @dataclass(frozen=True)
@@ -330,8 +351,11 @@ class WindowFailure:
     error: str
 
 
-def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p):
-    """Estimate on one window (``None`` = every usable sample).
+def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
+                    noise="white", use_instruments: bool = False):
+    """Estimate on one window (``None`` = every usable sample) with the search's choices
+    (``n_p``, ``n_k``, the noise setting and whether to use the instruments:
+    ``SearchResult.n_p, .n_k, .noise, .instruments``).
 
     A disjoint window whose data cannot be estimated (an input that does not move in it,
     too many masked samples) returns a :class:`WindowFailure` — a bad window is a
@@ -341,7 +365,8 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p):
     try:
         return estimate_step_responses(
             np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b]), n_p=n_p, dt=prep.dt_s,
-            integrating=prep.integrating, mask=prep.good[a:b])
+            integrating=prep.integrating, mask=prep.good_xy[a:b], noise=noise, n_k=n_k,
+            instruments=None if (prep.r is None or not use_instruments) else prep.r[a:b])
     except DataQualityError as exc:
         if window is None:
             raise
@@ -353,11 +378,14 @@ _ABSOLUTE_TIMES = ("dead_time_s", "settling_time_s", "peak_time_s", "inverse_pea
 
 
 def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
-    """Characteristic quantities of one pair (empty dict when they cannot be read off)."""
-    try:
-        from pipeline import characteristics as ch
-    except ImportError:  # pragma: no cover - module is part of the package
-        return {}
+    """Characteristic quantities of one pair (``{"error": ...}`` when none can be read).
+
+    The gain is the FIR model's own static gain, the final step ``step[n_p - 1]`` with
+    its std (the frequency response at zero; one definition everywhere), and the rate
+    of an integrating pair is the estimate's ``rate``.
+    """
+    from pipeline import characteristics as ch
+
     n = int(est.n_p[i, j])
     try:
         if est.integrating[i]:
@@ -366,8 +394,9 @@ def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
                                                  rate=float(est.rate[i, j]),
                                                  rate_std=float(est.rate_std[i, j]))
         else:
-            res = ch.self_regulating_characteristics(est.step[i, j, :n], dt_s=est.dt,
-                                                     step_std=est.step_std[i, j, :n])
+            res = ch.self_regulating_characteristics(
+                est.step[i, j, :n], dt_s=est.dt, step_std=est.step_std[i, j, :n],
+                gain=float(est.step[i, j, n - 1]), gain_std=float(est.step_std[i, j, n - 1]))
         out = res.to_dict()
         # characteristics.py puts step[0] at t = 0; our lag times are (l - 1/2) dt
         for key in _ABSOLUTE_TIMES:
@@ -378,20 +407,18 @@ def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
         return {"error": str(exc)}
 
 
-def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
-              window_results: list) -> Summary:
-    """Tables, checks and the report of a run (pure: no I/O)."""
-    ins, outs = prep.inputs, prep.outputs
+def _window_table(sr: SearchResult, window_results: list) -> tuple[list, list]:
     labelled = [(f"w{k}", e) for k, e in enumerate(window_results)]
-    window_status = [{"window": lab, "samples": list(map(int, sr.windows[k])),
-                      "status": "failed" if isinstance(e, WindowFailure) else "ok",
-                      **({"error": e.error} if isinstance(e, WindowFailure) else
-                         {"n_d": int(e.n_d)})}
-                     for k, (lab, e) in enumerate(labelled)]
-    labelled = [(lab, e) for lab, e in labelled if not isinstance(e, WindowFailure)]
-    window_ests = [e for _, e in labelled]
+    status = [{"window": lab, "samples": list(map(int, sr.windows[k])),
+               "status": "failed" if isinstance(e, WindowFailure) else "ok",
+               **({"error": e.error} if isinstance(e, WindowFailure) else {"n_d": int(e.n_d)})}
+              for k, (lab, e) in enumerate(labelled)]
+    return status, [(lab, e) for lab, e in labelled if not isinstance(e, WindowFailure)]
+
+
+def _step_table(ests: list[tuple[str, StepResponseEstimate]], outs, ins) -> pl.DataFrame:
     rows = []
-    for label, est in [("all", all_est)] + labelled:
+    for label, est in ests:
         P = est.step.shape[2]
         t = lag_times(P, est.dt)
         for i, o in enumerate(outs):
@@ -405,63 +432,116 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
                     "n_p": np.full(n, n, dtype=np.int32),
                     "n_d": np.full(n, est.n_d, dtype=np.int32),
                     "dt_s": np.full(n, est.dt)}))
-    steps = pl.concat(rows)
+    return pl.concat(rows)
+
+
+def _pair_metrics(o: str, u: str, pair: dict) -> list[dict]:
+    """One row per metric of a pair (unique names: what the catalog trends)."""
+    vals = {"gain": pair["gain"], "gain_std": pair["gain_std"], "rate": pair["rate"],
+            "rate_std": pair["rate_std"],
+            "agreement_statistic": pair["agreement"].get("statistic"),
+            "agreement_p_value": pair["agreement"].get("p_value")}
+    for k, v in pair["characteristics"].items():
+        if k not in vals and isinstance(v, (int, float)) and not isinstance(v, bool):
+            vals[k] = v
+    return [{"window": "all", "output": o, "input": u, "metric": k, "value": float(v)}
+            for k, v in vals.items() if v is not None and np.isfinite(v)]
+
+
+def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
+              window_results: list) -> Summary:
+    """Tables, checks and the report of a run (pure: no I/O)."""
+    from pipeline.verdicts import end_jump_z, pair_warnings
+
+    ins, outs = prep.inputs, prep.outputs
+    window_status, labelled = _window_table(sr, window_results)
+    window_ests = [e for _, e in labelled]
+    steps = _step_table([("all", all_est)] + labelled, outs, ins)
     agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
         [[None] * len(ins) for _ in outs]
-    # residuals of the all-data estimate; NaN where any sample they need is masked
+    # residuals and one-step prediction errors of the all-data estimate; NaN where any
+    # sample they need is masked
     x0, y0 = np.nan_to_num(prep.x), np.nan_to_num(prep.y)
-    res = residuals(all_est, x0, y0)
-    bad = ~prep.good.all(axis=1)
+    bad = ~prep.good_xy.all(axis=1)
     P = int(all_est.n_p.max())
     touched = np.convolve(bad.astype(float), np.ones(P + 1))[: bad.size] > 0
+    res = residuals(all_est, x0, y0)
     res[touched] = np.nan
+    innov = innovations(all_est, x0, y0, good=~touched)
+    tags = cfg.tags()
     pairs = []
     metrics = []
     xcorr = {}
+    whiteness = {}
     for i, o in enumerate(outs):
-        lb = ljung_box(res[:, i], lags=cfg.checks.ljung_box_lags)
+        lb = ljung_box(innov[:, i], lags=cfg.checks.ljung_box_lags)
+        whiteness[o] = {k: lb[k] for k in ("statistic", "p_value", "lags", "white")}
+        whiteness[o]["of"] = "residuals" if all_est.noise_model[i].order == 0 and \
+            all_est.noise_model[i].form != "level" else "prediction errors (noise model)"
+        nm = all_est.noise_model[i].to_dict()
         for j, u in enumerate(ins):
             n = int(all_est.n_p[i, j])
             a = agreement[i][j]
             agr = a.to_dict() if a is not None else {
-                "statistic": None, "verdict": "insufficient_data", "n_windows": len(window_ests)}
-            xc = cross_correlation_check(x0[:, j], res[:, i],
+                "statistic": None, "p_value": None, "verdict": "insufficient_data",
+                "n_windows": len(window_ests)}
+            xc = cross_correlation_check(x0[:, j], innov[:, i],
                                          max_lag=cfg.checks.xcorr_max_lag or n)
             xcorr[f"{o}<-{u}"] = {k: xc[k] for k in ("band", "fraction_outside", "max_abs_r",
                                                      "statistic", "p_value", "ok")}
             chars = _characteristics(all_est, i, j)
-            pair = {"output": o, "input": u, "n_p": n, "settled": bool(sr.settled[i, j]),
-                    "integrating": bool(all_est.integrating[i]),
-                    "final_step": float(all_est.step[i, j, n - 1]),
-                    "final_step_std": float(all_est.step_std[i, j, n - 1]),
-                    "rate": None if not all_est.integrating[i] else float(all_est.rate[i, j]),
-                    "agreement": agr, "characteristics": chars}
+            fb = sr.feedback[i][j] if sr.feedback else None
+            fbd = fb.to_dict() if fb is not None else None
+            integ = bool(all_est.integrating[i])
+            pair = {"output": o, "input": u, "n_p": n, "n_k": int(all_est.n_k[i, j]),
+                    "settled": bool(sr.settled[i, j]), "integrating": integ,
+                    "gain": None if integ else float(all_est.step[i, j, n - 1]),
+                    "gain_std": None if integ else float(all_est.step_std[i, j, n - 1]),
+                    "rate": float(all_est.rate[i, j]) if integ else None,
+                    "rate_std": float(all_est.rate_std[i, j]) if integ else None,
+                    "method": all_est.method,
+                    "agreement": agr, "feedback": fbd, "characteristics": chars}
+            pair["warnings"] = pair_warnings(
+                inp=u, out=o, tag_in=tags[u], tag_out=tags[o], noise=cfg.estimation.noise,
+                noise_model=nm, whiteness_p=lb["p_value"], feedback=fbd,
+                feedback_mode=cfg.estimation.feedback, instruments=prep.instruments,
+                n_k=pair["n_k"], n_p=n, n_p_min=cfg.search.n_p_min,
+                n_p_max=None if cfg.search.n_p is not None or sr.bic_order is None else
+                _n_p_max_used(sr), settled=pair["settled"], dt_s=prep.dt_s,
+                end_jump=end_jump_z(all_est.delta_h[i, j, :n], all_est.delta_h_std[i, j, :n]),
+                agreement=agr)
             pairs.append(pair)
-            for key, val in [("final_step", pair["final_step"]), ("rate", pair["rate"]),
-                             ("agreement_statistic", agr.get("statistic"))] + \
-                    [(k, v) for k, v in chars.items() if isinstance(v, (int, float))]:
-                if val is not None and np.isfinite(val):
-                    metrics.append({"window": "all", "output": o, "input": u,
-                                    "metric": key, "value": float(val)})
-        xcorr[f"whiteness:{o}"] = {k: lb[k] for k in ("statistic", "p_value", "lags", "white")}
+            metrics += _pair_metrics(o, u, pair)
     d = all_est.diagnostics
     checks = {
         "dt_s": prep.dt_s,
         "sampling": prep.sampling,
         "conditioning": prep.conditioning,
+        "estimation": {"method": all_est.method, "noise": cfg.estimation.noise,
+                       "feedback": cfg.estimation.feedback,
+                       "instruments": {r: tags[r] for r in prep.instruments},
+                       **({"first_stage": {ins[k]: v for k, v in
+                                           all_est.extra["first_stage"].items()
+                                           if k < len(ins)}}
+                          if "first_stage" in all_est.extra else {})},
+        "noise_model": {o: all_est.noise_model[i].to_dict() for i, o in enumerate(outs)},
         "search": {
             "n_p": {f"{outs[i]}<-{ins[j]}": int(sr.n_p[i, j])
+                    for i in range(len(outs)) for j in range(len(ins))},
+            "n_k": {f"{outs[i]}<-{ins[j]}": int(all_est.n_k[i, j])
                     for i in range(len(outs)) for j in range(len(ins))},
             "n_d": sr.n_d, "window_samples": sr.window_samples,
             "windows": window_status,
             "bic_order": None if sr.bic_order is None else
             {outs[i]: int(v) for i, v in enumerate(sr.bic_order)},
+            "noise_model_at_n_p_max": {outs[i]: m.to_dict()
+                                       for i, m in enumerate(sr.noise_model)},
             "order_trace": _named_trace(sr.order_trace, outs, ins),
             "nd_trace": _named_trace(sr.nd_trace, outs, ins),
         },
         "pairs": pairs,
         "residuals": {
-            "whiteness": {o: xcorr.pop(f"whiteness:{o}") for o in outs},
+            "whiteness": whiteness,
             "input_cross_correlation": xcorr,
         },
         "excitation": {
@@ -492,8 +572,13 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
         "residual": res.T.ravel()}).with_columns(
             pl.col("time").cast(pl.Datetime("us", "UTC"))).filter(
                 pl.col("residual").is_not_nan())  # undefined where lags touch a gap
-    report = _report_md(cfg, prep, sr, pairs, status)
+    report = _report_md(cfg, prep, sr, pairs, checks, status)
     return Summary(steps, sig, rtab, checks, metrics, report, status)
+
+
+def _n_p_max_used(sr: SearchResult) -> int | None:
+    tried = [t["n_p"] for t in sr.order_trace if not t.get("refine")]
+    return max(tried) if tried else None
 
 
 def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
@@ -509,7 +594,7 @@ def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
 
 def _signals_table(prep: Prepared) -> pl.DataFrame:
     rec = prep.recording
-    cond = np.concatenate([prep.x, prep.y], axis=1)
+    cond = np.concatenate([prep.x, prep.y] + ([prep.r] if prep.r is not None else []), axis=1)
     frames = []
     for k, (name, role) in enumerate(zip(rec.names, rec.roles)):
         frames.append(pl.DataFrame({
@@ -521,24 +606,65 @@ def _signals_table(prep: Prepared) -> pl.DataFrame:
     return pl.concat(frames).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
 
 
-def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, status: str) -> str:
+def _unit(cfg, name: str) -> str:
+    s = {**cfg.signals.inputs, **cfg.signals.outputs}.get(name)
+    return (s.unit if s is not None and s.unit else "")
+
+
+def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
+               status: str) -> str:
+    est = checks["estimation"]
+    method = {"least_squares": "least squares, white-noise assumption (the thesis)",
+              "prediction_error": "least squares with a noise model per output "
+                                  "(prediction-error method)",
+              "instrumental_variables": "instrumental variables ("
+                                        + ", ".join(est["instruments"]) + ")"}[est["method"]]
     lines = [f"# plantdyn run: {cfg.job}", "",
              f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
              f"(decimation {prep.decimation} from the {prep.recording.dt_s:g} s grid, "
              f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
-             f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows.", "",
-             "| output | input | N_p | N_p·T (s) | final step ± σ | rate K (/s) | windows |",
-             "|---|---|---|---|---|---|---|"]
+             f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
+             f"Estimator: {method}.", "",
+             "| output | input | N_p | N_p·T (s) | gain ± σ | rate K ± σ (/s) | windows (p) "
+             "| feedback (p) | warnings |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for p in pairs:
-        rate = "" if p["rate"] is None else f"{p['rate']:.4g}"
+        uo, ui = _unit(cfg, p["output"]), _unit(cfg, p["input"])
+        unit = f" {uo}/{ui}" if uo and ui else ""
+        gain = "" if p["gain"] is None else f"{p['gain']:.4g} ± {p['gain_std']:.2g}{unit}"
+        rate = "" if p["rate"] is None else f"{p['rate']:.4g} ± {p['rate_std']:.2g}"
+        a = p["agreement"]
+        agr = a["verdict"] + (f" ({a['p_value']:.2g})" if a.get("p_value") is not None else "")
+        fb = p["feedback"]
+        fbs = "not tested" if fb is None else \
+            (f"**yes** ({fb['p_value']:.2g})" if fb["detected"] else f"no ({fb['p_value']:.2g})")
+        codes = ", ".join(w["code"] for w in p["warnings"]) or "none"
         lines.append(f"| {p['output']} | {p['input']} | {p['n_p']} | {p['n_p'] * prep.dt_s:g} "
-                     f"| {p['final_step']:.4g} ± {p['final_step_std']:.2g} | {rate} | "
-                     f"{p['agreement']['verdict']} |")
+                     f"| {gain} | {rate} | {agr} | {fbs} | {codes} |")
+    lines += ["", "Noise models (per output, chosen from the data):", ""]
+    for o, nm in checks["noise_model"].items():
+        pole = nm.get("dominant_pole")
+        kind = "white" if nm["order"] == 0 else f"AR({nm['order']})" + \
+            (f", slowest pole {pole:.3f}" if pole is not None else "")
+        lines.append(f"- {o}: {kind}, {nm['form']} form, innovation σ "
+                     f"{nm['innovation_std']:.3g}; prediction errors "
+                     f"{'white' if checks['residuals']['whiteness'][o]['white'] else 'NOT white'}"
+                     f" (Ljung–Box p = {_fmt_p(checks['residuals']['whiteness'][o]['p_value'])})")
+    warned = [p for p in pairs if p["warnings"]]
+    lines += ["", "## When to distrust a pair", ""]
+    if not warned:
+        lines.append("No warnings: residuals white under the noise models, no feedback "
+                     "without an instrument, N_p inside its bounds, windows agree.")
+    for p in warned:
+        for w in p["warnings"]:
+            lines.append(f"- **{p['output']}<-{p['input']}** ({w['code']}): {w['message']}.")
     masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
-    lines += ["", f"Masked grid samples per signal: {masked or 'none'}.",
-              "Unsettled pairs (no flat tail up to n_p_max): "
-              f"{[p['output'] + '<-' + p['input'] for p in pairs if not p['settled']] or 'none'}."]
+    lines += ["", f"Masked grid samples per signal: {masked or 'none'}."]
     return "\n".join(lines) + "\n"
+
+
+def _fmt_p(p) -> str:
+    return "n/a" if p is None else f"{p:.2g}"
 
 
 def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, float],
@@ -592,10 +718,11 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     rec = stage("ingest", load_recording, cfg, files)
     prep = stage("prepare", prepare, cfg, rec)
     sr = stage("search", search_orders, cfg, prep)
-    all_est = stage("estimate_all", estimate_window, prep, None, sr.n_p)
+    choice = (sr.n_p, sr.n_k, sr.noise, sr.instruments)
+    all_est = stage("estimate_all", estimate_window, prep, None, *choice)
     wins = []
     for k, w in enumerate(sr.windows):
-        wins.append(stage(f"estimate_w{k}", estimate_window, prep, tuple(w), sr.n_p))
+        wins.append(stage(f"estimate_w{k}", estimate_window, prep, tuple(w), *choice))
     summary = stage("summarise", summarise, cfg, prep, sr, all_est, wins)
     return finish_run(cfg, summary, prep, sr, timings, run_id=run_id, progress=progress)
 

@@ -12,10 +12,33 @@ Stage 1 — N_p, judged with N_d large (every usable sample):
   Why a 2 % band: it is the 98 % settling-time band engineers read off step responses;
   for a first-order lag the rule lands N_p*T at about 1.1 x the 98 % settling time.
 
+Truncation test (noise-model searches): a flat tail alone is not enough.  A response that
+has not started yet (dead time) has a flat tail, and a noise-model fit does not let the
+last coefficient absorb the missing response the way white least squares does on slow
+inputs.  So an order ``m`` also needs the fit at ``n_p_max`` to show nothing significant
+beyond lag ``m`` (:func:`_truncation_test`, level :data:`TRUNCATION_ALPHA`), and the chosen
+order is then lengthened by :data:`NOISE_MODEL_N_P_MARGIN`.  Without them the truncation
+bias exceeded the band: with AR noise N_p stopped inside the dead time (N_p = 3 for a
+3-sample delay).  The thesis' white-noise search keeps its rule (N_p·T ≈ the 98 %
+settling time, its last coefficient absorbing the rest; the report flags that jump).
+
 Stage 2 — N_d, by disjoint-window agreement:
   start at ``N_d = 10 * N_p_max`` observations per window, estimate on two disjoint
   windows and compare (:func:`pipeline.checks.window_agreement`); while any pair is not
   ``pass`` and two windows of twice the size fit in the record, double N_d.
+
+With a noise model (``noise="auto"`` or an AR order, method.md §10) the search runs on the
+lag Gram: the noise model of each output is fitted once at ``n_p_max`` (where the FIR is
+long enough that its residual is the noise), then every candidate order is a generalised
+least-squares fit with that noise filter — so the tail band, the standard deviations
+and the BIC are those of the whitened problem.  The window estimates of stage 2 refit
+their own noise models.
+
+Feedback (method.md §10 (a)): before stage 1, every pair is tested for feedback at
+``n_p_max`` (:func:`pipeline.feedback.feedback_test`, with the noise model found there —
+also for white-noise estimates, whose own residuals are not white enough for a
+calibrated test).  With ``feedback="auto"`` and no instruments, a pair with detected
+feedback gets ``n_k >= 1`` (its same-sample term is not identifiable under feedback).
 
 Every trial is recorded in the returned :class:`SearchResult` so a person can see why a
 value was chosen.
@@ -30,13 +53,19 @@ import numpy as np
 from pipeline.checks import AgreementResult, window_agreement
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
 from pipeline.estimate import (
+    NOISE_AUTO,
     NormalEquations,
     StepResponseEstimate,
+    _lags_needed,
+    estimate_from_context,
     estimate_from_normal_equations,
     estimate_step_responses,
+    lag_gram_context,
+    noise_order,
     normal_equations,
     residual_ss_by_order,
 )
+from pipeline.feedback import FEEDBACK_LEADS, feedback_test
 
 __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
            "TAIL_FRACTION", "TAIL_BAND"]
@@ -44,6 +73,20 @@ __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
 TAIL_FRACTION = 0.2
 TAIL_BAND = 0.02
 TAIL_NOISE_SIGMAS = 3.0
+NOISE_MODEL_N_P_MARGIN = 1.4
+"""With a noise model, N_p = 1.4 x the tail rule's choice (capped at n_p_max).  White least
+squares on slow inputs lets the last coefficient absorb the response beyond N_p, so the
+98 %-settling N_p the tail rule finds gives the right final value; a noise-model fit does
+not absorb it (whitening decorrelates the input lags), so the remaining 2 % of the gain
+would bias every lag beyond N_p.  1.4 x is the 99.5 %-settling time of a first-order tail
+(5.3 tau against 3.9 tau); a longer N_p costs only variance, which grows slowly with N_p
+(measured: 40 / 60 / 80 / 120 lags of a 45 s-settling plant gave median max errors
+0.078 / 0.041 / 0.039 / 0.044 at AR(1) 0.9 noise)."""
+TRUNCATION_ALPHA = 0.01
+"""Significance of the truncation test: an order ``m`` qualifies only when the longest
+fit's increments beyond lag ``m`` (``delta_h``; ``delta_g`` for integrating outputs) are
+jointly indistinguishable from zero at this level (a Wald test with that fit's
+covariance)."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +115,17 @@ class SearchResult:
         Order minimising BIC per output (information; the tail rule decides).
     windows : list of (int, int)
         The disjoint windows (sample slices) at the chosen N_d.
+    n_k : ndarray of int (n_y, n_x)
+        Known delay per pair used by the estimates (given, raised to 1 where feedback
+        was detected with ``feedback="auto"`` and no instruments).
+    feedback : list of list of FeedbackResult or None
+        Feedback test per pair ``[output][input]`` (empty when not run).
+    noise_model : tuple of NoiseModel
+        Per output, the noise model found at ``n_p_max`` (empty for white estimates).
+    noise : str or int
+        The estimator's ``noise`` setting (windows use the same).
+    instruments : bool
+        Whether the estimates are instrument-based.
     """
 
     n_p: np.ndarray
@@ -83,6 +137,11 @@ class SearchResult:
     agreement: list = field(default_factory=list)
     bic_order: np.ndarray | None = None
     windows: list = field(default_factory=list)
+    n_k: np.ndarray | None = None
+    feedback: list = field(default_factory=list)
+    noise_model: tuple = ()
+    noise: str | int = "white"
+    instruments: bool = False
 
 
 def _truncate(ne: NormalEquations, m: int) -> NormalEquations:
@@ -91,12 +150,13 @@ def _truncate(ne: NormalEquations, m: int) -> NormalEquations:
                            ne.integrating, ne.n_segments)
 
 
-def _tail_flatness(q: np.ndarray, s: np.ndarray) -> tuple[float, float, bool]:
+def _tail_flatness(q: np.ndarray, s: np.ndarray, rel_band: float = TAIL_BAND
+                   ) -> tuple[float, float, bool]:
     n = q.size
     t = max(3, int(np.ceil(TAIL_FRACTION * n)))
     tail, stail = q[-t:], s[-t:]
     rng = float(tail.max() - tail.min())
-    band = TAIL_BAND * float(np.max(np.abs(q))) + TAIL_NOISE_SIGMAS * float(np.median(stail))
+    band = rel_band * float(np.max(np.abs(q))) + TAIL_NOISE_SIGMAS * float(np.median(stail))
     return rng, band, rng <= band
 
 
@@ -119,39 +179,103 @@ def choose_orders(
     dt: float,
     n_p_min: int = 3,
     candidates: int = 16,
+    n_k=0,
 ) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
-    """Stage 1: per-pair N_p from tail flatness over a candidate grid (see module doc).
+    """Stage 1 (thesis least squares): per-pair N_p from tail flatness (module doc).
 
     Returns ``(n_p, settled, trace, bic_order)``.
     """
     P = ne.n_p_max
-    n_x, n_y = ne.n_x, ne.n_y
     rss = residual_ss_by_order(ne)  # (n_y, P)
     orders = np.arange(1, P + 1)
     with np.errstate(divide="ignore"):
         bic = ne.n_d * np.log(np.maximum(rss, 1e-300) / ne.n_d) + \
-            orders[None, :] * n_x * np.log(ne.n_d)
+            orders[None, :] * ne.n_x * np.log(ne.n_d)
     bic_order = orders[np.argmin(bic, axis=1)]
+
+    def est_at(m):
+        return estimate_from_normal_equations(_truncate(ne, m), n_p=m, dt=dt,
+                                              n_k=_clip_n_k(n_k, m, ne.n_y, ne.n_x))
+
+    def info_at(m):
+        return {"rss": rss[:, m - 1].tolist(), "bic": bic[:, m - 1].tolist()}
+
+    # the thesis' rule as it is: white least squares lets the last coefficient absorb the
+    # response beyond N_p (its final value stays right); the report flags the jump
+    def no_test(m):
+        return np.ones((ne.n_y, ne.n_x))
+
+    n_p, settled, trace = _tail_rule(est_at, info_at, no_test, P, ne.n_y, ne.n_x, n_p_min,
+                                     candidates)
+    return n_p, settled, trace, bic_order
+
+
+def _truncation_test(ref: StepResponseEstimate):
+    """``p(m)`` -> (n_y, n_x) p-values that pair increments beyond lag ``m`` are zero in
+    the reference (longest) fit ``ref`` (module doc)."""
+    import scipy.stats
+
+    n_y, n_x, P = ref.step.shape
+    D = np.eye(P) - np.eye(P, k=-1)  # step -> delta_h
+    covs = {}
+    for i in range(n_y):
+        T = D @ D if ref.integrating[i] else D
+        for j in range(n_x):
+            n = int(ref.n_p[i, j])
+            Tn = T[:n, :n]
+            covs[i, j] = (Tn @ ref.step[i, j, :n], Tn @ ref.step_cov[i, j, :n, :n] @ Tn.T)
+
+    def p_at(m: int) -> np.ndarray:
+        out = np.ones((n_y, n_x))
+        for (i, j), (inc, C) in covs.items():
+            if m >= inc.size:
+                continue
+            b, Cm = inc[m:], C[m:, m:]
+            # (a) the change over the next half of the response, lags m+1 .. 1.5 m —
+            # 1 df, the powerful test against the smooth, decaying tail a truncated
+            # response leaves (its signal is largest right after m, while the variance of
+            # a sum over all remaining lags grows with their number)
+            k = min(b.size, max(3, m // 2))
+            var = float(Cm[:k, :k].sum())
+            p_sum = float(scipy.stats.chi2.sf(b[:k].sum() ** 2 / var, 1)) if var > 0 else 1.0
+            # (b) every increment beyond m — catches tails that move and come back
+            w, V = np.linalg.eigh(0.5 * (Cm + Cm.T))
+            ok = w > 1e-12 * max(w.max(), 1e-300)
+            z = V[:, ok].T @ b
+            p_all = float(scipy.stats.chi2.sf(float(np.sum(z**2 / w[ok])), int(ok.sum())))
+            out[i, j] = min(1.0, 2 * min(p_sum, p_all))  # Bonferroni over the two
+        return out
+
+    return p_at
+
+
+def _clip_n_k(n_k, m: int, n_y: int, n_x: int) -> np.ndarray:
+    """Known delays valid at order ``m`` (at most ``m - 1``)."""
+    return np.minimum(np.broadcast_to(np.asarray(n_k, dtype=int), (n_y, n_x)), m - 1)
+
+
+def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
+               candidates: int, rel_band: float = TAIL_BAND) -> tuple[np.ndarray, np.ndarray, list]:
+    """The tail-flatness choice (with the truncation test ``trunc``) over a candidate
+    grid, then refined (module doc)."""
     cands = _candidates(n_p_min, P, candidates)
     flat = np.zeros((len(cands), n_y, n_x), dtype=bool)
     trace = []
     for ci, m in enumerate(cands):
-        est = estimate_from_normal_equations(_truncate(ne, m), n_p=m, dt=dt)
+        est = est_at(m)
+        p_tr = trunc(m)
         pairs = []
         for i in range(n_y):
             for j in range(n_x):
                 q, s = _pair_curve(est, i, j, m)
-                rng, band, ok = _tail_flatness(q, s)
+                rng, band, tail_ok = _tail_flatness(q, s, rel_band)
+                ok = tail_ok and p_tr[i, j] >= TRUNCATION_ALPHA
                 flat[ci, i, j] = ok
                 pairs.append({"output": i, "input": j, "tail_range": rng, "band": band,
+                              "tail_flat": bool(tail_ok), "truncation_p": float(p_tr[i, j]),
                               "flat": bool(ok)})
-        trace.append({
-            "n_p": m,
-            "pairs": pairs,
-            "rss": rss[:, m - 1].tolist(),
-            "sigma2": est.sigma2.tolist(),
-            "bic": bic[:, m - 1].tolist(),
-        })
+        trace.append({"n_p": m, "pairs": pairs, **info_at(m),
+                      "sigma2": est.sigma2.tolist()})
     n_p = np.full((n_y, n_x), P, dtype=int)
     settled = np.zeros((n_y, n_x), dtype=bool)
     lower = np.zeros((n_y, n_x), dtype=int)  # largest candidate known not to qualify
@@ -170,22 +294,55 @@ def choose_orders(
                       for m in _candidates(max(lower[i, j] + 1, n_p_min), n_p[i, j], 25)
                       if max(lower[i, j], n_p_min - 1) < m < n_p[i, j]})
     for m in between:
-        est = estimate_from_normal_equations(_truncate(ne, m), n_p=m, dt=dt)
+        est = est_at(m)
+        p_tr = trunc(m)
         rows = []
         for i in range(n_y):
             for j in range(n_x):
                 if not (settled[i, j] and lower[i, j] < m < n_p[i, j]):
                     continue
                 q, s = _pair_curve(est, i, j, m)
-                rng, band, ok = _tail_flatness(q, s)
+                rng, band, tail_ok = _tail_flatness(q, s, rel_band)
+                ok = tail_ok and p_tr[i, j] >= TRUNCATION_ALPHA
                 rows.append({"output": i, "input": j, "tail_range": rng, "band": band,
+                             "tail_flat": bool(tail_ok), "truncation_p": float(p_tr[i, j]),
                              "flat": bool(ok)})
                 if ok:
                     n_p[i, j] = m
                 else:
                     lower[i, j] = m
-        trace.append({"n_p": m, "refine": True, "pairs": rows,
-                      "rss": rss[:, m - 1].tolist(), "bic": bic[:, m - 1].tolist()})
+        trace.append({"n_p": m, "refine": True, "pairs": rows, **info_at(m)})
+    return n_p, settled, trace
+
+
+def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_fixed,
+                        sigma2, candidates: int = 16
+                        ) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
+    """Stage 1 with a noise model: every candidate is a GLS fit with the filters and the
+    innovation variance found at ``n_p_max`` (module doc); BIC of the whitened problem
+    per candidate."""
+    n_y, n_x = ctx.n_y, ctx.n_x
+    bic: dict[int, np.ndarray] = {}
+    rss: dict[int, np.ndarray] = {}
+
+    def est_at(m):
+        est = estimate_from_context(ctx, n_p=m, n_k=_clip_n_k(n_k, m, n_y, n_x), dt=dt,
+                                    forms=forms, d_fixed=d_fixed, sigma2_fixed=sigma2,
+                                    use_instruments=False)
+        V = est.residual_rms ** 2 * est.n_d
+        rss[m] = V
+        bic[m] = est.n_d * np.log(np.maximum(V, 1e-300) / est.n_d) + m * n_x * np.log(est.n_d)
+        return est
+
+    def info_at(m):
+        return {"rss": rss[m].tolist(), "bic": bic[m].tolist(), "whitened": True}
+
+    trunc = _truncation_test(est_at(P))
+    n_p, settled, trace = _tail_rule(est_at, info_at, trunc, P, n_y, n_x, n_p_min, candidates)
+    n_p = np.where(settled, np.minimum(P, np.ceil(NOISE_MODEL_N_P_MARGIN * n_p)), n_p).astype(int)
+    ms = sorted(bic)
+    table = np.array([bic[m] for m in ms])  # (n_cand, n_y)
+    bic_order = np.array([ms[k] for k in np.argmin(table, axis=0)])
     return n_p, settled, trace, bic_order
 
 
@@ -204,18 +361,22 @@ def split_windows_by_length(n: int, length: int, count: int | None = None) -> li
     return [(int(a), int(a) + length) for a in starts]
 
 
-def _window_estimates(x, y, mask, windows, n_p, dt, integrating) -> list[StepResponseEstimate]:
+def _window_estimates(x, y, mask, windows, n_p, dt, integrating, *, noise="white", n_k=0,
+                      instruments=None) -> list[StepResponseEstimate]:
     return [estimate_step_responses(x[a:b], y[a:b], n_p=n_p, dt=dt, integrating=integrating,
-                                    mask=None if mask is None else mask[a:b])
+                                    mask=None if mask is None else mask[a:b], noise=noise,
+                                    n_k=n_k,
+                                    instruments=None if instruments is None else
+                                    np.asarray(instruments)[a:b])
             for a, b in windows]
 
 
-def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating):
+def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating, **kw):
     """Estimates of the windows that can be estimated (a bad window is skipped)."""
     out = []
     for w in windows:
         try:
-            out.extend(_window_estimates(x, y, mask, [w], n_p, dt, integrating))
+            out.extend(_window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw))
         except DataQualityError:
             continue
     return out
@@ -234,6 +395,10 @@ def search(
     n_d_start: int | None = None,
     max_windows: int = 4,
     estimate_windows: bool = True,
+    noise="white",
+    n_k=0,
+    instruments=None,
+    feedback: str = "off",
 ) -> SearchResult:
     """Run both stages of the search on one conditioned record.
 
@@ -260,6 +425,16 @@ def search(
     estimate_windows : bool
         Estimate those windows and fill ``agreement`` here; False leaves it empty for a
         caller that maps the window estimates itself (the Prefect flow).
+    noise : ``"white"``, ``"auto"`` or int
+        As :func:`pipeline.estimate.estimate_step_responses`.
+    n_k : int or int array (n_y, n_x)
+        Known delays (samples).
+    instruments : array (N, n_r), optional
+        Instruments for the estimates (stage 1 judges orders with the direct fit).
+    feedback : ``"off"``, ``"auto"`` or ``"report"``
+        ``auto``: test every pair and give pairs with detected feedback ``n_k >= 1``
+        when there are no instruments; ``report``: test, change nothing; ``off`` (the
+        default, the thesis' search): no test.  Jobs default to ``auto``.
     """
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -267,39 +442,76 @@ def search(
     y = y[:, None] if y.ndim == 1 else y
     n, n_x = x.shape
     n_y = y.shape[1]
+    if feedback not in ("auto", "report", "off"):
+        raise ConfigError(f"feedback={feedback!r} is not allowed; use 'auto', 'report' or 'off'")
+    order = noise_order(noise)
     if n_p_max is None:
         n_p_max = int(min(300, n // (20 * max(n_x, 1))))
-    if n_p_max < max(1, n_p_min):
+    if n_p is None and n_p_max < max(1, n_p_min):
         raise InsufficientDataError(
             f"record of {n} samples is too short for the N_p search with {n_x} input(s): "
             f"n_p_max would be {n_p_max} < n_p_min={n_p_min}; supply a longer record, fewer "
             "inputs, or a longer sample period"
         )
-    if n_p is None:
+    fixed = None
+    if n_p is not None:
+        fixed = np.broadcast_to(np.asarray(n_p, dtype=int), (n_y, n_x)).copy()
+        if fixed.min() < 1:
+            raise ConfigError(f"n_p must be >= 1 for every pair; got {fixed.tolist()}")
+    P0 = int(fixed.max()) if fixed is not None else int(n_p_max)
+    extra = 1 if np.any(np.broadcast_to(np.asarray(integrating), (n_y,))) else 0
+    if fixed is not None and n < 2 * (10 * P0 + P0 - 1 + extra):
+        _too_short(n, P0, extra)
+    nk = np.broadcast_to(np.asarray(n_k, dtype=int), (n_y, n_x)).copy()
+    fb: list = []
+    noise_models: tuple = ()
+    ctx = None
+    if order != 0 or feedback != "off":
+        # one lag Gram for the noise models, the feedback test and stage 1
+        leads = FEEDBACK_LEADS if feedback != "off" else 0
+        ctx = lag_gram_context(x, y, integrating=integrating, mask=mask,
+                               n_lags=_lags_needed(np.array([[P0]]), False, order, leads))
+        at_max = fixed if fixed is not None else np.full((n_y, n_x), P0)
+        est_max = estimate_from_context(ctx, n_p=at_max, n_k=_clip_n_k(nk, P0, n_y, n_x),
+                                        dt=dt, noise=NOISE_AUTO if order == 0 else noise,
+                                        use_instruments=False)
+        noise_models = est_max.noise_model
+        if feedback != "off":
+            fb = feedback_test(ctx, n_p=at_max, n_k=nk, noise_models=noise_models, leads=leads)
+            if feedback == "auto" and instruments is None:
+                for i in range(n_y):
+                    for j in range(n_x):
+                        if fb[i][j] is not None and fb[i][j].detected:
+                            nk[i, j] = max(nk[i, j], 1)
+    if fixed is None and order == 0:
         ne = normal_equations(x, y, n_p_max=n_p_max, integrating=integrating, mask=mask)
-        npm, settled, order_trace, bic_order = choose_orders(ne, dt=dt, n_p_min=n_p_min)
+        npm, settled, order_trace, bic_order = choose_orders(ne, dt=dt, n_p_min=n_p_min,
+                                                             n_k=nk)
+    elif fixed is None:
+        npm, settled, order_trace, bic_order = _noise_model_orders(
+            ctx, P=P0, dt=dt, n_p_min=max(n_p_min, int(nk.max()) + 1), n_k=nk,
+            forms=[m.form for m in noise_models], d_fixed=[m.d for m in noise_models],
+            sigma2=est_max.sigma2)
     else:
-        npm = np.broadcast_to(np.asarray(n_p, dtype=int), (n_y, n_x)).copy()
-        if npm.min() < 1:
-            raise ConfigError(f"n_p must be >= 1 for every pair; got {npm.tolist()}")
+        npm = fixed
         settled = np.ones((n_y, n_x), dtype=bool)
         order_trace, bic_order = [], None
+    nk = np.minimum(nk, npm - 1)
     P = int(npm.max())
-    extra = 1 if np.any(np.broadcast_to(np.asarray(integrating), (n_y,))) else 0
     n_d = int(n_d_start or 10 * P)
     nd_trace = []
     chosen = None
+    kw = {"noise": noise, "n_k": nk, "instruments": instruments}
     while True:
         length = n_d + P - 1 + extra
         wins = split_windows_by_length(n, length, 2)
         if len(wins) < 2:
             break
         try:
-            ests = _window_estimates(x, y, mask, wins, npm, dt, integrating)
+            ests = _window_estimates(x, y, mask, wins, npm, dt, integrating, **kw)
         except DataQualityError as exc:
             # a window may hold too few observations (masks) or an input that does not
             # move there (singular): record the trial, try longer windows
-
             nd_trace.append({"n_d": n_d, "window_samples": length, "error": str(exc)})
             n_d *= 2
             continue
@@ -310,7 +522,7 @@ def search(
             "window_samples": length,
             "n_windows": 2,
             "pairs": [{"output": i, "input": j, "statistic": agr[i][j].statistic,
-                       "verdict": agr[i][j].verdict}
+                       "p_value": agr[i][j].p_value, "verdict": agr[i][j].verdict}
                       for i in range(n_y) for j in range(n_x)],
         })
         chosen = (n_d, length)
@@ -320,20 +532,25 @@ def search(
             break
         n_d *= 2
     if chosen is None:
-        need = 2 * (10 * P + P - 1 + extra)
-        raise InsufficientDataError(
-            f"record of {n} samples cannot hold two disjoint windows of {10 * P} "
-            f"observations for n_p={P} (needs {need} samples); supply more data or lower "
-            "n_p_max"
-        )
+        _too_short(n, P, extra)
     n_d, length = chosen
     wins = split_windows_by_length(n, length, max_windows)
     agreement = []
     if estimate_windows:
         agreement = window_agreement(
-            _usable_window_estimates(x, y, mask, wins, npm, dt, integrating))
+            _usable_window_estimates(x, y, mask, wins, npm, dt, integrating, **kw))
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
-                        bic_order, wins)
+                        bic_order, wins, nk, fb, noise_models, noise,
+                        instruments is not None)
+
+
+def _too_short(n: int, P: int, extra: int):
+    need = 2 * (10 * P + P - 1 + extra)
+    raise InsufficientDataError(
+        f"record of {n} samples cannot hold two disjoint windows of {10 * P} "
+        f"observations for n_p={P} (needs {need} samples); supply more data or lower "
+        "n_p_max"
+    )
 
 
 def agreement_table(agreement: list[list[AgreementResult]]) -> list[dict]:

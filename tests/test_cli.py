@@ -49,7 +49,7 @@ def test_demo_writes_export_runs_job_and_says_where_results_are(tmp_path):
     # runs: the catalog lists it and trends its metrics
     r2 = cli("runs", str(demo / "demo_boiler.yaml"))
     assert r2.returncode == 0, r2.stderr
-    assert run_dir.name in r2.stdout and "final_step" in r2.stdout
+    assert run_dir.name in r2.stdout and "gain" in r2.stdout
 
 
 def test_runs_of_unknown_job_says_so(tmp_path):

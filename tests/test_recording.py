@@ -81,7 +81,7 @@ def test_entity_paths_and_values_match_the_stored_results(run_dir):
 def test_trends_of_earlier_runs_are_in_the_second_recording(run_dir):
     _, second = run_dir
     data = decoded(second / "recording.rrd")
-    trend = data["/trends/y/u/final_step"]
+    trend = data["/trends/y/u/gain"]
     assert len(trend) == 1  # the first run (rendered before the second was committed)
 
 

@@ -83,15 +83,49 @@ def test_nd_grows_until_noisy_windows_become_informative():
     assert res.n_d > 250
 
 
-def test_pair_agreement_statistic_matches_definition():
-    h_a = np.array([0.0, 1.0, 2.0])
-    h_b = np.array([0.0, 1.5, 2.0])
-    s = np.array([0.1, 0.1, 0.1])
-    r = pair_agreement([h_a, h_b], [s, s])
-    expected = np.sqrt(np.mean(np.array([0.0, 0.5, 0.0]) ** 2 / 0.02))
-    assert r.statistic == pytest.approx(expected)  # sqrt(12.5/3) = 2.04
-    assert r.verdict == "pass"  # below the 3.0 threshold, and a 30 % change is detectable
-    assert r.detectable_change == pytest.approx(2 * np.sqrt(0.02) / 2.0)
+def test_pair_agreement_statistic_is_the_wald_test_of_the_difference():
+    """Two windows: the statistic is d' (C_a + C_b)^-1 d with the lags' full covariance
+    (here the covariance of a cumulative sum of independent increments), chi^2(n_p)."""
+    import scipy.stats
+
+    rng = np.random.default_rng(35)
+    n = 6
+    T = np.tril(np.ones((n, n)))
+    Ca = T @ np.diag(rng.uniform(0.01, 0.02, n)) @ T.T
+    Cb = T @ np.diag(rng.uniform(0.01, 0.02, n)) @ T.T
+    h_a = np.cumsum(rng.standard_normal(n))
+    h_b = h_a + rng.standard_normal(n) * 0.2
+    r = pair_agreement([h_a, h_b], [np.sqrt(np.diag(Ca)), np.sqrt(np.diag(Cb))], [Ca, Cb])
+    d = h_a - h_b
+    expected = float(d @ np.linalg.inv(Ca + Cb) @ d)
+    assert r.statistic == pytest.approx(expected, rel=1e-9)
+    assert r.df == n
+    assert r.p_value == pytest.approx(scipy.stats.chi2.sf(expected, n), rel=1e-9)
+    assert (r.verdict == "fail") == (r.p_value < 0.01)
+
+
+def test_pair_agreement_with_three_windows_is_the_homogeneity_test():
+    """K windows: sum_w (h_w - h_bar)' C_w^-1 (h_w - h_bar), h_bar the precision-weighted
+    mean, chi^2((K-1) n_p) — computed here from the stacked GLS problem."""
+    rng = np.random.default_rng(36)
+    n, K = 4, 3
+    covs = []
+    for _ in range(K):
+        M = rng.standard_normal((n, n))
+        covs.append(M @ M.T + n * np.eye(n))
+    hs = [rng.standard_normal(n) for _ in range(K)]
+    r = pair_agreement(hs, [np.sqrt(np.diag(c)) for c in covs], covs)
+    # GLS of the stacked windows on a common mean, residual quadratic form
+    X = np.vstack([np.eye(n)] * K)
+    V = np.zeros((K * n, K * n))
+    for k, c in enumerate(covs):
+        V[k * n:(k + 1) * n, k * n:(k + 1) * n] = c
+    Vi = np.linalg.inv(V)
+    y = np.concatenate(hs)
+    mean = np.linalg.solve(X.T @ Vi @ X, X.T @ Vi @ y)
+    res = y - X @ mean
+    assert r.statistic == pytest.approx(float(res @ Vi @ res), rel=1e-9)
+    assert r.df == (K - 1) * n
 
 
 def test_pair_agreement_verdicts():

@@ -63,8 +63,13 @@ class SignalConfig(_Strict):
 class SignalsConfig(_Strict):
     inputs: dict[str, SignalConfig] = Field(min_length=1)
     outputs: dict[str, SignalConfig] = Field(min_length=1)
+    instruments: dict[str, SignalConfig] = Field(default_factory=dict)
+    """External signals that move the inputs but are not moved by the outputs' noise
+    (setpoints, measured disturbances): with instruments the estimate is
+    instrument-based and consistent in closed loop.  Interpolation defaults to hold
+    (setpoints are step signals)."""
 
-    @field_validator("inputs", "outputs")
+    @field_validator("inputs", "outputs", "instruments")
     @classmethod
     def _names(cls, v: dict[str, SignalConfig]) -> dict[str, SignalConfig]:
         for name in v:
@@ -144,6 +149,38 @@ class ChecksConfig(_Strict):
     """Default: the pair's N_p."""
 
 
+class EstimationConfig(_Strict):
+    """How step responses are estimated (method.md §10)."""
+
+    noise: Literal["auto", "white"] | int = "auto"
+    """``auto``: per output a noise model chosen from the data (AR order by BIC; for
+    integrating outputs also the differenced or level form); ``white``: the thesis' least
+    squares (right only for white noise); an int fixes the AR order (0..40)."""
+    n_k: int | dict[str, dict[str, int]] = 0
+    """Known delay in samples, ``Δh(1..n_k) = 0``: one int for every pair, or
+    ``{output: {input: n_k}}`` (unlisted pairs 0)."""
+    feedback: Literal["auto", "report", "off"] = "auto"
+    """``auto``: a pair with detected feedback and no instrument gets ``n_k >= 1``;
+    ``report``: test and report only; ``off``: no feedback test."""
+
+    @field_validator("noise")
+    @classmethod
+    def _order(cls, v):
+        if isinstance(v, int) and not isinstance(v, bool) and not 0 <= v <= 40:
+            raise ValueError(f"an AR order must be 0..40; got {v}")
+        if isinstance(v, bool):
+            raise ValueError("use 'auto', 'white' or an AR order 0..40")
+        return v
+
+    @field_validator("n_k")
+    @classmethod
+    def _nk(cls, v):
+        vals = [v] if isinstance(v, int) else [n for row in v.values() for n in row.values()]
+        if any(isinstance(n, bool) or n < 0 or n > 1000 for n in vals):
+            raise ValueError(f"known delays must be integers 0..1000 samples; got {v}")
+        return v
+
+
 class RerunConfig(_Strict):
     enabled: bool = True
 
@@ -211,6 +248,7 @@ class JobConfig(_Strict):
     conditioning: ConditioningConfig = ConditioningConfig()
     search: SearchConfig = SearchConfig()
     checks: ChecksConfig = ChecksConfig()
+    estimation: EstimationConfig = EstimationConfig()
     rerun: RerunConfig = RerunConfig()
     dask: DaskConfig = DaskConfig()
     schedule: str | None = None
@@ -227,7 +265,40 @@ class JobConfig(_Strict):
         both = set(v.inputs) & set(v.outputs)
         if both:
             raise ValueError(f"signal names {sorted(both)} appear as both input and output")
+        twice = (set(v.inputs) | set(v.outputs)) & set(v.instruments)
+        if twice:
+            raise ValueError(f"signal names {sorted(twice)} appear as instruments and as "
+                             "inputs or outputs; an instrument is an extra signal — give it "
+                             "its own name (the same tag may appear twice)")
         return v
+
+    @model_validator(mode="after")
+    def _n_k_names(self) -> JobConfig:
+        nk = self.estimation.n_k
+        if isinstance(nk, dict):
+            for out, row in nk.items():
+                if out not in self.signals.outputs:
+                    raise ValueError(f"estimation.n_k: {out!r} is not an output "
+                                     f"(signals.outputs: {sorted(self.signals.outputs)})")
+                for inp in row:
+                    if inp not in self.signals.inputs:
+                        raise ValueError(f"estimation.n_k.{out}: {inp!r} is not an input "
+                                         f"(signals.inputs: {sorted(self.signals.inputs)})")
+        return self
+
+    def n_k_matrix(self):
+        """``estimation.n_k`` as an int array (n_outputs, n_inputs)."""
+        import numpy as np
+
+        outs, ins = list(self.signals.outputs), list(self.signals.inputs)
+        nk = self.estimation.n_k
+        if isinstance(nk, int):
+            return np.full((len(outs), len(ins)), nk, dtype=int)
+        m = np.zeros((len(outs), len(ins)), dtype=int)
+        for out, row in nk.items():
+            for inp, v in row.items():
+                m[outs.index(out), ins.index(inp)] = v
+        return m
 
     @model_validator(mode="after")
     def _simulator_or_model(self) -> JobConfig:
@@ -260,8 +331,9 @@ class JobConfig(_Strict):
         return root
 
     def tags(self) -> dict[str, str]:
-        """Signal name -> tag, inputs first."""
-        return {n: s.tag for n, s in {**self.signals.inputs, **self.signals.outputs}.items()}
+        """Signal name -> tag, inputs first, then outputs and instruments."""
+        return {n: s.tag for n, s in {**self.signals.inputs, **self.signals.outputs,
+                                      **self.signals.instruments}.items()}
 
 
 def allowed_roots(base: Path) -> list[Path]:

@@ -1,0 +1,279 @@
+"""Lag products of a set of signals: the one pass over the data every estimator shares.
+
+For signals ``w`` (columns: inputs, outputs, and for some estimators cumulated inputs and
+instruments) and ``L`` lags, the *lag Gram* is
+
+    G = sum_k Z(k) Z(k)',   Z(k) = [w(k); w(k-1); ...; w(k-L+1)]   (lag-major)
+
+summed over the observations ``k`` of every contiguous good segment (from its
+``L - 1 (+1)``-th sample on).  The thesis' normal equations (method.md §2) are a corner
+of ``G``; so are the normal equations of the same problem with inputs and output filtered
+by any FIR ``D(q)`` of order ``p <= L - 1 - max lag`` (method.md §10):
+
+    sum_k (D a)(k) (D b)(k) = sum_{i,j} d_i d_j G[a shifted by i, b shifted by j],
+
+and so are residual autocovariances, the non-causal terms of a feedback test (an output
+at lag ``M`` regressed on inputs at lags ``0..M-1``) and the cross products of an
+instrumental-variable estimate.  So ``G`` is formed once (block FFT for its first block
+row, the diagonal recursion for the rest: :func:`pipeline.estimate._lag_products`,
+:func:`pipeline.estimate._assemble_A`) and everything else is arithmetic on it.
+
+Integrating outputs under a noise model carry nuisance terms per segment: a constant in
+the differenced form (the level's drift) and a constant and a linear trend in the level
+form.  They use the *profiled* Grams ``Gc = sum_seg (G_seg - zsum zsum' / n_seg)`` and
+``Gt = Gc - tsum tsum' / (t't)`` (``t`` the centred time): the span of a constant and a
+trend is mapped onto itself by any filter ``D(q)``, and filtering is linear, so the
+profiled Gram of filtered signals is ``t' Gc t`` — the nuisances are profiled out exactly.
+
+Regressors are addressed as :class:`Block`\\ s — a contiguous range of signals over a
+contiguous range of lags — whose unknowns are ordered lag-major inside the block.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+
+__all__ = ["Block", "LagGram", "build_lag_gram", "filtered_gram", "shifted_products", "take",
+           "first_block_row", "assemble_gram"]
+
+
+@dataclass(frozen=True)
+class Block:
+    """Signals ``sig_lo..sig_hi-1`` at lags ``lag_lo..lag_hi-1`` (unknowns lag-major)."""
+
+    sig_lo: int
+    sig_hi: int
+    lag_lo: int
+    lag_hi: int
+
+    @property
+    def n_sig(self) -> int:
+        return self.sig_hi - self.sig_lo
+
+    @property
+    def n_lag(self) -> int:
+        return self.lag_hi - self.lag_lo
+
+    @property
+    def size(self) -> int:
+        return self.n_sig * self.n_lag
+
+    def shifted(self, s: int) -> "Block":
+        return Block(self.sig_lo, self.sig_hi, self.lag_lo + s, self.lag_hi + s)
+
+
+@dataclass(frozen=True)
+class LagGram:
+    """Lag products of ``n_w`` signals over ``n_lags`` lags (see the module docstring).
+
+    Attributes
+    ----------
+    G : ndarray (n_lags, n_w, n_lags, n_w)
+        ``G[l1, s1, l2, s2] = sum_k w_s1(k - l1) w_s2(k - l2)``.
+    Gc : ndarray or None
+        The same with a constant per segment profiled out (centred); None when not built.
+    Gt : ndarray or None
+        The same with a constant and a linear trend per segment profiled out.
+    n_d : int
+        Observations summed.
+    n_segments : int
+    """
+
+    G: np.ndarray
+    Gc: np.ndarray | None
+    n_d: int
+    n_segments: int
+    Gt: np.ndarray | None = None
+
+    @property
+    def n_lags(self) -> int:
+        return self.G.shape[0]
+
+    @property
+    def n_w(self) -> int:
+        return self.G.shape[1]
+
+    def __add__(self, other: "LagGram") -> "LagGram":
+        def add(a, b):
+            return None if a is None or b is None else a + b
+
+        return LagGram(self.G + other.G, add(self.Gc, other.Gc), self.n_d + other.n_d,
+                       self.n_segments + other.n_segments, add(self.Gt, other.Gt))
+
+    def gram(self, nuisance: int = 0) -> np.ndarray:
+        """``G`` (``nuisance=0``), with a constant (1) or a constant and a trend (2) per
+        segment profiled out."""
+        g = (self.G, self.Gc, self.Gt)[nuisance]
+        if g is None:
+            raise ValueError("the profiled lag Gram was not built (pass centred=True)")
+        return g
+
+
+def filtered_gram(G: np.ndarray, d: np.ndarray, b1: Block, b2: Block) -> np.ndarray:
+    """``sum_k (D z1)(k) (D z2)(k)'`` for the unknowns of blocks ``b1``, ``b2``.
+
+    ``d = [1, d_1, ..., d_p]`` is the filter ``D(q)``; ``G`` a 4-D lag Gram.  Separable:
+    first filter along the lags of ``b1`` (``p + 1`` strided slices), then along ``b2``.
+    Cost ``2 (p + 1) |b1| |b2|`` — no data pass, no gather of ``G``.
+
+    Returns
+    -------
+    ndarray (b1.size, b2.size)
+    """
+    p = d.size - 1
+    s1 = slice(b1.sig_lo, b1.sig_hi)
+    s2 = slice(b2.sig_lo, b2.sig_hi)
+    H = d[0] * G[b1.lag_lo : b1.lag_hi, s1, b2.lag_lo : b2.lag_hi + p, s2]
+    for a in range(1, p + 1):
+        H = H + d[a] * G[b1.lag_lo + a : b1.lag_hi + a, s1, b2.lag_lo : b2.lag_hi + p, s2]
+    out = d[0] * H[:, :, : b2.n_lag, :]
+    for a in range(1, p + 1):
+        out = out + d[a] * H[:, :, a : a + b2.n_lag, :]
+    return out.reshape(b1.size, b2.size)
+
+
+def shifted_products(G: np.ndarray, blocks: list[Block], coef: list[np.ndarray],
+                     shifts: int) -> np.ndarray:
+    """``q[a] = sum_k Z(k) e(k - a)`` for ``a = 0..shifts-1``, ``e(k) = sum_b coef_b' z_b(k)``.
+
+    Returns ndarray (shifts, n_lags, n_w): the products of the residual-like combination
+    ``e`` (a fixed linear combination of block unknowns, e.g. ``y - U'b``) at shift ``a``
+    with every signal at every lag — from which residual autocovariances and the
+    Jacobian products of a prediction-error fit follow by indexing.
+    """
+    L, n_w = G.shape[0], G.shape[1]
+    q = np.zeros((shifts, L, n_w))
+    for a in range(shifts):
+        for blk, c in zip(blocks, coef):
+            sub = G[:, :, blk.lag_lo + a : blk.lag_hi + a, blk.sig_lo : blk.sig_hi]
+            q[a] += np.tensordot(sub, c.reshape(blk.n_lag, blk.n_sig), axes=([2, 3], [0, 1]))
+    return q
+
+
+def take(q: np.ndarray, blk: Block, shift: int = 0) -> np.ndarray:
+    """Entries of a ``(n_lags, n_w)`` product vector at a block's unknowns (lag-major)."""
+    return q[blk.lag_lo + shift : blk.lag_hi + shift, blk.sig_lo : blk.sig_hi].reshape(-1)
+
+
+# ------------------------------------------------- the data pass (block FFT + recursion)
+def first_block_row(w: np.ndarray, x: np.ndarray, k0: int, n_lags: int) -> np.ndarray:
+    """``r[p, n, j] = sum_{k=k0}^{N-1} w[k, n] * x[k-p, j]`` for ``p < n_lags``.
+
+    Block FFT (overlap-save): each block of ``B`` observations is correlated against
+    the ``B + n_lags - 1`` input samples it needs, the cross-spectra are summed over
+    blocks and a single inverse FFT per pair returns every lag.  Hand-written because
+    scipy.signal.correlate has no "sum over observation range with lag window" form and
+    would need one full-length FFT per pair.
+    """
+    n, n_w = w.shape
+    n_x = x.shape[1]
+    n_obs = n - k0
+    P = n_lags
+    L = scipy.fft.next_fast_len(max(8 * P, 512), real=True)
+    B = L - P + 1
+    nb = -(-n_obs // B)
+    # x padded so every block's segment [s - P + 1, s - P + 1 + L) exists.
+    first = k0 - P + 1
+    need = first + (nb - 1) * B + L
+    xp = x[first:] if need <= n else np.concatenate([x[first:], np.zeros((need - n, n_x))])
+    wp = w[k0:]
+    if wp.shape[0] < nb * B:
+        wp = np.concatenate([wp, np.zeros((nb * B - wp.shape[0], n_w))])
+    F = L // 2 + 1
+    S = np.zeros((F, n_w, n_x), dtype=complex)
+    # chunk of blocks per pass: bounds memory to ~ chunk * L * (n_w + n_x) complex numbers
+    chunk = max(1, int(4_000_000 // (L * (n_w + n_x))))
+    for b0 in range(0, nb, chunk):
+        b1 = min(nb, b0 + chunk)
+        nbc = b1 - b0
+        seg = np.lib.stride_tricks.sliding_window_view(
+            xp[b0 * B : (b1 - 1) * B + L], L, axis=0
+        )[::B]  # (nbc, n_x, L)
+        X = scipy.fft.rfft(seg, axis=2)  # (nbc, n_x, F)
+        wb = np.zeros((nbc, n_w, L))
+        wb[:, :, P - 1 : P - 1 + B] = wp[b0 * B : b1 * B].reshape(nbc, B, n_w).transpose(0, 2, 1)
+        W = scipy.fft.rfft(wb, axis=2)  # (nbc, n_w, F)
+        # S[f] += W[:, :, f]^T @ conj(X[:, :, f])  — a batched GEMM over frequencies
+        S += np.matmul(W.transpose(2, 1, 0), X.conj().transpose(2, 0, 1))
+    r = scipy.fft.irfft(S, n=L, axis=0)[:P]
+    return r
+
+
+def assemble_gram(r_xx: np.ndarray, x: np.ndarray, k0: int, n: int, P: int) -> np.ndarray:
+    """Full lag-major A from its first block row by the diagonal recursion (method.md §2)."""
+    n_x = x.shape[1]
+    A4 = np.empty((P, P, n_x, n_x))
+    A4[0] = r_xx  # A[0, p] = sum_k x(k) x(k-p)'
+    if P > 1:
+        back = np.arange(P - 1)
+        head = x[k0 - 1 - back]  # x(k0-1-q), q = 0..P-2 (exists: k0 >= P-1)
+        tail = x[n - 1 - back]  # x(N-1-q)
+        for q in range(P - 1):
+            A4[q + 1, 1:] = (
+                A4[q, :-1]
+                + head[q][None, :, None] * head[:, None, :]
+                - tail[q][None, :, None] * tail[:, None, :]
+            )
+            A4[q + 1, 0] = r_xx[q + 1].T
+    A = A4.transpose(0, 2, 1, 3).reshape(P * n_x, P * n_x)
+    return 0.5 * (A + A.T)  # exact symmetry (the recursion is symmetric up to round-off)
+
+
+
+
+def _segment_gram(w: np.ndarray, k0: int, L: int, centred: bool):
+    """Lag Gram of one segment, and its versions with a constant and with a constant and
+    a linear trend profiled out (``None, None`` unless ``centred``)."""
+    n, n_w = w.shape
+    r = first_block_row(w, w, k0, L)  # (L, n_w, n_w): r[p, a, b] = sum_k w_a(k) w_b(k-p)
+    G2 = assemble_gram(r, w, k0, n, L)  # (L*n_w, L*n_w) lag-major
+    if not centred:
+        return G2, None, None
+    n_obs = n - k0
+    lags = np.arange(L)
+    cs = np.concatenate([np.zeros((1, n_w)), np.cumsum(w, axis=0)])
+    zsum = (cs[n - lags] - cs[k0 - lags]).reshape(-1)  # sum_{k=k0}^{n-1} w(k - l)
+    Gc = G2 - np.outer(zsum, zsum) / n_obs
+    # trend t(k) = (k - centre) / n_obs over the observations; sum_k t(k) w(k - l) from
+    # cumulative sums of j * w(j) (j = k - l)
+    centre = 0.5 * (k0 + n - 1)
+    j = np.arange(n, dtype=float)[:, None]
+    csj = np.concatenate([np.zeros((1, n_w)), np.cumsum(j * w, axis=0)])
+    sum_kw = (csj[n - lags] - csj[k0 - lags]) + lags[:, None] * (cs[n - lags] - cs[k0 - lags])
+    tsum = ((sum_kw - centre * (cs[n - lags] - cs[k0 - lags])) / n_obs).reshape(-1)
+    kk = (np.arange(k0, n) - centre) / n_obs
+    tt = float(kk @ kk)
+    # the constant and t are orthogonal over the observations (t is centred)
+    Gt = Gc - np.outer(tsum, tsum) / tt if tt > 0 else Gc
+    return G2, 0.5 * (Gc + Gc.T), 0.5 * (Gt + Gt.T)
+
+
+def build_lag_gram(segments, *, n_lags: int, k0_extra: int = 0,
+                   centred: bool = False) -> LagGram:
+    """Lag Gram summed over segments (each an array (n_seg, n_w) of contiguous good data).
+
+    Observations start at ``n_lags - 1 + k0_extra`` in each segment (``k0_extra = 1``
+    when a signal is a first difference whose first sample is undefined); shorter
+    segments are skipped.  ``centred`` also builds the Grams with a constant, and with a
+    constant and a linear trend, per segment profiled out.
+
+    Returns
+    -------
+    LagGram or None when no segment is long enough.
+    """
+    L = int(n_lags)
+    k0 = L - 1 + int(k0_extra)
+    total = None
+    for w in segments:
+        if w.shape[0] <= k0:
+            continue
+        G2, Gc, Gt = _segment_gram(w, k0, L, centred)
+        n_w = w.shape[1]
+        shape = (L, n_w, L, n_w)
+        part = LagGram(G2.reshape(shape), None if Gc is None else Gc.reshape(shape),
+                       w.shape[0] - k0, 1, None if Gt is None else Gt.reshape(shape))
+        total = part if total is None else total + part
+    return total

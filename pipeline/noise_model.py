@@ -1,0 +1,121 @@
+"""Noise models of the output disturbance (method.md §10): ``n = v / D(q)``, ``v`` white.
+
+``D(q) = 1 + d_1 q^-1 + ... + d_p q^-p``.  The order ``p`` is chosen by BIC from the
+residual autocovariance (Levinson–Durbin gives every order's innovation variance at
+once); ``p = 0`` is the thesis' white-noise estimate.
+
+Hand-written Levinson–Durbin: scipy's ``solve_toeplitz`` returns only the final order's
+solution, and the order selection needs the innovation variance of every order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["NoiseModel", "levinson", "ar_order_by_bic", "DEFAULT_AR_ORDER_MAX",
+           "is_minimum_phase"]
+
+DEFAULT_AR_ORDER_MAX = 20
+"""Largest AR order tried by ``noise="auto"``.  An AR(20) whitens the slow disturbances
+and measurement noise mixtures of plant data (an ARMA(1,1) with a pole at 0.97 and a
+zero at 0.5 to < 1e-8 of its variance); larger orders cost lags of data per segment."""
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Noise model of one output.
+
+    Attributes
+    ----------
+    kind : str
+        ``"white"`` (``D = 1``, the thesis' assumption) or ``"ar"``.
+    form : str
+        How the output entered the fit: ``"direct"`` (self-regulating), ``"differenced"``
+        (integrating, ``Δy`` on the inputs, eq. 3.15) or ``"level"`` (integrating, the
+        level on the cumulated inputs with a constant per segment — exact for white
+        measurement noise on a level sensor).
+    order : int
+        ``p``.
+    coefficients : tuple of float
+        ``d_1 .. d_p``.
+    innovation_std : float
+        Standard deviation of ``v`` (output units; of ``Δy`` units for ``differenced``).
+    selection : dict
+        How the model was chosen (BIC per order or per form), JSON-ready.
+    nuisance : int
+        Terms profiled out per segment with it: 0 none, 1 a constant (the level's drift
+        in the differenced form), 2 a constant and a trend (level form).
+    """
+
+    kind: str
+    form: str
+    order: int
+    coefficients: tuple[float, ...]
+    innovation_std: float
+    selection: dict = field(default_factory=dict)
+    nuisance: int = 0
+
+    @property
+    def d(self) -> np.ndarray:
+        return np.concatenate([[1.0], np.asarray(self.coefficients, dtype=float)])
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "form": self.form, "order": self.order,
+                "coefficients": [float(c) for c in self.coefficients],
+                "innovation_std": float(self.innovation_std),
+                "dominant_pole": self.dominant_pole(),
+                "nuisance": ["none", "constant", "constant and trend"][self.nuisance],
+                "selection": self.selection}
+
+    def dominant_pole(self) -> float | None:
+        """Largest pole modulus of ``1/D`` (how slow the disturbance is), None if white."""
+        if self.order == 0:
+            return None
+        return float(np.max(np.abs(np.roots(self.d))))
+
+
+def levinson(r: np.ndarray, p_max: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """AR fits of every order from autocovariances ``r[0..p_max]``.
+
+    Returns ``(coefs, err)``: ``coefs[p]`` is ``[d_1..d_p]`` and ``err[p]`` the
+    innovation variance (same units as ``r``), for ``p = 0..p_max`` (stops early when
+    the variance reaches zero).
+    """
+    r = np.asarray(r, dtype=float)
+    a = np.zeros(0)
+    err = [r[0]]
+    coefs = [a]
+    e = r[0]
+    for p in range(1, p_max + 1):
+        if e <= 1e-300 * max(r[0], 1e-300):
+            break
+        k = -(r[p] + a @ r[p - 1 : 0 : -1]) / e if p > 1 else -r[1] / e
+        a = np.concatenate([a + k * a[::-1], [k]])
+        e = e * (1 - k * k)
+        coefs.append(a.copy())
+        err.append(e)
+    return coefs, np.asarray(err)
+
+
+def ar_order_by_bic(r: np.ndarray, n: int, p_max: int) -> tuple[int, np.ndarray, dict]:
+    """Order ``p <= p_max`` minimising ``n log(err_p) + p log(n)`` (Yule–Walker fits).
+
+    ``r`` are autocovariances (sums or means: BIC differences are unchanged).
+    Returns ``(p, d_1..d_p, {order: bic})``.
+    """
+    p_max = int(min(p_max, r.size - 1, max(n // 20, 0)))
+    coefs, err = levinson(r, p_max)
+    err = np.maximum(err, 1e-300)
+    bic = n * np.log(err / err[0]) + np.arange(err.size) * np.log(n)
+    p = int(np.argmin(bic))
+    return p, coefs[p], {int(k): float(v) for k, v in enumerate(bic)}
+
+
+def is_minimum_phase(d: np.ndarray, margin: float = 1e-6) -> bool:
+    """True when every root of ``D`` lies strictly inside the unit circle."""
+    d = np.asarray(d, dtype=float)
+    if d.size <= 1:
+        return True
+    return bool(np.max(np.abs(np.roots(d))) < 1 - margin)

@@ -1,0 +1,430 @@
+"""Per-output fits on a lag Gram: prediction-error (FIR + AR noise) and instrumental variables.
+
+Prediction-error fit (method.md §10).  For one output with regressor unknowns ``b`` and
+noise model ``D(q)``, the criterion is
+
+    V(b, d) = sum_k eps(k)^2,   eps(k) = sum_{a=0..p} d_a e(k - a),   e = y - U'b
+
+(with a constant per segment profiled out for level-form integrating outputs).  It is
+minimised by
+
+1. least squares (``d = 1``) -> AR order of the residual by BIC (Yule–Walker) ->
+   generalised least squares with that ``D`` -> order again, until the order repeats;
+2. Gauss–Newton on ``(b, d)`` jointly at that order until ``V`` stops decreasing.  Every
+   quantity is a combination of the lag Gram (:mod:`pipeline.lag_products`):
+   ``A~ = sum d_a d_b G[.+a, .+b]``, the Jacobian products ``sum (DU)(k) e(k-a)`` and the
+   residual autocovariances come from ``q_a = sum_k Z(k) e(k-a)``.
+
+Covariance: ``sigma_v^2`` times the ``b``-block of the inverse Gauss–Newton matrix
+``[[A~, -J], [-J', R]]`` (the Schur complement ``A~ - J R^-1 J'``): in open loop ``J``
+vanishes asymptotically; under feedback it does not, and ignoring it would understate
+the variance.
+
+Instrumental variables (method.md §10 (c)).  With instruments ``Z`` (lags ``0..Q-1`` of the
+external signals) and the noise filter ``D`` fitted to the IV residual ``y - U'b``:
+``b = (Phi' P Phi)^-1 Phi' P y`` on filtered data, ``P = Z (Z'Z)^-1 Z'`` (two-stage least
+squares), iterated three times with the noise model refitted to the residual (Young's
+refined IV).  ``cov(b) = sigma_v^2 (Phi' P Phi)^-1``: two-stage least squares' own
+covariance, right when the filtered equation error is white — which the noise model
+makes it.  The first stage is also the weak-instrument check: the F statistic of each
+regressed input on the instruments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from pipeline.errors import InsufficientDataError, SingularSystemError
+from pipeline.lag_products import Block, LagGram, filtered_gram, shifted_products, take
+from pipeline.noise_model import (
+    DEFAULT_AR_ORDER_MAX,
+    ar_order_by_bic,
+    is_minimum_phase,
+    levinson,
+)
+
+__all__ = ["Design", "OutputFit", "fit_prediction_error", "fit_fixed_noise",
+           "fit_instrumental", "WEAK_INSTRUMENT_F"]
+
+_RCOND = 1e-12
+WEAK_INSTRUMENT_F = 10.0
+"""First-stage F below which an instrument counts as weak (Staiger & Stock's rule of
+thumb): the instrument-based estimate is then biased towards the direct one and its
+covariance is unreliable."""
+
+
+@dataclass(frozen=True)
+class Design:
+    """The regression of one output on a lag Gram.
+
+    Attributes
+    ----------
+    y : Block
+        The fitted signal (one signal at one lag).
+    blocks : tuple of Block
+        Regressor blocks; their unknowns are concatenated in order.
+    sel : ndarray of int
+        Indices of the unknowns actually estimated (per-pair orders, known delays).
+    nuisance : int
+        Per-segment nuisance terms profiled out: 0 none, 1 a constant, 2 a constant and
+        a linear trend (the profiled Grams of :class:`LagGram`).
+    """
+
+    y: Block
+    blocks: tuple[Block, ...]
+    sel: np.ndarray
+    nuisance: int = 0
+
+    @property
+    def m(self) -> int:
+        return int(self.sel.size)
+
+    @property
+    def full_size(self) -> int:
+        return sum(b.size for b in self.blocks)
+
+
+@dataclass(frozen=True)
+class OutputFit:
+    """Result of one output's fit.
+
+    ``b`` (m,) unknowns in ``design.sel`` order; ``cov_factor`` (k, m): the covariance is
+    ``sigma2 * cov_factor' cov_factor`` (so pair blocks cost only their columns);
+    ``d`` the noise filter ``[1, d_1..d_p]``; ``V`` the criterion; ``n_d`` observations.
+    """
+
+    b: np.ndarray
+    cov_factor: np.ndarray
+    sigma2: float
+    d: np.ndarray
+    V: float
+    n_d: int
+    n_par: int
+    iterations: int
+    selection: dict
+    method: str
+
+    @property
+    def order(self) -> int:
+        return int(self.d.size - 1)
+
+    @property
+    def bic(self) -> float:
+        return float(self.n_d * np.log(max(self.V, 1e-300) / self.n_d)
+                     + self.n_par * np.log(self.n_d))
+
+    def cov(self, idx=None) -> np.ndarray:
+        F = self.cov_factor if idx is None else self.cov_factor[:, idx]
+        return self.sigma2 * (F.T @ F)
+
+
+# ------------------------------------------------------------------ linear algebra
+def _factor(M: np.ndarray, what: str):
+    """Scaled Cholesky of a symmetric positive definite matrix, with a clear error."""
+    scale = np.sqrt(np.clip(np.diag(M), 1e-300, None))
+    Ms = M / np.outer(scale, scale)
+    try:
+        c = scipy.linalg.cho_factor(Ms, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        raise SingularSystemError(f"normal equations of {what} are singular") from None
+    piv = np.abs(np.diag(c[0]))
+    if piv.min() ** 2 < _RCOND * piv.max() ** 2:
+        raise SingularSystemError(
+            f"normal equations of {what} are singular (rank deficient: pivot ratio "
+            f"{(piv.min() / piv.max()) ** 2:.2e})")
+    return c, scale
+
+
+def _solve(fac, rhs):
+    c, scale = fac
+    s = scale if np.ndim(rhs) == 1 else scale[:, None]
+    return scipy.linalg.cho_solve(c, rhs / s, check_finite=False) / s
+
+
+def _inv_factor(fac) -> np.ndarray:
+    """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled)."""
+    c, scale = fac
+    Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
+    if info != 0:
+        raise SingularSystemError("triangular factor is singular")
+    return Linv / scale[None, :]
+
+
+# ------------------------------------------------------------------ building blocks
+class _Problem:
+    """Cached pieces of one output's regression on a lag Gram."""
+
+    def __init__(self, lg: LagGram, design: Design, what: str):
+        self.G = lg.gram(design.nuisance)
+        self.n_d = lg.n_d
+        self.n_const = lg.n_segments * design.nuisance
+        self.design = design
+        self.what = what
+        self.blocks = list(design.blocks)
+        self.sel = design.sel
+        offs = np.cumsum([0] + [b.size for b in self.blocks])
+        self.offsets = offs
+
+    # filtered Gram of [regressors (full), y] for filter d
+    def filtered(self, d: np.ndarray):
+        blocks = self.blocks + [self.design.y]
+        n = len(blocks)
+        rows = []
+        for i in range(n):
+            rows.append([filtered_gram(self.G, d, blocks[i], blocks[j]) if j >= i else None
+                         for j in range(n)])
+        for i in range(n):
+            for j in range(i):
+                rows[i][j] = rows[j][i].T
+        M = np.block(rows)
+        m_full = self.design.full_size
+        idx = self.sel
+        A = M[np.ix_(idx, idx)]
+        c = M[idx, m_full]
+        yy = float(M[m_full, m_full])
+        return A, c, yy
+
+    def residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
+        """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts``."""
+        full = np.zeros(self.design.full_size)
+        full[self.sel] = b
+        coefs = [-full[self.offsets[i] : self.offsets[i + 1]] for i in range(len(self.blocks))]
+        return shifted_products(self.G, self.blocks + [self.design.y], coefs + [np.ones(1)],
+                                shifts)
+
+    def take_e(self, qa: np.ndarray, b: np.ndarray, shift: int) -> float:
+        """``sum_k e(k - shift) * (the quantity behind qa)``."""
+        return float(take(qa, self.design.y, shift)[0] - self.take_u(qa, shift) @ b)
+
+    def take_u(self, qa: np.ndarray, shift: int) -> np.ndarray:
+        """Regressor entries of ``qa`` at a shift, in ``sel`` order."""
+        return np.concatenate([take(qa, blk, shift) for blk in self.blocks])[self.sel]
+
+    def max_shift(self) -> int:
+        """Largest filter order the Gram's lags allow for this design."""
+        top = max(b.lag_hi for b in self.blocks + [self.design.y])
+        return self.G.shape[0] - top
+
+
+def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
+    """``r(tau) = sum_k e(k) e(k - tau)``, ``tau = 0..n_lags-1`` (one product vector)."""
+    q0 = prob.residual_products(b, 1)[0]
+    return np.array([prob.take_e(q0, b, t) for t in range(n_lags)])
+
+
+def _gls(prob: _Problem, d: np.ndarray):
+    A, c, yy = prob.filtered(d)
+    fac = _factor(A, prob.what)
+    b = _solve(fac, c)
+    V = max(yy - b @ c, 0.0)
+    return b, V, fac, A
+
+
+def _criterion_parts(prob: _Problem, b: np.ndarray, d: np.ndarray):
+    """Exact residual covariance ``R[a, a']`` and ``q`` vectors for the GN step."""
+    p = d.size - 1
+    q = prob.residual_products(b, p + 1)
+    R = np.empty((p + 1, p + 1))
+    for a in range(p + 1):
+        for a2 in range(p + 1):
+            R[a, a2] = prob.take_e(q[a], b, a2)
+    R = 0.5 * (R + R.T)
+    return q, R
+
+
+def _gn_matrices(prob: _Problem, b, d, q, R):
+    p = d.size - 1
+    A, c, yy = prob.filtered(d)
+    # J[:, a-1] = sum_k (DU)(k) e(k-a),  a = 1..p
+    J = np.zeros((b.size, p))
+    g_b = np.zeros(b.size)
+    for a in range(p + 1):
+        v = sum(d[a2] * prob.take_u(q[a], a2) for a2 in range(p + 1))
+        if a >= 1:
+            J[:, a - 1] = v
+        g_b += d[a] * v
+    g_d = R[1:, :] @ d
+    return A, J, g_b, g_d
+
+
+def _covariance(prob: _Problem, A, J, R11):
+    """Factor of the b-block of the inverse GN matrix (Schur complement)."""
+    if J.shape[1]:
+        fr = _factor(R11, prob.what + " (noise model)")
+        S = A - J @ _solve(fr, J.T)
+        S = 0.5 * (S + S.T)
+    else:
+        S = A
+    return _inv_factor(_factor(S, prob.what))
+
+
+def _dof(prob: _Problem, m: int, p: int) -> int:
+    n_par = m + p + prob.n_const
+    if prob.n_d <= n_par:
+        raise InsufficientDataError(
+            f"{prob.what}: {n_par} parameters (FIR {m}, noise model {p}, constants "
+            f"{prob.n_const}) need more than {n_par} observations, only {prob.n_d} "
+            "available; lower n_p or supply more data")
+    return n_par
+
+
+def fit_fixed_noise(lg: LagGram, design: Design, d: np.ndarray, *, what: str,
+                    sigma2: float | None = None) -> OutputFit:
+    """Generalised least squares with a given noise filter (no iteration).
+
+    Covariance ``sigma_v^2 A~^-1`` (the noise model taken as known); ``sigma2`` fixes the
+    innovation variance (a reference fit's) instead of this fit's residual variance — a
+    too-short candidate order leaves part of the response in its residual, and its own
+    variance would widen the bands that are to judge it.
+    """
+    prob = _Problem(lg, design, what)
+    b, V, fac, _ = _gls(prob, d)
+    n_par = _dof(prob, b.size, d.size - 1)
+    s2 = V / (prob.n_d - n_par) if sigma2 is None else float(sigma2)
+    return OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, 0, {}, "gls")
+
+
+def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
+                         order: int | None = None,
+                         p_max: int = DEFAULT_AR_ORDER_MAX,
+                         max_iter: int = 30, tol: float = 1e-10) -> OutputFit:
+    """FIR + AR noise prediction-error fit of one output (module docstring).
+
+    ``order=None`` chooses the AR order by BIC up to ``p_max`` (``0`` = white);
+    an int fixes it.
+    """
+    prob = _Problem(lg, design, what)
+    p_cap = max(0, min(p_max, prob.max_shift() - 1))
+    if order is not None and order > p_cap:
+        raise InsufficientDataError(
+            f"{what}: AR order {order} needs {order} more lags than the lag products "
+            f"hold (at most {p_cap}); lower estimation.noise or n_p")
+    d = np.ones(1)
+    b, V, fac, _ = _gls(prob, d)
+    selection: dict = {}
+    p_prev = -1
+    for _ in range(6):
+        if order is None:
+            r = _autocov(prob, b, p_cap + 1)
+            p, coef, bic = ar_order_by_bic(r, prob.n_d, p_cap)
+            selection = {"criterion": "bic", "bic_by_order": bic}
+        else:
+            r = _autocov(prob, b, order + 1)
+            coefs, _ = levinson(r, order)
+            p, coef = len(coefs) - 1, coefs[-1]
+            selection = {"criterion": "fixed"}
+        d_new = np.concatenate([[1.0], coef])
+        converged = p == p_prev and np.allclose(d_new, d, atol=1e-4)
+        d = d_new
+        b, V, fac, _ = _gls(prob, d)
+        if converged or p == 0:
+            break
+        p_prev = p
+    it = 0
+    p = d.size - 1
+    n_par = _dof(prob, b.size, p)
+    q, R = _criterion_parts(prob, b, d)
+    V = float(d @ R @ d)
+    for it in range(1, max_iter + 1):
+        if p == 0:
+            break
+        A, J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
+        H = np.block([[A, -J], [-J.T, R[1:, 1:]]])
+        rhs = np.concatenate([g_b, -g_d])
+        try:
+            step = _solve(_factor(H, what), rhs)
+        except SingularSystemError:
+            break
+        lam = 1.0
+        improved = False
+        while lam > 1e-4:
+            b_try = b + lam * step[: b.size]
+            d_try = d.copy()
+            d_try[1:] += lam * step[b.size :]
+            if is_minimum_phase(d_try):
+                q_t, R_t = _criterion_parts(prob, b_try, d_try)
+                V_t = float(d_try @ R_t @ d_try)
+                if V_t <= V:
+                    improved = True
+                    break
+            lam *= 0.5
+        if not improved:
+            break
+        rel = (V - V_t) / max(V, 1e-300)
+        b, d, q, R, V = b_try, d_try, q_t, R_t, V_t
+        if rel < tol:
+            break
+    A, J, _, _ = _gn_matrices(prob, b, d, q, R)
+    F = _covariance(prob, A, J, R[1:, 1:])
+    s2 = V / (prob.n_d - n_par)
+    return OutputFit(b, F, s2, d, V, prob.n_d, n_par, it, selection, "prediction_error")
+
+
+def _first_stage(G, blocks, zblk: Block, n_d: int, what: str) -> dict:
+    """F statistic and R^2 of each regressed signal (lag 0) on the instruments (unfiltered)."""
+    one = np.ones(1)
+    fz = _factor(filtered_gram(G, one, zblk, zblk), what + " (instruments)")
+    n_z = zblk.size
+    out = {}
+    for blk in blocks:
+        for s in range(blk.sig_lo, blk.sig_hi):
+            sb = Block(s, s + 1, blk.lag_lo, blk.lag_lo + 1)
+            xz = filtered_gram(G, one, sb, zblk)[0]
+            xx = float(filtered_gram(G, one, sb, sb)[0, 0])
+            expl = float(xz @ _solve(fz, xz))
+            res = max(xx - expl, 1e-300 * max(xx, 1e-300))
+            F = (expl / n_z) / (res / max(n_d - n_z, 1))
+            out[s] = {"F": float(F), "r2": float(expl / xx) if xx > 0 else 0.0,
+                      "n_instruments": int(n_z)}
+    return out
+
+
+def fit_instrumental(lg: LagGram, design: Design, instruments: Block, *, what: str,
+                     order: int | None = None, p_max: int = DEFAULT_AR_ORDER_MAX,
+                     passes: int = 3) -> tuple[OutputFit, dict]:
+    """Refined instrumental-variable fit of one output (module docstring).
+
+    Returns ``(fit, first_stage)`` where ``first_stage`` holds the F statistic of every
+    regressor block's lag-0 signal on the instruments (weak-instrument check).
+    """
+    prob = _Problem(lg, design, what)
+    G = prob.G
+    p_cap = max(0, min(p_max, prob.max_shift() - 1, lg.n_lags - instruments.lag_hi))
+    zfull = instruments
+    d = np.ones(1)
+    selection: dict = {}
+    first: dict = {}
+    for it in range(passes):
+        A, c, yy = prob.filtered(d)
+        blocks = prob.blocks
+        PZ = np.concatenate([filtered_gram(G, d, blk, zfull) for blk in blocks])[prob.sel]
+        ZZ = filtered_gram(G, d, zfull, zfull)
+        Zy = filtered_gram(G, d, zfull, prob.design.y)[:, 0]
+        fz = _factor(ZZ, what + " (instruments)")
+        W = _solve(fz, PZ.T)  # (K_z, m) = (Z'Z)^-1 Z'Phi
+        M = PZ @ W
+        M = 0.5 * (M + M.T)
+        h = W.T @ Zy
+        fac = _factor(M, what + " (instrument projection)")
+        b = _solve(fac, h)
+        if it == 0:
+            first = _first_stage(G, blocks, zfull, prob.n_d, what)
+        V = max(yy - 2 * b @ c + b @ A @ b, 0.0)
+        if it == passes - 1:
+            break
+        r = _autocov(prob, b, p_cap + 1)
+        if order is None:
+            p, coef, bic = ar_order_by_bic(r, prob.n_d, p_cap)
+            selection = {"criterion": "bic", "bic_by_order": bic}
+        else:
+            coefs, _ = levinson(r, min(order, p_cap))
+            coef = coefs[-1]
+            selection = {"criterion": "fixed"}
+        d = np.concatenate([[1.0], coef])
+    n_par = _dof(prob, b.size, d.size - 1)
+    s2 = V / (prob.n_d - n_par)
+    return (OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, passes, selection,
+                      "instrumental_variables"), first)
