@@ -95,7 +95,6 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 import scipy.signal
-from threadpoolctl import threadpool_limits
 
 from pipeline.effects import (
     EFFECT_NAMES,
@@ -112,6 +111,7 @@ from pipeline.errors import (
     PipelineError,
     SingularSystemError,
 )
+from pipeline._threads import single_threaded_blas
 from pipeline.estimate import estimate_step_responses
 from pipeline.estimate import residuals as fir_residuals
 from pipeline.model import Model, Sum, Term, insert_after, insert_before
@@ -1917,14 +1917,10 @@ def analyse_discrepancy(
     ModelError
         A model delay that is not a whole number of samples at `dt_s`.
     """
-    # The analysis is thousands of small vector operations (dot products and filters
-    # over ~1e4 samples), where multi-threaded BLAS costs more than it gives: a dot
-    # product of 2e4 doubles took 50 us with OpenBLAS's two threads and 3.7 us with one
-    # on the 2-core machine, and milliseconds when other processes compete for the
-    # cores.  So BLAS runs single-threaded inside it (threadpoolctl; restored after).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _analyse(model, inputs=inputs, measured=measured, dt_s=dt_s, config=config,
-                        seed=seed, progress=progress)
+    # thousands of small vector operations: BLAS single-threaded (pipeline._threads)
+    return single_threaded_blas(_analyse)(model, inputs=inputs, measured=measured,
+                                          dt_s=dt_s, config=config, seed=seed,
+                                          progress=progress)
 
 
 def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, Any],

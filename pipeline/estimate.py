@@ -44,6 +44,7 @@ import scipy.fft
 import scipy.linalg
 import scipy.optimize
 
+from pipeline._threads import single_threaded_blas
 from pipeline.lag_products import assemble_gram, first_block_row
 from pipeline.errors import (
     ConfigError,
@@ -713,6 +714,7 @@ def estimate_from_normal_equations(
     )
 
 
+@single_threaded_blas
 def estimate_step_responses(
     x,
     y,
@@ -944,14 +946,15 @@ def output_design(ctx: GramContext, i: int, n_p_row: np.ndarray, n_k_row: np.nda
         lag = np.concatenate([lead_idx // n_x - M, xs // n_x - M, n_p_row - 1]) if M else \
             np.concatenate([xs // n_x, n_p_row - 1])
         yb = Block(ctx.level_col[i], ctx.level_col[i] + 1, M, M + 1)
-        design = Design(yb, tuple(blocks), sel.astype(int), nuisance=2)
+        design = Design(yb, tuple(blocks), sel.astype(int), nuisance=3)
     else:
         c = ctx.n_x + i
         idx = _unknown_index(n_p_row + M, n_x, n_k_row + M, n_lags=P + M)
         sel = np.concatenate([lead_idx, idx]) if M else idx
-        # differenced form under a noise model: a constant per segment (the level's drift;
-        # the thesis' eq. 3.15 has none, so the white path keeps none)
-        nuis = 1 if (form == "differenced" and ctx.s_lo is not None) else 0
+        # differenced form under a noise model: a constant and a trend per segment (the
+        # level's drift and what detrending leaves; the thesis' eq. 3.15 has none, so the
+        # white path keeps none)
+        nuis = 2 if (form == "differenced" and ctx.s_lo is not None) else 0
         design = Design(Block(c, c + 1, M, M + 1), (Block(0, n_x, 0, P + M),), sel,
                         nuisance=nuis)
         inp = sel % n_x
@@ -1230,7 +1233,7 @@ def innovations(est: StepResponseEstimate, x, y, *, good=None) -> np.ndarray:
             ok = np.isfinite(f)
             if nuis and ok.sum() > nuis:
                 t = np.arange(f.size, dtype=float)
-                basis = np.column_stack([np.ones(f.size), t][:nuis])
+                basis = np.column_stack([t**p for p in range(nuis)])
                 coef, *_ = np.linalg.lstsq(basis[ok], f[ok], rcond=None)
                 f = f - basis @ coef
             out[a:b, i] = f

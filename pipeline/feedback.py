@@ -11,7 +11,10 @@ The regression is the output's own form and noise model (``D`` from the causal f
 generalised least squares of ``D y(k - M)`` on ``D x(k - M + s)``, ``s = -M+1..n_p+M``
 (leads and causal lags of every input), so the innovations are white and the Wald
 statistic ``W_j = beta_j' cov(beta_j)^-1 beta_j`` of input ``j``'s ``M`` lead
-coefficients is chi^2(M) under "no feedback".  The false-alarm rate per pair is
+coefficients is chi^2(M) under "no feedback", and so is the square of their sum over its
+standard deviation chi^2(1) — the sharper test when a controller's integral action
+spreads its reaction over many leads with one sign.  The two are combined by Bonferroni
+(p = 2 min(p_all, p_sum)); the false-alarm rate per pair is at most
 :data:`FEEDBACK_ALPHA`.
 
 What the test cannot see: a controller that only reacts within the same sample leaves no
@@ -34,13 +37,14 @@ FEEDBACK_ALPHA = 0.01
 """False-alarm rate of the feedback test per pair (open-loop pairs flagged 1 % of the
 time).  1 % rather than 5 %: a detection changes the estimate (``n_k >= 1``)."""
 
-FEEDBACK_LEADS = 20
+FEEDBACK_LEADS = 40
 """Future input lags tested.  An integral-dominated controller spreads its reaction to
-one output disturbance over many later samples, so the evidence is spread over many
-leads: on a PI loop with a slow disturbance (AR(1) pole 0.97, 2e4 samples) the test
-detects the loop in 12 % of records with 1 lead, 75 % with 5, 90 % with 10 and 97 %
-with 20; in open loop the false-alarm rate stays at ``FEEDBACK_ALPHA`` whatever the
-count (chi^2(M) is exact under no feedback)."""
+one output disturbance over many later samples.  Measured on a PI loop with a slow
+disturbance (AR(1) pole 0.97, noise s.d. equal to the setpoint steps', 2e4 samples, 30
+records): with the all-leads test alone 27 % / 57 % / 70 % of the loops were detected
+with 10 / 20 / 40 leads; with the sum test added 70 % / 93 % / 100 %.  In open loop the
+false-alarm rate stays at ``FEEDBACK_ALPHA`` whatever the count (both statistics are exact
+under no feedback); the cost is 40 more lags in the lag products."""
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,13 @@ def feedback_test(ctx, *, n_p, n_k, noise_models, leads: int = FEEDBACK_LEADS,
             except np.linalg.LinAlgError:
                 row.append(None)
                 continue
-            p = float(scipy.stats.chi2.sf(stat, sel.size))
+            p_all = float(scipy.stats.chi2.sf(stat, sel.size))
+            # the integral action of a controller leaves lead coefficients of one sign
+            # over many leads: their sum (1 df) is the powerful test against that
+            var_sum = float(C.sum())
+            p_sum = float(scipy.stats.chi2.sf(beta.sum() ** 2 / var_sum, 1)) \
+                if var_sum > 0 else 1.0
+            p = min(1.0, 2 * min(p_all, p_sum))  # Bonferroni over the two
             # the lead lags are ordered from the farthest future (lag -M) to lag -1
             coef = tuple(float(v) for v in beta[::-1])
             row.append(FeedbackResult(bool(p < alpha), stat, p, int(sel.size), alpha, coef))

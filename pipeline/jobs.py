@@ -506,9 +506,8 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
                 noise_model=nm, whiteness_p=lb["p_value"], feedback=fbd,
                 feedback_mode=cfg.estimation.feedback, instruments=prep.instruments,
                 n_k=pair["n_k"], n_p=n, n_p_min=cfg.search.n_p_min,
-                n_p_max=None if cfg.search.n_p is not None or sr.bic_order is None else
-                _n_p_max_used(sr), settled=pair["settled"], dt_s=prep.dt_s,
-                end_jump=end_jump_z(all_est.delta_h[i, j, :n], all_est.delta_h_std[i, j, :n]),
+                settled=pair["settled"], significant=_significant(pair), dt_s=prep.dt_s,
+                end_jump=end_jump_z(*_settling_increments(all_est, i, j)),
                 agreement=agr)
             pairs.append(pair)
             metrics += _pair_metrics(o, u, pair)
@@ -576,9 +575,27 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
     return Summary(steps, sig, rtab, checks, metrics, report, status)
 
 
-def _n_p_max_used(sr: SearchResult) -> int | None:
-    tried = [t["n_p"] for t in sr.order_trace if not t.get("refine")]
-    return max(tried) if tried else None
+def _settling_increments(est: StepResponseEstimate, i: int, j: int):
+    """The increments that must die out and their stds: ``delta_h`` for a self-regulating
+    pair, ``delta_g`` (the change of slope) for an integrating one — from the step
+    covariance, so a level-form pair's precise final slope is compared with the noisy
+    transient slopes before it as a difference, not as a value."""
+    n = int(est.n_p[i, j])
+    D = np.eye(n) - np.eye(n, k=-1)
+    T = D @ D if est.integrating[i] else D
+    inc = T @ est.step[i, j, :n]
+    if est.step_cov is None:
+        return inc, (est.delta_h_std[i, j, :n] if not est.integrating[i] else
+                     np.full(n, np.inf))
+    var = np.einsum("ab,bc,ac->a", T, est.step_cov[i, j, :n, :n], T)
+    return inc, np.sqrt(np.clip(var, 0, None))
+
+
+def _significant(pair: dict) -> bool:
+    """The pair's gain (rate) is more than 2 standard deviations from zero."""
+    v, s = (pair["rate"], pair["rate_std"]) if pair["integrating"] else \
+        (pair["gain"], pair["gain_std"])
+    return bool(abs(v) > 2 * s)
 
 
 def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:

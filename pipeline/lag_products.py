@@ -18,12 +18,14 @@ instrumental-variable estimate.  So ``G`` is formed once (block FFT for its firs
 row, the diagonal recursion for the rest: :func:`pipeline.estimate._lag_products`,
 :func:`pipeline.estimate._assemble_A`) and everything else is arithmetic on it.
 
-Integrating outputs under a noise model carry nuisance terms per segment: a constant in
-the differenced form (the level's drift) and a constant and a linear trend in the level
-form.  They use the *profiled* Grams ``Gc = sum_seg (G_seg - zsum zsum' / n_seg)`` and
-``Gt = Gc - tsum tsum' / (t't)`` (``t`` the centred time): the span of a constant and a
-trend is mapped onto itself by any filter ``D(q)``, and filtering is linear, so the
-profiled Gram of filtered signals is ``t' Gc t`` — the nuisances are profiled out exactly.
+Integrating outputs under a noise model carry polynomial nuisance terms per segment:
+a constant and a trend in the differenced form, a constant, a trend and a quadratic in
+the level form (what linear detrending of inputs and level leaves: the cumulated
+detrended input has a quadratic part).  They use the *profiled* Grams
+``G_d = sum_seg (G_seg - M' (B'B)^-1 M)`` with ``M = sum_k b(k) Z(k)'`` for the first
+``d`` terms ``b`` of ``1, t, t^2``: polynomials of degree < d are mapped onto themselves by
+any filter ``D(q)``, and filtering is linear, so the profiled Gram of filtered signals is
+``t' G_d t`` — the nuisances are profiled out exactly.
 
 Regressors are addressed as :class:`Block`\\ s — a contiguous range of signals over a
 contiguous range of lags — whose unknowns are ordered lag-major inside the block.
@@ -32,6 +34,8 @@ contiguous range of lags — whose unknowns are ordered lag-major inside the blo
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import math
 
 import numpy as np
 import scipy.fft
@@ -73,20 +77,18 @@ class LagGram:
     ----------
     G : ndarray (n_lags, n_w, n_lags, n_w)
         ``G[l1, s1, l2, s2] = sum_k w_s1(k - l1) w_s2(k - l2)``.
-    Gc : ndarray or None
-        The same with a constant per segment profiled out (centred); None when not built.
-    Gt : ndarray or None
-        The same with a constant and a linear trend per segment profiled out.
+    profiled : tuple of ndarray
+        The same with the first 1, 2, 3 terms of ``1, t, t^2`` per segment profiled out
+        (empty when not built).
     n_d : int
         Observations summed.
     n_segments : int
     """
 
     G: np.ndarray
-    Gc: np.ndarray | None
     n_d: int
     n_segments: int
-    Gt: np.ndarray | None = None
+    profiled: tuple = ()
 
     @property
     def n_lags(self) -> int:
@@ -97,19 +99,19 @@ class LagGram:
         return self.G.shape[1]
 
     def __add__(self, other: "LagGram") -> "LagGram":
-        def add(a, b):
-            return None if a is None or b is None else a + b
-
-        return LagGram(self.G + other.G, add(self.Gc, other.Gc), self.n_d + other.n_d,
-                       self.n_segments + other.n_segments, add(self.Gt, other.Gt))
+        prof = tuple(a + b for a, b in zip(self.profiled, other.profiled)) \
+            if self.profiled and other.profiled else ()
+        return LagGram(self.G + other.G, self.n_d + other.n_d,
+                       self.n_segments + other.n_segments, prof)
 
     def gram(self, nuisance: int = 0) -> np.ndarray:
-        """``G`` (``nuisance=0``), with a constant (1) or a constant and a trend (2) per
-        segment profiled out."""
-        g = (self.G, self.Gc, self.Gt)[nuisance]
-        if g is None:
+        """``G`` (``nuisance=0``), or with the first ``nuisance`` terms of ``1, t, t^2``
+        per segment profiled out."""
+        if nuisance == 0:
+            return self.G
+        if nuisance > len(self.profiled):
             raise ValueError("the profiled lag Gram was not built (pass centred=True)")
-        return g
+        return self.profiled[nuisance - 1]
 
 
 def filtered_gram(G: np.ndarray, d: np.ndarray, b1: Block, b2: Block) -> np.ndarray:
@@ -224,31 +226,46 @@ def assemble_gram(r_xx: np.ndarray, x: np.ndarray, k0: int, n: int, P: int) -> n
 
 
 
+NUISANCE_DEGREES = 3
+"""Profiled Grams are built for polynomials of 1, 2 and 3 terms per segment (a constant,
+plus a trend, plus a quadratic)."""
+
+
 def _segment_gram(w: np.ndarray, k0: int, L: int, centred: bool):
-    """Lag Gram of one segment, and its versions with a constant and with a constant and
-    a linear trend profiled out (``None, None`` unless ``centred``)."""
+    """Lag Gram of one segment and, when ``centred``, its versions with the first 1, 2, 3
+    terms of ``1, t, t^2`` per segment profiled out (``t`` the scaled time)."""
     n, n_w = w.shape
     r = first_block_row(w, w, k0, L)  # (L, n_w, n_w): r[p, a, b] = sum_k w_a(k) w_b(k-p)
     G2 = assemble_gram(r, w, k0, n, L)  # (L*n_w, L*n_w) lag-major
     if not centred:
-        return G2, None, None
+        return G2, []
     n_obs = n - k0
     lags = np.arange(L)
-    cs = np.concatenate([np.zeros((1, n_w)), np.cumsum(w, axis=0)])
-    zsum = (cs[n - lags] - cs[k0 - lags]).reshape(-1)  # sum_{k=k0}^{n-1} w(k - l)
-    Gc = G2 - np.outer(zsum, zsum) / n_obs
-    # trend t(k) = (k - centre) / n_obs over the observations; sum_k t(k) w(k - l) from
-    # cumulative sums of j * w(j) (j = k - l)
+    # scaled time tau(k) = (k - centre) / n_obs, |tau| <= 1/2 over the observations; the
+    # products sum_k tau(k)^p w(k - l) expand binomially in tau(j) = tau(k) - l / n_obs,
+    # j = k - l, so cumulative sums of tau(j)^a w(j) give every lag at once
     centre = 0.5 * (k0 + n - 1)
-    j = np.arange(n, dtype=float)[:, None]
-    csj = np.concatenate([np.zeros((1, n_w)), np.cumsum(j * w, axis=0)])
-    sum_kw = (csj[n - lags] - csj[k0 - lags]) + lags[:, None] * (cs[n - lags] - cs[k0 - lags])
-    tsum = ((sum_kw - centre * (cs[n - lags] - cs[k0 - lags])) / n_obs).reshape(-1)
-    kk = (np.arange(k0, n) - centre) / n_obs
-    tt = float(kk @ kk)
-    # the constant and t are orthogonal over the observations (t is centred)
-    Gt = Gc - np.outer(tsum, tsum) / tt if tt > 0 else Gc
-    return G2, 0.5 * (Gc + Gc.T), 0.5 * (Gt + Gt.T)
+    tau = (np.arange(n, dtype=float) - centre) / n_obs
+    cs = [np.concatenate([np.zeros((1, n_w)), np.cumsum(tau[:, None] ** a * w, axis=0)])
+          for a in range(NUISANCE_DEGREES)]
+    win = [c[n - lags] - c[k0 - lags] for c in cs]  # (L, n_w): sum_j tau(j)^a w(j)
+    shift = lags[:, None] / n_obs
+    M = []
+    for p in range(NUISANCE_DEGREES):
+        acc = np.zeros((L, n_w))
+        for a in range(p + 1):
+            acc += math.comb(p, a) * win[a] * shift ** (p - a)
+        M.append(acc.reshape(-1))  # sum_k tau(k)^p Z(k)
+    M = np.array(M)
+    tk = tau[k0:]
+    B = np.array([[np.sum(tk ** (p + q)) for q in range(NUISANCE_DEGREES)]
+                  for p in range(NUISANCE_DEGREES)])
+    profiled = []
+    for d in range(1, NUISANCE_DEGREES + 1):
+        Md = M[:d]
+        Gd = G2 - Md.T @ np.linalg.solve(B[:d, :d], Md)
+        profiled.append(0.5 * (Gd + Gd.T))
+    return G2, profiled
 
 
 def build_lag_gram(segments, *, n_lags: int, k0_extra: int = 0,
@@ -270,10 +287,10 @@ def build_lag_gram(segments, *, n_lags: int, k0_extra: int = 0,
     for w in segments:
         if w.shape[0] <= k0:
             continue
-        G2, Gc, Gt = _segment_gram(w, k0, L, centred)
+        G2, profiled = _segment_gram(w, k0, L, centred)
         n_w = w.shape[1]
         shape = (L, n_w, L, n_w)
-        part = LagGram(G2.reshape(shape), None if Gc is None else Gc.reshape(shape),
-                       w.shape[0] - k0, 1, None if Gt is None else Gt.reshape(shape))
+        part = LagGram(G2.reshape(shape), w.shape[0] - k0, 1,
+                       tuple(g.reshape(shape) for g in profiled))
         total = part if total is None else total + part
     return total

@@ -45,8 +45,8 @@ class NoiseModel:
     selection : dict
         How the model was chosen (BIC per order or per form), JSON-ready.
     nuisance : int
-        Terms profiled out per segment with it: 0 none, 1 a constant (the level's drift
-        in the differenced form), 2 a constant and a trend (level form).
+        Polynomial terms profiled out per segment with it: 0 none, 2 a constant and a
+        trend (differenced form), 3 a constant, a trend and a quadratic (level form).
     """
 
     kind: str
@@ -66,7 +66,8 @@ class NoiseModel:
                 "coefficients": [float(c) for c in self.coefficients],
                 "innovation_std": float(self.innovation_std),
                 "dominant_pole": self.dominant_pole(),
-                "nuisance": ["none", "constant", "constant and trend"][self.nuisance],
+                "nuisance": ["none", "constant", "constant and trend",
+                             "constant, trend and quadratic"][self.nuisance],
                 "selection": self.selection}
 
     def dominant_pole(self) -> float | None:

@@ -65,6 +65,7 @@ from pipeline.estimate import (
     normal_equations,
     residual_ss_by_order,
 )
+from pipeline._threads import single_threaded_blas
 from pipeline.feedback import FEEDBACK_LEADS, feedback_test
 
 __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
@@ -213,21 +214,36 @@ def choose_orders(
 def _truncation_test(ref: StepResponseEstimate):
     """``p(m)`` -> (n_y, n_x) p-values that pair increments beyond lag ``m`` are zero in
     the reference (longest) fit ``ref`` (module doc)."""
+    import scipy.linalg
     import scipy.stats
 
     n_y, n_x, P = ref.step.shape
     D = np.eye(P) - np.eye(P, k=-1)  # step -> delta_h
-    covs = {}
+    pairs = {}
     for i in range(n_y):
         T = D @ D if ref.integrating[i] else D
         for j in range(n_x):
             n = int(ref.n_p[i, j])
             Tn = T[:n, :n]
-            covs[i, j] = (Tn @ ref.step[i, j, :n], Tn @ ref.step_cov[i, j, :n, :n] @ Tn.T)
+            inc = Tn @ ref.step[i, j, :n]
+            C = Tn @ ref.step_cov[i, j, :n, :n] @ Tn.T
+            # Wald statistics of every trailing block inc[m:] at once: the trailing
+            # blocks of C are the leading blocks of C reversed, and one Cholesky factor
+            # gives every leading block's quadratic form (cumulative sums of z^2)
+            keep = np.flatnonzero(np.diag(C) > 0)  # lags fixed at zero (n_k) drop out
+            Cr = C[np.ix_(keep, keep)][::-1, ::-1]
+            s = np.sqrt(np.diag(Cr))
+            try:
+                Lc = np.linalg.cholesky(Cr / np.outer(s, s))
+                z = scipy.linalg.solve_triangular(Lc, inc[keep][::-1] / s, lower=True)
+                wald = np.cumsum(z**2)  # wald[k-1]: the last k kept increments
+            except np.linalg.LinAlgError:
+                wald = None
+            pairs[i, j] = (inc, C, keep, wald)
 
     def p_at(m: int) -> np.ndarray:
         out = np.ones((n_y, n_x))
-        for (i, j), (inc, C) in covs.items():
+        for (i, j), (inc, C, keep, wald) in pairs.items():
             if m >= inc.size:
                 continue
             b, Cm = inc[m:], C[m:, m:]
@@ -239,10 +255,16 @@ def _truncation_test(ref: StepResponseEstimate):
             var = float(Cm[:k, :k].sum())
             p_sum = float(scipy.stats.chi2.sf(b[:k].sum() ** 2 / var, 1)) if var > 0 else 1.0
             # (b) every increment beyond m — catches tails that move and come back
-            w, V = np.linalg.eigh(0.5 * (Cm + Cm.T))
-            ok = w > 1e-12 * max(w.max(), 1e-300)
-            z = V[:, ok].T @ b
-            p_all = float(scipy.stats.chi2.sf(float(np.sum(z**2 / w[ok])), int(ok.sum())))
+            k_all = int(np.sum(keep >= m))
+            if k_all == 0:
+                p_all = 1.0
+            elif wald is not None:
+                p_all = float(scipy.stats.chi2.sf(wald[k_all - 1], k_all))
+            else:
+                w, V = np.linalg.eigh(0.5 * (Cm + Cm.T))
+                ok = w > 1e-12 * max(w.max(), 1e-300)
+                zz = V[:, ok].T @ b
+                p_all = float(scipy.stats.chi2.sf(float(np.sum(zz**2 / w[ok])), int(ok.sum())))
             out[i, j] = min(1.0, 2 * min(p_sum, p_all))  # Bonferroni over the two
         return out
 
@@ -382,6 +404,7 @@ def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating, **kw):
     return out
 
 
+@single_threaded_blas
 def search(
     x,
     y,

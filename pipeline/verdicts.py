@@ -7,8 +7,9 @@ the numbers, what it means for the estimate and what to change in the job YAML. 
   p < :data:`WHITENESS_ALPHA`): without a noise model the thesis' ``±σ`` understates the
   uncertainty (method.md §10); with one, the noise model misses part of the disturbance.
 * ``feedback`` — the input is moved by a controller that sees the output.
-* ``n_p_at_bound`` — the search stopped at ``n_p_min`` or ``n_p_max`` (or no order gave a
-  flat tail).
+* ``n_p_at_bound`` — no order up to ``n_p_max`` gave a flat tail, or the search stopped
+  at ``n_p_min`` for a pair with a significant response (a pair without one rightly
+  stops there).
 * ``end_jump`` — the last increment is many σ larger than the tail before it: the last
   coefficient absorbs the response beyond ``N_p`` (or input drift).
 * ``insufficient_data`` / ``windows_disagree`` — the disjoint-window verdict.
@@ -53,7 +54,7 @@ def feedback_sentence(inp: str, out: str, tag_in: str, tag_out: str) -> str:
 def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str | int,
                   noise_model: dict, whiteness_p: float | None, feedback: dict | None,
                   feedback_mode: str, instruments: list[str], n_k: int, n_p: int,
-                  n_p_min: int, n_p_max: int | None, settled: bool, dt_s: float,
+                  n_p_min: int, settled: bool, significant: bool, dt_s: float,
                   end_jump: float | None, agreement: dict) -> list[dict]:
     """Warnings of one pair (module doc)."""
     w = []
@@ -86,12 +87,12 @@ def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str |
             msg += ("; with estimation.noise: white the direct estimate is biased under "
                     "feedback even with n_k >= 1 — use estimation.noise: auto")
         w.append({"code": "feedback", "message": msg})
-    if not settled or (n_p_max is not None and n_p >= n_p_max):
+    if not settled:
         w.append({"code": "n_p_at_bound", "message":
                   f"N_p stopped at search.n_p_max = {n_p} (N_p·T = {n_p * dt_s:g} s): the "
                   "response has not settled within it; raise search.n_p_max or "
                   "sampling.dt_s, or set search.settling_time_s if it is known"})
-    elif n_p <= n_p_min:
+    elif n_p <= n_p_min and significant:
         w.append({"code": "n_p_at_bound", "message":
                   f"N_p stopped at search.n_p_min = {n_p} (N_p·T = {n_p * dt_s:g} s): the "
                   "response may be faster than the sample period resolves, or absent; "

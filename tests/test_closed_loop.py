@@ -1,0 +1,111 @@
+"""Closed loops (issue 9, must-show 2): feedback detection, the direct estimate with a
+noise model and a known delay, and the setpoint as an instrument.
+
+The loop of the issue, simulated by an explicit loop in tests/plants.py: plant
+``y(k) = 0.9 y(k-1) + 0.1 u(k-1)`` (gain 1, one sample of delay), a PI controller that
+reacts to the same sample's measurement, setpoint steps, AR(1) output noise of s.d. 1
+(the setpoint steps have s.d. 1 too), 2e4 samples.  On these records the thesis' white
+least squares is 5 % (white noise), 24 % (φ = 0.9) and 39 % (φ = 0.97) low in gain while
+claiming a σ of well under 1 % — the test below measures that as well.
+
+Tolerances: 80 records each.  Coverage: the pass mark 85 % is the must-show; the
+nominal 95.4 % sits 4 standard errors above it.  Detection/false-alarm rates are
+binomial: the false-alarm rate is nominally 1 % (the test's α), so more than 5 % of 200
+open-loop records would be a 1e-4 event.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.estimate import estimate_from_context, estimate_step_responses, lag_gram_context
+from pipeline.feedback import FEEDBACK_ALPHA, FEEDBACK_LEADS, feedback_test
+from pipeline.search import search
+from tests.plants import open_loop_record, pi_loop_record, pi_loop_truth
+
+N = 20_000
+RECORDS = 80
+N_P = 60  # 0.9^59 < 0.2 %: the plant has settled
+TRUTH = pi_loop_truth(N_P)
+
+
+def _gain_error_and_coverage(est) -> tuple[float, float, bool]:
+    s, sd = est.step[0, 0], est.step_std[0, 0]
+    return (abs(s[-1] - TRUTH[-1]) / TRUTH[-1], float(np.mean(np.abs(s - TRUTH) <= 2 * sd)),
+            bool(abs(s[-1] - TRUTH[-1]) <= 2 * sd[-1]))
+
+
+@pytest.mark.slow
+def test_direct_estimate_with_noise_model_and_known_delay_is_consistent():
+    rows = {"white": [], "auto": [], "iv": []}
+    for k in range(RECORDS):
+        u, y, r = pi_loop_record(N, 0.9, 3_100_000 + k)
+        rows["white"].append(_gain_error_and_coverage(
+            estimate_step_responses(u, y, n_p=N_P, dt=1.0)))
+        rows["auto"].append(_gain_error_and_coverage(
+            estimate_step_responses(u, y, n_p=N_P, dt=1.0, noise="auto", n_k=1)))
+        rows["iv"].append(_gain_error_and_coverage(
+            estimate_step_responses(u, y, n_p=N_P, dt=1.0, noise="auto", instruments=r)))
+    stats = {m: (float(np.median([e for e, _, _ in v])), float(np.mean([c for _, c, _ in v])),
+                 float(np.mean([f for _, _, f in v]))) for m, v in rows.items()}
+    print({m: f"gain error {a:.1%}, coverage lags {b:.0%}, final {c:.0%}"
+           for m, (a, b, c) in stats.items()})
+    # the problem: white least squares is badly biased and claims a tiny sigma
+    assert stats["white"][0] > 0.15 and stats["white"][2] < 0.1
+    # direct with noise model and n_k = 1
+    assert stats["auto"][0] <= 0.05
+    assert stats["auto"][1] >= 0.85 and stats["auto"][2] >= 0.85
+    # the setpoint as instrument
+    assert stats["iv"][0] <= 0.04
+    assert stats["iv"][1] >= 0.85 and stats["iv"][2] >= 0.85
+
+
+@pytest.mark.slow
+def test_search_detects_the_loop_and_fixes_the_same_sample_term():
+    """Through the search a job runs: feedback detected, n_k = 1 set, gain right."""
+    detected, errors, n_k = [], [], []
+    for k in range(RECORDS):
+        u, y, _ = pi_loop_record(N, 0.9, 3_200_000 + k)
+        sr = search(u, y, dt=1.0, noise="auto", feedback="auto", n_p=N_P)
+        fb = sr.feedback[0][0]
+        detected.append(fb is not None and fb.detected)
+        n_k.append(int(sr.n_k[0, 0]))
+        est = estimate_step_responses(u, y, n_p=sr.n_p, dt=1.0, noise="auto", n_k=sr.n_k)
+        errors.append(abs(est.step[0, 0, -1] - 1.0))
+    print(f"detected {np.mean(detected):.0%}, median gain error {np.median(errors):.1%}")
+    assert np.mean(detected) >= 0.95
+    assert all(nk == 1 for nk, d in zip(n_k, detected) if d)
+    assert np.median(errors) <= 0.05
+
+
+def test_feedback_test_false_alarms_in_open_loop_stay_at_its_rate():
+    """200 open-loop records with white and coloured noise: the non-causal lead terms are
+    chi^2(leads) under no feedback, so about 1 % are flagged."""
+    flagged = 0
+    total = 0
+    for phi in (0.0, 0.5, 0.9, 0.97):
+        for k in range(50):
+            u, y = open_loop_record(8000, phi, 3_300_000 + 1000 * int(phi * 100) + k)
+            ctx = lag_gram_context(u, y, n_lags=70 + FEEDBACK_LEADS + 21)
+            est = estimate_from_context(ctx, n_p=70, n_k=0, dt=1.0)
+            fb = feedback_test(ctx, n_p=np.full((1, 1), 70), n_k=np.zeros((1, 1), int),
+                               noise_models=est.noise_model)[0][0]
+            flagged += fb.detected
+            total += 1
+            assert fb.alpha == FEEDBACK_ALPHA and fb.leads == FEEDBACK_LEADS
+    print(f"open loop flagged {flagged}/{total}")
+    assert flagged / total <= 0.05
+
+
+@pytest.mark.parametrize("phi", [0.0, 0.97])
+def test_feedback_is_detected_with_white_and_slow_noise(phi):
+    hits = 0
+    for k in range(20):
+        u, y, _ = pi_loop_record(N, phi, 3_400_000 + k)
+        ctx = lag_gram_context(u, y, n_lags=N_P + FEEDBACK_LEADS + 21)
+        est = estimate_from_context(ctx, n_p=N_P, n_k=0, dt=1.0)
+        fb = feedback_test(ctx, n_p=np.full((1, 1), N_P), n_k=np.zeros((1, 1), int),
+                           noise_models=est.noise_model)[0][0]
+        hits += fb.detected
+    assert hits >= 19  # >= 95 % of 20
