@@ -33,6 +33,21 @@ class SingularSystemError(DataQualityError):
     """The normal equations are singular: inputs are constant or perfectly collinear."""
 
 
+class InstrumentError(InsufficientDataError):
+    """An instrument cannot serve: it does not move (``input is None``), or it barely moves
+    the input it must explain (first-stage F below the weak-instrument threshold).
+
+    ``instrument`` / ``input`` are column indices so callers can name the signals.
+    """
+
+    def __init__(self, message: str, *, instrument: int | None = None,
+                 input: int | None = None, numbers: dict | None = None):
+        super().__init__(message)
+        self.instrument = instrument
+        self.input = input
+        self.numbers = numbers or {}
+
+
 class IngestError(UserInputError, ValueError):
     """A recording cannot be read (format, encoding, truncation, missing tags)."""
 

@@ -49,6 +49,7 @@ from pipeline.lag_products import assemble_gram, first_block_row
 from pipeline.errors import (
     ConfigError,
     DataQualityError,
+    InstrumentError,
     InsufficientDataError,
     SingularSystemError,
 )
@@ -975,7 +976,8 @@ def fit_output(ctx: GramContext, i: int, n_p_row, n_k_row, *, noise=NOISE_AUTO,
                sigma2_fixed: float | None = None, instruments: bool = False):
     """Fit output ``i`` (every candidate form; the lowest BIC wins).
 
-    Returns ``(fit, design, inp_of, lag_of, form, selection, first_stage)``.
+    Returns ``(fit, design, inp_of, lag_of, form, selection)``.  (The instruments'
+    strength is checked once per estimate by :func:`check_instruments`.)
     """
     from pipeline.lag_products import Block
     from pipeline.prediction_error import (
@@ -991,13 +993,12 @@ def fit_output(ctx: GramContext, i: int, n_p_row, n_k_row, *, noise=NOISE_AUTO,
     forms = [form] if form is not None else _forms_for(ctx, i, instruments)
     for fm in forms:
         design, inp, lag, _ = output_design(ctx, i, np.asarray(n_p_row), np.asarray(n_k_row), fm)
-        first = {}
         try:
             if d_fixed is not None:
                 fit = fit_fixed_noise(ctx.lg, design, d_fixed, what=what, sigma2=sigma2_fixed)
             elif instruments:
                 rb = Block(ctx.r_lo, ctx.r_lo + ctx.n_r, 0, 2 * int(np.max(n_p_row)))
-                fit, first = fit_instrumental(ctx.lg, design, rb, what=what, order=order)
+                fit = fit_instrumental(ctx.lg, design, rb, what=what, order=order)
             else:
                 fit = fit_prediction_error(ctx.lg, design, what=what, order=order)
         except SingularSystemError as exc:
@@ -1006,9 +1007,9 @@ def fit_output(ctx: GramContext, i: int, n_p_row, n_k_row, *, noise=NOISE_AUTO,
             raise SingularSystemError(f"{exc}: {_collinear_message(A, ctx.n_x)}") from None
         by_form[fm] = fit.bic
         if best is None or fit.bic < best[0].bic:
-            best = (fit, design, inp, lag, fm, first)
+            best = (fit, design, inp, lag, fm)
     selection = {"form_bic": by_form} if len(forms) > 1 else {}
-    return (*best[:5], selection, best[5])
+    return (*best, selection)
 
 
 def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_AUTO,
@@ -1023,7 +1024,6 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
     found at ``n_p_max``).
     """
     from pipeline.noise_model import NoiseModel
-    from pipeline.prediction_error import WEAK_INSTRUMENT_F
 
     if not (np.isfinite(dt) and dt > 0):
         raise ConfigError(f"dt must be a positive number of seconds; got {dt!r}")
@@ -1036,28 +1036,14 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
     sigma2 = np.zeros(n_y)
     rms = np.zeros(n_y)
     models = []
-    first_stage = {}
+    first_stage = check_instruments(ctx, P) if iv else {}
     method = "instrumental_variables" if iv else "prediction_error"
     for i in range(n_y):
-        if iv:
-            _check_instruments_move(ctx, i)
-        fit, design, inp, lag, form, sel, first = fit_output(
+        fit, design, inp, lag, form, sel = fit_output(
             ctx, i, npm[i], nkm[i], noise=noise,
             form=None if forms is None else forms[i],
             d_fixed=None if d_fixed is None else d_fixed[i],
             sigma2_fixed=None if sigma2_fixed is None else sigma2_fixed[i], instruments=iv)
-        if first:
-            weak = {s: v for s, v in first.items() if v["F"] < WEAK_INSTRUMENT_F}
-            if weak:
-                s, v = next(iter(weak.items()))
-                raise InsufficientDataError(
-                    f"instruments are weak for input {s}: first-stage F = {v['F']:.3g} "
-                    f"(R^2 = {v['r2']:.3g} with {v['n_instruments']} instrument lags) is "
-                    f"below {WEAK_INSTRUMENT_F:g}; the instruments barely move that input, "
-                    "so an instrument-based estimate would be biased and its uncertainty "
-                    "unreliable — use an instrument that moves the input (a setpoint "
-                    "with steps, a measured disturbance), or drop the instruments")
-            first_stage = {int(s): v for s, v in first.items()}
         sigma2[i] = fit.sigma2
         rms[i] = np.sqrt(fit.V / fit.n_d)
         _fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, inp, lag, npm[i], form, dt)
@@ -1075,17 +1061,46 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
         noise_model=tuple(models), n_k=nkm, step_cov=arr.step_cov)
 
 
-def _check_instruments_move(ctx: GramContext, i: int) -> None:
-    G = ctx.lg.gram(False)
+def check_instruments(ctx: GramContext, P: int) -> dict:
+    """Every instrument moves, and together they move every input (first stage).
+
+    Returns ``{input index: {"F", "r2", "n_instruments"}}``: the F statistic of each input
+    regressed on the instruments' lags ``0..2P-1`` (the instrument set of the estimate).
+
+    Raises
+    ------
+    InstrumentError
+        An instrument is constant over the used observations, or an input's
+        first-stage F is below :data:`pipeline.prediction_error.WEAK_INSTRUMENT_F`.
+    """
+    from pipeline.lag_products import Block
+    from pipeline.prediction_error import WEAK_INSTRUMENT_F, first_stage_strength
+
+    G = ctx.lg.gram(0)
     for k in range(ctx.n_r):
         c = ctx.r_lo + k
         v0 = G[0, c, 0, c]
         v1 = G[0, c, 1, c] if G.shape[0] > 1 else 0.0
         if v0 <= 0 or v1 > (1 - 1e-9) * v0:
-            raise DataQualityError(
+            raise InstrumentError(
                 f"instrument {k} does not move over the used observations (constant or "
                 "zero); an instrument must vary to explain the inputs — choose a signal "
-                "that moves (a setpoint with steps) or drop it from the instruments")
+                "that moves (a setpoint with steps) or drop it from the instruments",
+                instrument=k)
+    zb = Block(ctx.r_lo, ctx.r_lo + ctx.n_r, 0, min(2 * P, ctx.lg.n_lags))
+    first = first_stage_strength(G, [Block(0, ctx.n_x, 0, 1)], zb, ctx.lg.n_d,
+                                 "the instruments")
+    for s, v in first.items():
+        if v["F"] < WEAK_INSTRUMENT_F:
+            raise InstrumentError(
+                f"instruments are weak for input {s}: first-stage F = {v['F']:.3g} "
+                f"(R^2 = {v['r2']:.3g} with {v['n_instruments']} instrument lags) is "
+                f"below {WEAK_INSTRUMENT_F:g}; the instruments barely move that input, "
+                "so an instrument-based estimate would be biased and its uncertainty "
+                "unreliable — use an instrument that moves the input (a setpoint "
+                "with steps, a measured disturbance), or drop the instruments",
+                input=s, numbers=v)
+    return {int(s): v for s, v in first.items()}
 
 
 def estimate_merged(

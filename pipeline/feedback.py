@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import scipy.stats
 
-from pipeline.errors import SingularSystemError
+from pipeline.errors import InsufficientDataError, SingularSystemError
 
 __all__ = ["FeedbackResult", "feedback_test", "FEEDBACK_ALPHA", "FEEDBACK_LEADS"]
 
@@ -102,6 +102,10 @@ def feedback_test(ctx, *, n_p, n_k, noise_models, leads: int = FEEDBACK_LEADS,
 
     n_p = np.asarray(n_p)
     n_k = np.asarray(n_k)
+    need = int(n_p.max()) + leads + max(m.order for m in noise_models) + 1
+    if ctx.lg.n_lags < need:
+        raise ValueError(f"feedback_test needs a lag Gram of at least {need} lags "
+                         f"(n_p + leads + noise order + 1); this one has {ctx.lg.n_lags}")
     out = []
     for i in range(ctx.n_y):
         nm = noise_models[i]
@@ -109,8 +113,8 @@ def feedback_test(ctx, *, n_p, n_k, noise_models, leads: int = FEEDBACK_LEADS,
                                                 nm.form, leads=leads)
         try:
             fit = fit_fixed_noise(ctx.lg, design, nm.d, what=f"output {i} (feedback test)")
-        except (SingularSystemError, ValueError):
-            out.append([None] * ctx.n_x)
+        except (SingularSystemError, InsufficientDataError):
+            out.append([None] * ctx.n_x)  # too few observations for the leads: untested
             continue
         row = []
         for j in range(ctx.n_x):

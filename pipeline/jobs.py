@@ -34,7 +34,12 @@ import polars as pl
 
 from pipeline.checks import cross_correlation_check, ljung_box, window_agreement
 from pipeline.conditioning import condition
-from pipeline.errors import DataQualityError, InsufficientDataError, PipelineError
+from pipeline.errors import (
+    DataQualityError,
+    InstrumentError,
+    InsufficientDataError,
+    PipelineError,
+)
 from pipeline.estimate import (
     StepResponseEstimate,
     estimate_step_responses,
@@ -290,9 +295,12 @@ def prepare(cfg, rec: Recording) -> Prepared:
                 "α_T criterion needs at least 200 — set sampling.dt_s in the job YAML or "
                 "supply cleaner data"
             )
+        # T is the model's: chosen on the inputs and outputs (instruments only explain
+        # the inputs, and follow whatever T the model needs)
+        model = [k for k, r in enumerate(rec.roles) if r in ("input", "output")]
         choice = choose_sample_period(
-            {n: rec.values[a:b, k] for k, n in enumerate(rec.names)}, dt_s=rec.dt_s,
-            roles={n: r for n, r in zip(rec.names, rec.roles)},
+            {rec.names[k]: rec.values[a:b, k] for k in model}, dt_s=rec.dt_s,
+            roles={rec.names[k]: rec.roles[k] for k in model},
             target_input=cfg.sampling.target_input, target_output=cfg.sampling.target_output)
         factor = int(choice.decimation)
         sampling = {**choice.to_dict(), "source": "alpha_t"}
@@ -329,18 +337,49 @@ def prepare(cfg, rec: Recording) -> Prepared:
                     {"method": c.method, **params}, integ, rc)
 
 
+def _instrument_error(cfg, prep: Prepared, exc: InstrumentError) -> DataQualityError:
+    """The core's instrument error in terms of the job YAML (names, tags, keys)."""
+    tags = cfg.tags()
+    if exc.instrument is not None:
+        name = prep.instruments[exc.instrument]
+        return DataQualityError(
+            f"signals.instruments.{name} (tag {tags[name]}) does not move over the record "
+            "(constant after conditioning); an instrument must vary to explain the inputs — "
+            "remove it from signals.instruments, or run the job on a period where it moves")
+    name = prep.inputs[exc.input]
+    v = exc.numbers
+    return DataQualityError(
+        f"signals.instruments ({', '.join(prep.instruments)}) barely move the input {name} "
+        f"(tag {tags[name]}): first-stage F = {v.get('F', float('nan')):.3g}, R^2 = "
+        f"{v.get('r2', float('nan')):.3g} with {v.get('n_instruments')} instrument lags, "
+        "below 10 — an instrument-based estimate would be biased towards the direct one "
+        f"and its uncertainty unreliable; list an instrument that moves {name} (its loop's "
+        "setpoint, a measured disturbance) under signals.instruments, or remove "
+        "signals.instruments (the direct estimate with estimation.feedback: auto then "
+        "handles the loop)")
+
+
 def search_orders(cfg, prep: Prepared) -> SearchResult:
     """N_p/N_d trial-and-error search (windows are estimated by the caller)."""
-    s = cfg.search
+    s, e = cfg.search, cfg.estimation
     n_p = s.n_p
     if n_p is None and s.settling_time_s is not None:
         n_p = max(1, int(np.ceil(s.settling_time_s / prep.dt_s)))
-    e = cfg.estimation
-    return search(
-        np.nan_to_num(prep.x), np.nan_to_num(prep.y), dt=prep.dt_s,
-        integrating=prep.integrating, mask=prep.good_xy, n_p_max=s.n_p_max, n_p_min=s.n_p_min,
-        n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows, estimate_windows=False,
-        noise=e.noise, n_k=cfg.n_k_matrix(), instruments=prep.r, feedback=e.feedback)
+    n_xy = len(prep.inputs) + len(prep.outputs)
+    for k, name in enumerate(prep.instruments):  # constant in the export: say so plainly
+        raw = prep.raw[:, n_xy + k]
+        raw = raw[np.isfinite(raw)]
+        if raw.size and np.ptp(raw) <= 1e-9 * max(float(np.max(np.abs(raw))), 1e-300):
+            raise _instrument_error(cfg, prep, InstrumentError("", instrument=k))
+    try:
+        return search(
+            np.nan_to_num(prep.x), np.nan_to_num(prep.y), dt=prep.dt_s,
+            integrating=prep.integrating, mask=prep.good_xy, n_p_max=s.n_p_max,
+            n_p_min=s.n_p_min, n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows,
+            estimate_windows=False, noise=e.noise, n_k=cfg.n_k_matrix(), instruments=prep.r,
+            feedback=e.feedback)
+    except InstrumentError as exc:
+        raise _instrument_error(cfg, prep, exc) from None
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ external signals) and the noise filter ``D`` fitted to the IV residual ``y - U'b
 squares), iterated three times with the noise model refitted to the residual (Young's
 refined IV).  ``cov(b) = sigma_v^2 (Phi' P Phi)^-1``: two-stage least squares' own
 covariance, right when the filtered equation error is white — which the noise model
-makes it.  The first stage is also the weak-instrument check: the F statistic of each
+makes it.  :func:`first_stage_strength` is the weak-instrument check: the F statistic of each
 regressed input on the instruments.
 """
 
@@ -47,7 +47,7 @@ from pipeline.noise_model import (
 )
 
 __all__ = ["Design", "OutputFit", "fit_prediction_error", "fit_fixed_noise",
-           "fit_instrumental", "WEAK_INSTRUMENT_F"]
+           "fit_instrumental", "first_stage_strength", "WEAK_INSTRUMENT_F"]
 
 _RCOND = 1e-12
 WEAK_INSTRUMENT_F = 10.0
@@ -167,9 +167,20 @@ class _Problem:
         self.sel = design.sel
         offs = np.cumsum([0] + [b.size for b in self.blocks])
         self.offsets = offs
+        self._cache: dict[bytes, tuple] = {}
+
+    def filtered(self, d: np.ndarray):
+        """``(A~, c~, y~'y~)`` for the filter ``d`` (the last few filters are cached: the
+        alternation and Gauss–Newton ask for the same one in turn)."""
+        key = np.asarray(d, dtype=float).tobytes()
+        if key not in self._cache:
+            if len(self._cache) > 4:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = self._filtered(d)
+        return self._cache[key]
 
     # filtered Gram of [regressors (full), y] for filter d
-    def filtered(self, d: np.ndarray):
+    def _filtered(self, d: np.ndarray):
         blocks = self.blocks + [self.design.y]
         n = len(blocks)
         rows = []
@@ -363,7 +374,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
     return OutputFit(b, F, s2, d, V, prob.n_d, n_par, it, selection, "prediction_error")
 
 
-def _first_stage(G, blocks, zblk: Block, n_d: int, what: str) -> dict:
+def first_stage_strength(G, blocks, zblk: Block, n_d: int, what: str) -> dict:
     """F statistic and R^2 of each regressed signal (lag 0) on the instruments (unfiltered)."""
     one = np.ones(1)
     fz = _factor(filtered_gram(G, one, zblk, zblk), what + " (instruments)")
@@ -384,11 +395,10 @@ def _first_stage(G, blocks, zblk: Block, n_d: int, what: str) -> dict:
 
 def fit_instrumental(lg: LagGram, design: Design, instruments: Block, *, what: str,
                      order: int | None = None, p_max: int = DEFAULT_AR_ORDER_MAX,
-                     passes: int = 3) -> tuple[OutputFit, dict]:
+                     passes: int = 3) -> OutputFit:
     """Refined instrumental-variable fit of one output (module docstring).
 
-    Returns ``(fit, first_stage)`` where ``first_stage`` holds the F statistic of every
-    regressor block's lag-0 signal on the instruments (weak-instrument check).
+    The instruments' strength is checked by the caller (:func:`first_stage_strength`).
     """
     prob = _Problem(lg, design, what)
     G = prob.G
@@ -396,7 +406,6 @@ def fit_instrumental(lg: LagGram, design: Design, instruments: Block, *, what: s
     zfull = instruments
     d = np.ones(1)
     selection: dict = {}
-    first: dict = {}
     for it in range(passes):
         A, c, yy = prob.filtered(d)
         blocks = prob.blocks
@@ -410,8 +419,6 @@ def fit_instrumental(lg: LagGram, design: Design, instruments: Block, *, what: s
         h = W.T @ Zy
         fac = _factor(M, what + " (instrument projection)")
         b = _solve(fac, h)
-        if it == 0:
-            first = _first_stage(G, blocks, zfull, prob.n_d, what)
         V = max(yy - 2 * b @ c + b @ A @ b, 0.0)
         if it == passes - 1:
             break
@@ -426,5 +433,5 @@ def fit_instrumental(lg: LagGram, design: Design, instruments: Block, *, what: s
         d = np.concatenate([[1.0], coef])
     n_par = _dof(prob, b.size, d.size - 1)
     s2 = V / (prob.n_d - n_par)
-    return (OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, passes, selection,
-                      "instrumental_variables"), first)
+    return OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, passes, selection,
+                     "instrumental_variables")

@@ -57,6 +57,7 @@ from pipeline.estimate import (
     NormalEquations,
     StepResponseEstimate,
     _lags_needed,
+    check_instruments,
     estimate_from_context,
     estimate_from_normal_equations,
     estimate_step_responses,
@@ -485,6 +486,10 @@ def search(
     extra = 1 if np.any(np.broadcast_to(np.asarray(integrating), (n_y,))) else 0
     if fixed is not None and n < 2 * (10 * P0 + P0 - 1 + extra):
         _too_short(n, P0, extra)
+    if instruments is not None:  # up front: a useless instrument is the user's error
+        check_instruments(lag_gram_context(x, y, integrating=integrating, mask=mask,
+                                           instruments=instruments, n_lags=2 * P0 + 1,
+                                           level_form=False), P0)
     nk = np.broadcast_to(np.asarray(n_k, dtype=int), (n_y, n_x)).copy()
     fb: list = []
     noise_models: tuple = ()
@@ -493,7 +498,8 @@ def search(
         # one lag Gram for the noise models, the feedback test and stage 1
         leads = FEEDBACK_LEADS if feedback != "off" else 0
         ctx = lag_gram_context(x, y, integrating=integrating, mask=mask,
-                               n_lags=_lags_needed(np.array([[P0]]), False, order, leads))
+                               n_lags=_lags_needed(np.array([[P0]]), False,
+                                                   None if order == 0 else order, leads))
         at_max = fixed if fixed is not None else np.full((n_y, n_x), P0)
         est_max = estimate_from_context(ctx, n_p=at_max, n_k=_clip_n_k(nk, P0, n_y, n_x),
                                         dt=dt, noise=NOISE_AUTO if order == 0 else noise,
@@ -508,11 +514,11 @@ def search(
                             nk[i, j] = max(nk[i, j], 1)
     if fixed is None and order == 0:
         ne = normal_equations(x, y, n_p_max=n_p_max, integrating=integrating, mask=mask)
-        npm, settled, order_trace, bic_order = choose_orders(ne, dt=dt, n_p_min=n_p_min,
-                                                             n_k=nk)
+        npm, settled, order_trace, bic_order = choose_orders(
+            ne, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk)
     elif fixed is None:
         npm, settled, order_trace, bic_order = _noise_model_orders(
-            ctx, P=P0, dt=dt, n_p_min=max(n_p_min, int(nk.max()) + 1), n_k=nk,
+            ctx, P=P0, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk,
             forms=[m.form for m in noise_models], d_fixed=[m.d for m in noise_models],
             sigma2=est_max.sigma2)
     else:

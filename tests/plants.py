@@ -138,13 +138,17 @@ def historian_loop_signals(hours: float, seed: int, *, fine_dt: float = 0.05,
     Plant ``2 e^{-3 s} / (20 s + 1)`` integrated at ``fine_dt`` (scipy ``cont2discrete``,
     zero-order hold); a PI controller scanned every ``scan_s`` acting on the previous
     scan's PV (the DCS delay), its output quantised to 0.01 %; PV = plant + a slow
-    unmeasured disturbance (AR(1), time constant 200 s) + sensor noise; the operator
-    moves the setpoint every 5–15 minutes.  Returns 1 s snapshots ``{"t_s", "SP",
-    "OP", "PV"}``.
+    unmeasured disturbance (AR(1), time constant 200 s, s.d. 1.5 %) + sensor noise
+    (s.d. 0.3 %); the operator moves the setpoint every 3–10 minutes.  Returns 1 s
+    snapshots ``{"t_s", "SP", "OP", "PV"}``.
     """
     rng = np.random.default_rng(seed)
     n_fine = int(hours * 3600 / fine_dt)
-    A, B, C, D, _ = ss.cont2discrete(([LOOP_GAIN], [LOOP_TAU_S, 1.0]), fine_dt, method="zoh")
+    # x' = -x/tau + K u/tau, PV = x: exact zero-order-hold step of the first-order lag
+    A, B, C, _, _ = ss.cont2discrete((np.array([[-1.0 / LOOP_TAU_S]]),
+                                      np.array([[LOOP_GAIN / LOOP_TAU_S]]),
+                                      np.array([[1.0]]), np.array([[0.0]])), fine_dt,
+                                     method="zoh")
     a, b = float(A[0, 0]), float(B[0, 0])
     c = float(C[0, 0])
     delay = int(round(LOOP_DELAY_S / fine_dt))
@@ -156,13 +160,13 @@ def historian_loop_signals(hours: float, seed: int, *, fine_dt: float = 0.05,
     k = 0
     level = 50.0
     while k < n_s:
-        dur = int(rng.uniform(300, 900))
+        dur = int(rng.uniform(180, 600))
         sp_s[k:k + dur] = level
         level = float(np.clip(level + rng.normal(0, 4.0), 30, 70))
         level = round(level * 2) / 2
         k += dur
     dist = ss.lfilter([1.0], [1.0, -np.exp(-1.0 / 200.0)], rng.standard_normal(n_s))
-    dist *= 3.0 / dist.std()
+    dist *= 1.5 / dist.std()
     sensor = 0.3 * rng.standard_normal(n_s)
     kp, ti = 0.6, 30.0
     x = 0.0
@@ -246,3 +250,12 @@ def write_drum_export(path, *, hours: float, seed: int):
     return write_export(path, {DRUM_TAGS["steam_flow"]: 60.0 + x[:, 0],
                                DRUM_TAGS["feedwater"]: 60.0 + x[:, 1],
                                DRUM_TAGS["drum_level"]: level}, seed=seed)
+
+
+LOOP_TAGS = {"SP": "FIC-301.SP", "OP": "FIC-301.OP", "PV": "FIC-301.PV"}
+
+
+def write_loop_export(path, *, hours: float, seed: int):
+    """The historian loop's SP, OP and PV as an exception-reported PI-style CSV."""
+    sig = historian_loop_signals(hours, seed)
+    return write_export(path, {LOOP_TAGS[k]: sig[k] for k in ("SP", "OP", "PV")}, seed=seed)

@@ -123,6 +123,18 @@ MORE_BAD_JOBS = [
         f, lambda d: d["signals"]["outputs"]["y"].update(integrating="maybe")),
         r"signals\.outputs\.y\.integrating: Input should be a valid boolean"),
     BadJob("empty-file", lambda f: _rewrite_export(f, lambda t: ""), r"export\.csv.*empty"),
+    BadJob("unknown-noise-model", lambda f: _with_raw(
+        f, lambda d: d.update(estimation={"noise": "pink"})),
+        r"estimation\.noise: must be 'auto', 'white' or an AR order 0\.\.40 \(got 'pink'\)"),
+    BadJob("n_k-of-unknown-output", lambda f: _with_raw(
+        f, lambda d: d.update(estimation={"n_k": {"level": {"u": 1}}})),
+        r"estimation\.n_k: 'level' is not an output \(signals\.outputs: \['y'\]\)"),
+    BadJob("n_k-not-below-n_p", lambda f: _with_raw(
+        f, lambda d: d.update(estimation={"n_k": 5}, search={"n_p": 5})),
+        r"estimation\.n_k \(5\) must be smaller than search\.n_p \(5\)"),
+    BadJob("instrument-named-like-an-input", lambda f: _with_raw(
+        f, lambda d: d["signals"].update(instruments={"u": {"tag": INPUT_TAG}})),
+        r"signal names \['u'\] appear as instruments and as inputs or outputs"),
 ]
 
 

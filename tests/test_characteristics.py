@@ -256,3 +256,25 @@ def test_errors():
         integrating_characteristics(np.ones(20), dt_s=1.0)
     with pytest.raises(DataQualityError, match="NaN/inf"):
         integrating_characteristics(np.array([0, 1, np.nan, 3.0]), dt_s=1.0)
+
+
+def test_quantities_that_do_not_exist_are_omitted_with_the_reason():
+    """A response that peaks and returns near zero (a washout, e.g. a loop that rejects
+    the step) has no overshoot: stored as null with the reason, not 8524 %."""
+    t = np.arange(60.0)
+    h = 0.8 * (np.exp(-t / 20) - np.exp(-t / 3)) + 0.01  # peak ~0.5, final ~0.03
+    s = np.full(60, 0.002)
+    c = self_regulating_characteristics(h, dt_s=1.0, step_std=s, gain=float(h[-1]),
+                                        gain_std=0.002)
+    d = c.to_dict()
+    assert d["overshoot_pct"] is None and d["time_constant_s"] is None
+    assert "returns towards it" in d["undefined"]["overshoot_pct"]
+    assert d["gain"] == pytest.approx(h[-1])  # the given gain, not the tail mean
+    flat = self_regulating_characteristics(0.001 * np.sin(t), dt_s=1.0, step_std=s,
+                                           gain=0.0005, gain_std=0.002)
+    fd = flat.to_dict()
+    assert fd["dead_time_s"] is None and "within 2 standard deviations" in \
+        fd["undefined"]["dead_time_s"]
+    # a normal first-order response has every quantity
+    ok = self_regulating_characteristics(2 * (1 - np.exp(-t / 5)), dt_s=1.0)
+    assert ok.to_dict()["undefined"] == {}

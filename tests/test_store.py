@@ -295,7 +295,7 @@ def test_schema_violation_aborts_the_run(tmp_path):
         for frame, message in cases:
             with pytest.raises(ResultSchemaError, match=message):
                 run.write_step_responses(frame)
-        with pytest.raises(ResultSchemaError, match=r"column 'role' must be 'input' or 'output'"):
+        with pytest.raises(ResultSchemaError, match=r"column 'role' must be 'input', 'output' or 'instrument'"):
             run.write_signals(signals_frame().with_columns(role=pl.lit("disturbance")))
         # column order is normalised, dtypes are not
         run.write_step_responses(step_frame().select(reversed(step_frame().columns)))

@@ -152,7 +152,7 @@ class ChecksConfig(_Strict):
 class EstimationConfig(_Strict):
     """How step responses are estimated (method.md §10)."""
 
-    noise: Literal["auto", "white"] | int = "auto"
+    noise: str | int = "auto"
     """``auto``: per output a noise model chosen from the data (AR order by BIC; for
     integrating outputs also the differenced or level form); ``white``: the thesis' least
     squares (right only for white noise); an int fixes the AR order (0..40)."""
@@ -163,14 +163,13 @@ class EstimationConfig(_Strict):
     """``auto``: a pair with detected feedback and no instrument gets ``n_k >= 1``;
     ``report``: test and report only; ``off``: no feedback test."""
 
-    @field_validator("noise")
+    @field_validator("noise", mode="before")
     @classmethod
     def _order(cls, v):
-        if isinstance(v, int) and not isinstance(v, bool) and not 0 <= v <= 40:
-            raise ValueError(f"an AR order must be 0..40; got {v}")
-        if isinstance(v, bool):
-            raise ValueError("use 'auto', 'white' or an AR order 0..40")
-        return v
+        if v in ("auto", "white") or (isinstance(v, int) and not isinstance(v, bool)
+                                      and 0 <= v <= 40):
+            return v
+        raise ValueError("must be 'auto', 'white' or an AR order 0..40")
 
     @field_validator("n_k")
     @classmethod
@@ -275,6 +274,12 @@ class JobConfig(_Strict):
     @model_validator(mode="after")
     def _n_k_names(self) -> JobConfig:
         nk = self.estimation.n_k
+        top = nk if isinstance(nk, int) else max((v for r in nk.values() for v in r.values()),
+                                                 default=0)
+        if self.search.n_p is not None and top >= self.search.n_p:
+            raise ValueError(f"estimation.n_k ({top}) must be smaller than search.n_p "
+                             f"({self.search.n_p}): n_k fixes the first n_k of the n_p "
+                             "step-response increments at zero")
         if isinstance(nk, dict):
             for out, row in nk.items():
                 if out not in self.signals.outputs:

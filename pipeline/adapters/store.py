@@ -150,7 +150,8 @@ _FRAME_SPECS: dict[str, _FrameSpec] = {
         schema=SIGNALS_SCHEMA,
         nullable=frozenset({"raw", "conditioned"}),
         key=("signal", "time"),
-        rules=(("role", pl.col("role").is_in(["input", "output"]), "'input' or 'output'"),),
+        rules=(("role", pl.col("role").is_in(["input", "output", "instrument"]),
+                "'input', 'output' or 'instrument'"),),
     ),
     "residuals.parquet": _FrameSpec(
         schema=RESIDUALS_SCHEMA,
