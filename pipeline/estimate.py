@@ -782,7 +782,7 @@ def estimate_step_responses(
                               mask=mask)
         return estimate_from_normal_equations(ne, n_p=npm, dt=dt, n_k=n_k)
     nkm = _n_k_matrix(n_k, npm)
-    n_lags = _lags_needed(npm, instruments is not None, order)
+    n_lags = lags_needed(npm, instruments is not None, order)
     ctx = lag_gram_context(x2, y2, integrating=integrating, mask=mask,
                            instruments=instruments, n_lags=n_lags,
                            level_form=instruments is None)
@@ -807,7 +807,10 @@ def noise_order(noise) -> int | None:
     return int(noise)
 
 
-def _lags_needed(npm: np.ndarray, iv: bool, order: int | None, leads: int = 0) -> int:
+def lags_needed(npm: np.ndarray, iv: bool, order: int | None, leads: int = 0) -> int:
+    """Lags a lag Gram must hold: the FIR (and ``leads`` future lags of a feedback test,
+    or the ``2 n_p`` instrument lags of an IV fit), plus the noise filter's order (the
+    largest BIC may pick when ``order`` is None), plus one."""
     from pipeline.noise_model import DEFAULT_AR_ORDER_MAX
 
     p = DEFAULT_AR_ORDER_MAX if order is None else order

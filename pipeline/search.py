@@ -56,7 +56,7 @@ from pipeline.estimate import (
     NOISE_AUTO,
     NormalEquations,
     StepResponseEstimate,
-    _lags_needed,
+    lags_needed,
     check_instruments,
     estimate_from_context,
     estimate_from_normal_equations,
@@ -498,7 +498,7 @@ def search(
         # one lag Gram for the noise models, the feedback test and stage 1
         leads = FEEDBACK_LEADS if feedback != "off" else 0
         ctx = lag_gram_context(x, y, integrating=integrating, mask=mask,
-                               n_lags=_lags_needed(np.array([[P0]]), False,
+                               n_lags=lags_needed(np.array([[P0]]), False,
                                                    None if order == 0 else order, leads))
         at_max = fixed if fixed is not None else np.full((n_y, n_x), P0)
         est_max = estimate_from_context(ctx, n_p=at_max, n_k=_clip_n_k(nk, P0, n_y, n_x),
