@@ -31,7 +31,7 @@ STEAM0, PRESSURE0, FUEL0 = 50.0, 120.0, 8.0
 def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) -> dict:
     """Simulated plant signals on a 1 s grid: ``{"t_s", "steam_flow", "turbine_pressure",
     "fuel_flow"}`` (absolute engineering values, noise included)."""
-    import yaml  # adapters parse job YAML; the shipped model is read here for the demo
+    from pipeline.adapters.config import load_yaml_file
 
     rng = np.random.default_rng(seed)
     n = int(hours * 3600 / dt_s)
@@ -41,7 +41,7 @@ def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) 
     fast = ss.lfilter([np.sqrt(1 - np.exp(-2 * dt_s / 40))], [1, -np.exp(-dt_s / 40)],
                       rng.standard_normal(n)) * 1.5
     steam = slow + fast
-    model = model_from_dict(yaml.safe_load(BOILER_MODEL.read_text()))
+    model = model_from_dict(load_yaml_file(BOILER_MODEL, what="model file"))
     sim = simulate(model, {"steam_flow": steam}, dt_s=dt_s)
     pressure = sim.outputs[:, 0]
     fuel = np.asarray(sim.signals["fuel"])

@@ -449,35 +449,68 @@ def _unknown_index(n_p_row: np.ndarray, n_x: int, n_k_row: np.ndarray | None = N
     return np.flatnonzero(ok)
 
 
-def _collinear_message(A: np.ndarray, n_x: int) -> str:
+def singular_cause(A: np.ndarray, n_x: int) -> tuple[str, tuple[int, ...], dict]:
+    """Why lag-major normal equations ``A`` of ``n_x`` inputs are singular.
+
+    Returns ``(kind, inputs, numbers)``: ``constant`` (zero after conditioning),
+    ``offset`` (constant but not zero in the used observations), ``collinear`` (two
+    inputs move together, ``numbers["correlation"]``) or ``ill_conditioned`` (no single
+    input to blame: too many lags for how the inputs move, or too few observations).
+    """
     d = A[:n_x, :n_x]
     s = np.sqrt(np.clip(np.diag(d), 0, None))
-    const = [j for j in range(n_x) if s[j] == 0 or s[j] < 1e-12 * max(s.max(), 1e-300)]
+    const = tuple(j for j in range(n_x) if s[j] == 0 or s[j] < 1e-12 * max(s.max(), 1e-300))
     if const:
-        return (
-            f"input(s) {const} are constant (zero after conditioning) over the used "
-            "observations; remove them from the job or choose a window where they move"
-        )
+        return "constant", const, {}
     if A.shape[0] >= 2 * n_x:
         # a constant but non-zero input (e.g. a setpoint that did not move in this window,
         # conditioned over the whole record) has identical lag columns: lag-1 products
         # equal lag-0 products
         rho = np.array([A[j, n_x + j] / A[j, j] for j in range(n_x)])
-        flat = [j for j in range(n_x) if rho[j] > 1 - 1e-9]
+        flat = tuple(j for j in range(n_x) if rho[j] > 1 - 1e-9)
         if flat:
-            return (
-                f"input(s) {flat} do not vary over the used observations (constant offset); "
-                "remove them from the job or choose a window where they move"
-            )
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = d / np.outer(s, s)
-    np.fill_diagonal(corr, 0)
-    i, j = np.unravel_index(np.argmax(np.abs(corr)), corr.shape)
-    return (
-        f"inputs {i} and {j} are (nearly) perfectly collinear (zero-lag correlation "
-        f"{corr[i, j]:+.6f}); the data cannot separate their effects: drop one of them, "
-        "or use data where they move independently"
-    )
+            return "offset", flat, {}
+    if n_x > 1:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = d / np.outer(s, s)
+        np.fill_diagonal(corr, 0)
+        i, j = np.unravel_index(np.argmax(np.abs(corr)), corr.shape)
+        if abs(corr[i, j]) > 0.999:
+            return "collinear", (int(i), int(j)), {"correlation": float(corr[i, j])}
+    return "ill_conditioned", (), {"lags": A.shape[0] // max(n_x, 1)}
+
+
+def describe_singular(kind: str, inputs: tuple[int, ...], numbers: dict,
+                      labels: Sequence[str] | None = None) -> str:
+    """Words for :func:`singular_cause` (``labels`` name the inputs; default indices)."""
+    name = (lambda j: labels[j]) if labels is not None else (lambda j: f"input {j}")
+    who = ", ".join(name(j) for j in inputs)
+    if kind == "constant":
+        return (f"{who} {'is' if len(inputs) == 1 else 'are'} constant (zero after "
+                "conditioning) over the used observations; remove it from the job's signals "
+                "or choose a period where it moves")
+    if kind == "offset":
+        return (f"{who} {'does' if len(inputs) == 1 else 'do'} not vary over the used "
+                "observations (a constant offset); remove it from the job's signals or "
+                "choose a period where it moves")
+    if kind == "collinear":
+        return (f"{name(inputs[0])} and {name(inputs[1])} move together (zero-lag "
+                f"correlation {numbers['correlation']:+.6f}); the data cannot separate "
+                "their effects: drop one of them, or use data where they move independently")
+    return (f"the inputs' lag products are singular at {numbers.get('lags')} lags although "
+            "no input is constant or a copy of another: the inputs move too slowly or too "
+            "little for so many lags, or too few observations remain (masked samples cut "
+            "the record into short pieces); lower search.n_p_max (or search.n_p), lengthen "
+            "sampling.dt_s, or supply more data")
+
+
+def _singular(what: str, A: np.ndarray, n_x: int, detail: str = "") -> SingularSystemError:
+    kind, inputs, numbers = singular_cause(A, n_x)
+    exc = SingularSystemError(f"normal equations of {what} are singular{detail}: "
+                              f"{describe_singular(kind, inputs, numbers)}")
+    exc.cause = (kind, inputs, numbers)
+    exc.what = what
+    return exc
 
 
 def _cholesky(M: np.ndarray, n_x: int, what: str):
@@ -485,16 +518,12 @@ def _cholesky(M: np.ndarray, n_x: int, what: str):
     Ms = M / np.outer(scale, scale)
     try:
         c = scipy.linalg.cho_factor(Ms, lower=True, check_finite=False)
-    except np.linalg.LinAlgError as exc:
-        raise SingularSystemError(
-            f"normal equations of {what} are singular: {_collinear_message(M, n_x)}"
-        ) from exc
+    except np.linalg.LinAlgError:
+        raise _singular(what, M, n_x) from None
     piv = np.abs(np.diag(c[0]))
     if piv.min() ** 2 < _RCOND_SINGULAR * piv.max() ** 2:
-        raise SingularSystemError(
-            f"normal equations of {what} are rank deficient (pivot ratio "
-            f"{(piv.min() / piv.max()) ** 2:.2e}): {_collinear_message(M, n_x)}"
-        )
+        raise _singular(what, M, n_x, f" (rank deficient: pivot ratio "
+                                      f"{(piv.min() / piv.max()) ** 2:.2e})")
     return c, scale
 
 
@@ -679,9 +708,7 @@ def estimate_from_normal_equations(
             # columns — no full inverse (that would cost 3x the Cholesky).
             Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
             if info != 0:
-                raise SingularSystemError(
-                    f"normal equations of output {i} are singular: {_collinear_message(ne.A, n_x)}"
-                )
+                raise _singular(f"output {i}", ne.A, n_x)
             cache[key] = (c, scale, Linv / scale[None, :])
         c, scale, V_all = cache[key]
         ci = ne.C[i, idx]
@@ -1006,8 +1033,9 @@ def fit_output(ctx: GramContext, i: int, n_p_row, n_k_row, *, noise=NOISE_AUTO,
                 fit = fit_prediction_error(ctx.lg, design, what=what, order=order)
         except SingularSystemError as exc:
             P = int(np.max(n_p_row))
-            A = ctx.white_normal_equations(P).A
-            raise SingularSystemError(f"{exc}: {_collinear_message(A, ctx.n_x)}") from None
+            detail = str(exc).removeprefix(f"normal equations of {what} are singular")
+            raise _singular(what, ctx.white_normal_equations(P).A, ctx.n_x,
+                            detail.split(":")[0] if detail.startswith(" (") else "") from None
         by_form[fm] = fit.bic
         if best is None or fit.bic < best[0].bic:
             best = (fit, design, inp, lag, fm)

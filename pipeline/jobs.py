@@ -39,6 +39,7 @@ from pipeline.errors import (
     InstrumentError,
     InsufficientDataError,
     PipelineError,
+    SingularSystemError,
 )
 from pipeline.estimate import (
     StepResponseEstimate,
@@ -70,6 +71,12 @@ DEFAULT_MAX_GAP_S = 600.0
 """Default longest span bridged on the grid.  Historians record by exception: no record
 means "no change beyond the deadband", and a tag is re-recorded at least every
 exception-max interval (PI's default ExcMax is 600 s).  Longer gaps are outages: masked."""
+
+
+STRAY_FRACTION = 0.001
+"""An island of the record (samples separated from the rest by more than every signal's
+``max_gap_s``) holding fewer than 0.1 % of the samples is a stray — mistyped or clock-reset
+timestamps — and is left out and reported (``checks.json`` → ``data_quality.stray_samples``)."""
 
 
 def _quiet(stage: str, message: str) -> None:  # default progress sink
@@ -184,9 +191,10 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
            **{n: ("instrument", s) for n, s in cfg.signals.instruments.items()}}
     tags = [s.tag for _, s in sig.values()]
     mcap = cfg.source.mcap.model_dump() if cfg.source.mcap else None
+    csv = cfg.source.csv.model_dump() if cfg.source.csv else None
     table, report = read_recordings(files, layout=cfg.source.layout,
-                                    timezone=cfg.source.timezone, tags=tags, mcap=mcap,
-                                    on_truncated=cfg.source.on_truncated)
+                                    timezone=cfg.source.timezone, tags=list(dict.fromkeys(tags)),
+                                    mcap=mcap, csv=csv, on_truncated=cfg.source.on_truncated)
     if cfg.source.time_order == "strict":
         _check_time_order(report)
     grid_dt = cfg.source.grid_dt_s or _median_spacing_s(table)
@@ -197,15 +205,39 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
         interp = s.interpolation or ("linear" if role == "input" else "hold")
         spec[s.tag] = {"interpolation": interp,
                        "max_gap_s": s.max_gap_s or max(10 * grid_dt, DEFAULT_MAX_GAP_S)}
-    grid = to_grid(table, dt_s=grid_dt, signals=spec)
+    # breaks longer than every signal's max_gap_s are not gridded (all masked there
+    # anyway), and an island of stray samples (a year-9999 timestamp) is left out:
+    # memory follows the samples, not the span
+    grid = to_grid(table, dt_s=grid_dt, signals=spec,
+                   break_gap_s=max(v["max_gap_s"] for v in spec.values()),
+                   stray_fraction=STRAY_FRACTION)
     order = [grid.names.index(t) for t in tags]
     values = np.asarray(grid.values)[:, order]
     good = np.asarray(grid.good)[:, order]
+    spikes = {}
+    if cfg.quality.spikes == "mask":
+        from pipeline.spikes import find_spikes
+
+        for k, name in enumerate(sig):
+            flag = find_spikes(values[:, k], good[:, k], sigmas=cfg.quality.spike_sigmas)
+            if flag.any():
+                spikes[name] = {"samples": int(flag.sum()),
+                                "first": str(np.asarray(grid.time)[flag][0]) + "Z",
+                                "largest": float(np.nanmax(np.abs(values[flag, k])))}
+                values[flag, k] = np.nan
+                good[flag, k] = False
     quality = {}
     ing = _report_dict(report)
+    tag_name = {s.tag: n for n, (_, s) in sig.items()}
+    ing["grid"] = {"islands": grid.islands,
+                   "stray_samples": [{**d, "signal": tag_name.get(d["signal"], d["signal"]),
+                                      "tag": d["signal"]} for d in grid.dropped]}
     per_signal = {row.get("signal"): row for row in ing.get("signals", [])}
+    ing["spikes"] = spikes
     for name, (role, s) in sig.items():
         reasons = dict(grid.mask_reasons.get(s.tag, {}))
+        if name in spikes:
+            reasons["spike"] = spikes[name]["samples"]
         quality[name] = {"tag": s.tag, "role": role,
                          "grid_samples": int(values.shape[0]),
                          "masked": int((~good[:, list(sig).index(name)]).sum()),
@@ -359,6 +391,25 @@ def _instrument_error(cfg, prep: Prepared, exc: InstrumentError) -> DataQualityE
         "handles the loop)")
 
 
+def _named(exc: PipelineError, prep: Prepared) -> PipelineError:
+    """The core's index-based singular-system message with the job's signal names."""
+    cause = getattr(exc, "cause", None)
+    if cause is None:
+        return exc
+    import re
+
+    from pipeline.estimate import describe_singular
+
+    tags = dict(zip(prep.recording.names, prep.recording.tags))
+    labels = [f"{n} (tag {tags[n]})" for n in prep.inputs]
+    what = re.sub(r"output (\d+)", lambda m: f"output {prep.outputs[int(m.group(1))]!r}",
+                  getattr(exc, "what", "the estimate"))
+    out = SingularSystemError(f"normal equations of {what} are singular: "
+                              f"{describe_singular(*cause, labels=labels)}")
+    out.cause, out.what = cause, what
+    return out
+
+
 def search_orders(cfg, prep: Prepared) -> SearchResult:
     """N_p/N_d trial-and-error search (windows are estimated by the caller)."""
     s, e = cfg.search, cfg.estimation
@@ -380,6 +431,8 @@ def search_orders(cfg, prep: Prepared) -> SearchResult:
             feedback=e.feedback)
     except InstrumentError as exc:
         raise _instrument_error(cfg, prep, exc) from None
+    except SingularSystemError as exc:
+        raise _named(exc, prep) from None
 
 
 @dataclass(frozen=True)
@@ -407,8 +460,9 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
             integrating=prep.integrating, mask=prep.good_xy[a:b], noise=noise, n_k=n_k,
             instruments=None if (prep.r is None or not use_instruments) else prep.r[a:b])
     except DataQualityError as exc:
+        exc = _named(exc, prep)
         if window is None:
-            raise
+            raise exc from None
         return WindowFailure(tuple(window), str(exc))
 
 
@@ -716,6 +770,18 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
             lines.append(f"- **{p['output']}<-{p['input']}** ({w['code']}): {w['message']}.")
     masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
     lines += ["", f"Masked grid samples per signal: {masked or 'none'}."]
+    grid = prep.recording.ingest.get("grid", {})
+    if len(grid.get("islands", [])) > 1:
+        lines.append(f"The record has {len(grid['islands'])} stretches separated by breaks "
+                     "longer than every signal's max_gap_s (not gridded).")
+    for name, sp in prep.recording.ingest.get("spikes", {}).items():
+        lines.append(f"Spikes masked in {name}: {sp['samples']} sample(s) far from their "
+                     f"neighbours (largest |value| {sp['largest']:.4g}, first at {sp['first']}); "
+                     "quality.spikes: off keeps them.")
+    for d in grid.get("stray_samples", []):
+        lines.append(f"Stray samples left out: {d['samples']} of {d['signal']} (tag {d['tag']}) "
+                     f"between {d['first']} and {d['last']}, far from the rest of the record "
+                     "— check the export's timestamps.")
     return "\n".join(lines) + "\n"
 
 

@@ -339,7 +339,7 @@ def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
 
 
 def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_fixed,
-                        sigma2, candidates: int = 16
+                        sigma2, fit_cap: int, candidates: int = 16
                         ) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
     """Stage 1 with a noise model: every candidate is a GLS fit with the filters and the
     innovation variance found at ``n_p_max`` (module doc); BIC of the whitened problem
@@ -362,7 +362,12 @@ def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_f
 
     trunc = _truncation_test(est_at(P))
     n_p, settled, trace = _tail_rule(est_at, info_at, trunc, P, n_y, n_x, n_p_min, candidates)
-    n_p = np.where(settled, np.minimum(P, np.ceil(NOISE_MODEL_N_P_MARGIN * n_p)), n_p).astype(int)
+    # the margin never makes N_p too long for two disjoint windows of 10 N_p observations
+    # (``fit_cap``); the tail rule's own choice is kept even beyond it (then the record
+    # is too short, and stage 2 says so)
+    longer = np.minimum(np.minimum(P, np.ceil(NOISE_MODEL_N_P_MARGIN * n_p)),
+                        np.maximum(n_p, fit_cap))
+    n_p = np.where(settled, longer, n_p).astype(int)
     ms = sorted(bic)
     table = np.array([bic[m] for m in ms])  # (n_cand, n_y)
     bic_order = np.array([ms[k] for k in np.argmin(table, axis=0)])
@@ -436,8 +441,10 @@ def search(
     mask : bool array (N,) or (N, n_x+n_y), optional
         Good samples.
     n_p_max : int, optional
-        Largest order tried; default ``N // (20 * n_x)`` capped at 300 (so that two
-        windows of ``10 * N_p`` observations still fit).
+        Largest order tried; default ``N // (22 * n_x)`` capped at 300, so that two
+        disjoint windows of ``10 * N_p`` observations (plus ``N_p - 1`` lead-in samples
+        each) still fit — with ``N // 20`` a record whose response needs the largest
+        order could not be judged at all.
     n_p_min : int
         Smallest order tried.
     n_p : int or int array (n_y, n_x), optional
@@ -470,7 +477,7 @@ def search(
         raise ConfigError(f"feedback={feedback!r} is not allowed; use 'auto', 'report' or 'off'")
     order = noise_order(noise)
     if n_p_max is None:
-        n_p_max = int(min(300, n // (20 * max(n_x, 1))))
+        n_p_max = int(min(300, n // (22 * max(n_x, 1))))
     if n_p is None and n_p_max < max(1, n_p_min):
         raise InsufficientDataError(
             f"record of {n} samples is too short for the N_p search with {n_x} input(s): "
@@ -520,7 +527,7 @@ def search(
         npm, settled, order_trace, bic_order = _noise_model_orders(
             ctx, P=P0, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk,
             forms=[m.form for m in noise_models], d_fixed=[m.d for m in noise_models],
-            sigma2=est_max.sigma2)
+            sigma2=est_max.sigma2, fit_cap=(n // 2 + 1 - extra) // 11)
     else:
         npm = fixed
         settled = np.ones((n_y, n_x), dtype=bool)

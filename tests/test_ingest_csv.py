@@ -490,7 +490,7 @@ def test_config_errors(tmp_path: Path) -> None:
         read_recording(p, timezone="Mars/Olympus")
     with pytest.raises(ConfigError, match=r"csv options: unknown key\(s\) \['sepparator'\]"):
         read_recording(p, csv={"sepparator": ";"})
-    with pytest.raises(ConfigError, match=r"encoding='klingon'\) is not a known codec"):
+    with pytest.raises(ConfigError, match=r"source\.csv\.encoding: 'klingon' is not a known codec"):
         read_recording(p, csv={"encoding": "klingon"})
     with pytest.raises(ConfigError, match=r"quality_map\['x'\] = 'fine'"):
         read_recording(write(tmp_path, "tag,time,value,status\nA,2024-01-01 00:00:00,1,x\n", "q.csv"), csv={"quality_map": {"x": "fine"}})

@@ -272,7 +272,7 @@ def test_error_paths(tmp_path: Path) -> None:
     with pytest.raises(IngestError, match=r"tag\(s\) \['B'\] requested but not in the recording; it has 1 tags: \['A'\]"):
         read_recording(p, mcap={"value_field": "reading"}, tags=["B"])
     bad_json = json_mcap(tmp_path / "b.mcap", [("/A", "{not json", T0_NS)])
-    with pytest.raises(IngestError, match=r"topic '/A' has a message that is not valid JSON"):
+    with pytest.raises(IngestError, match=r"topic '/A', message 0 \(log time \d+ ns\) is not valid JSON"):
         read_recording(bad_json)
     lists = json_mcap(tmp_path / "c.mcap", [("/A", {"t": [1.7e9, 1.7e9 + 1], "value": [1.0]}, T0_NS)])
     with pytest.raises(IngestError, match=r"lists of different lengths in \['time', 'value'\]"):

@@ -23,7 +23,7 @@ def test_window_where_the_input_does_not_move_is_recorded_not_fatal(tmp_path):
     prep2 = dataclasses.replace(prep, x=x)
     results = [estimate_window(prep2, tuple(w), sr.n_p) for w in sr.windows]
     assert isinstance(results[1], WindowFailure)
-    assert "do not vary" in results[1].error
+    assert "u (tag U.PV) does not vary" in results[1].error
     all_est = estimate_window(prep2, None, sr.n_p)
     summary = summarise(cfg, prep2, sr, all_est, results)
     status = {w["window"]: w["status"] for w in summary.checks["search"]["windows"]}

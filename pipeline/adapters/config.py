@@ -38,6 +38,7 @@ __all__ = [
     "resolve_sources",
     "allowed_roots",
     "load_yaml_file",
+    "parse_yaml_text",
     "load_model_spec",
     "dump_yaml",
     "DiscrepancySection",
@@ -82,11 +83,54 @@ class SignalsConfig(_Strict):
 
 
 class McapOptions(_Strict):
+    """``source.mcap``: how samples are found in MCAP messages (see
+    :class:`pipeline.adapters.ingest.McapOptions`)."""
+
     time_field: str | None = "t"
     value_field: str = "value"
     quality_field: str | None = "quality"
     tag_field: str | None = None
     """Field holding the tag; default: the topic name is the tag."""
+    time_unit: Literal["s", "ms", "us", "ns"] = "s"
+    """Unit of numeric times (a recorder writing milliseconds needs ``ms``)."""
+    topics: list[str] | None = None
+    topic_prefix: str = "/"
+    samples_field: str = "samples"
+
+
+class CsvConfig(_Strict):
+    """``source.csv``: overrides for historian-CSV detection; every unset key is detected
+    (see :class:`pipeline.adapters.ingest.CsvOptions`)."""
+
+    separator: Literal[",", ";", "\t", "|"] | None = None
+    decimal: Literal[".", ","] | None = None
+    encoding: str | None = None
+    """A codec name (``cp1252``, ``latin-1``, ``utf-16``); default: UTF-8 or the BOM's."""
+    skip_lines: int = Field(default=0, ge=0, le=10_000)
+    tag_column: str | None = None
+    time_column: str | None = None
+    value_column: str | None = None
+    quality_column: str | None = None
+    header_rows: int | None = Field(default=None, ge=1, le=100)
+    tag_row: int = Field(default=0, ge=0, le=100)
+    unit_row: int | None = Field(default=None, ge=0, le=100)
+    description_row: int | None = Field(default=None, ge=0, le=100)
+    time_format: str | None = None
+    """A strptime format (``"%m-%d-%Y %H:%M:%S"``) or ``epoch_s``."""
+    quality_map: dict[str, Literal["good", "suspect", "bad"]] | None = None
+
+    @field_validator("encoding")
+    @classmethod
+    def _codec(cls, v):
+        import codecs
+
+        if v is not None:
+            try:
+                codecs.lookup(v)
+            except LookupError:
+                raise ValueError(f"{v!r} is not a known text encoding; use e.g. 'utf-8', "
+                                 "'cp1252', 'latin-1' or 'utf-16'") from None
+        return v
 
 
 class SourceConfig(_Strict):
@@ -96,6 +140,7 @@ class SourceConfig(_Strict):
     layout: Literal["auto", "long", "wide", "mcap"] = "auto"
     on_truncated: Literal["error", "warn"] = "error"
     mcap: McapOptions | None = None
+    csv: CsvConfig | None = None
     grid_dt_s: float | None = Field(default=None, gt=0)
     """Period of the uniform grid before α_T resampling; default: median sample spacing."""
     time_order: Literal["fix", "strict"] = "fix"
@@ -180,6 +225,16 @@ class EstimationConfig(_Strict):
         return v
 
 
+class QualityConfig(_Strict):
+    """Data-quality steps on the grid before anything is estimated."""
+
+    spikes: Literal["mask", "off"] = "mask"
+    """``mask``: isolated samples far from their neighbours are masked and reported
+    (:mod:`pipeline.spikes`); ``off`` keeps every sample."""
+    spike_sigmas: float = Field(default=8.0, ge=3.0, le=1e6, allow_inf_nan=False)
+    """Deviation from the running median, in robust noise s.d., that makes a spike."""
+
+
 class RerunConfig(_Strict):
     enabled: bool = True
 
@@ -248,6 +303,7 @@ class JobConfig(_Strict):
     search: SearchConfig = SearchConfig()
     checks: ChecksConfig = ChecksConfig()
     estimation: EstimationConfig = EstimationConfig()
+    quality: QualityConfig = QualityConfig()
     rerun: RerunConfig = RerunConfig()
     dask: DaskConfig = DaskConfig()
     schedule: str | None = None
@@ -393,23 +449,112 @@ def job_from_dict(data: Any, *, base_dir: Path | str = ".", where: str = "<dict>
         raise ConfigError(_format_validation_error(exc, where)) from None
 
 
-def load_yaml_file(path: Path | str) -> Any:
+MAX_YAML_BYTES = 5_000_000
+"""A job or model YAML larger than this is refused before parsing (they are kilobytes)."""
+MAX_YAML_VALUES = 100_000
+"""Values a YAML may expand to, counting every repetition an alias makes (a 400-byte file
+of nested aliases expands to billions and took 4.9 GB before)."""
+MAX_YAML_DEPTH = 40
+"""Nesting levels a YAML may have (a job is 4 deep; 5000-deep brackets overflowed the
+parser's recursion)."""
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate keys (last-wins silently is a lost setting)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict[Any, Any] = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                hash(key)
+            except TypeError:
+                continue  # pydantic reports unhashable keys with their path
+            if key in seen:
+                first = seen[key]
+                raise ConfigError(
+                    f"{getattr(self, 'where', 'YAML')}: duplicate key {key!r} at line "
+                    f"{key_node.start_mark.line + 1} (first at "
+                    f"line {first.start_mark.line + 1}); a YAML mapping keeps only the last "
+                    "one — remove or merge the duplicate")
+            seen[key] = key_node
+        return super().construct_mapping(node, deep=deep)
+
+
+def _check_tree(root, where: str) -> None:
+    """Bound the expanded size (aliases counted every time they are used) and the depth
+    of a composed YAML node graph without expanding it."""
+    sizes: dict[int, int] = {}
+    stack = [(root, 0, False)]
+    while stack:
+        node, depth, done = stack.pop()
+        if depth > MAX_YAML_DEPTH:
+            raise ConfigError(
+                f"{where}: nesting deeper than {MAX_YAML_DEPTH} levels at line "
+                f"{node.start_mark.line + 1}; a job YAML needs a handful — flatten it")
+        children = []
+        if isinstance(node, yaml.SequenceNode):
+            children = list(node.value)
+        elif isinstance(node, yaml.MappingNode):
+            children = [n for kv in node.value for n in kv]
+        if done:
+            total = 1 + sum(sizes[id(c)] for c in children)
+            sizes[id(node)] = total
+            if total > MAX_YAML_VALUES:
+                raise ConfigError(
+                    f"{where}: the YAML at line {node.start_mark.line + 1} expands to more "
+                    f"than {MAX_YAML_VALUES:,} values (anchors and aliases repeat what they "
+                    "point to); write the values out or remove the aliases")
+            continue
+        if id(node) in sizes:
+            continue
+        stack.append((node, depth, True))
+        stack.extend((c, depth + 1, False) for c in children if id(c) not in sizes)
+
+
+def parse_yaml_text(text: str, where: str) -> Any:
+    """Parse YAML with the limits above and duplicate keys refused (the only parser)."""
+    if len(text) > MAX_YAML_BYTES:
+        raise ConfigError(f"{where}: {len(text):,} bytes is not a job or model YAML (limit "
+                          f"{MAX_YAML_BYTES:,}); check the path")
+    loader = None
+    try:
+        loader = _StrictLoader(text)
+        loader.where = where
+        root = loader.get_single_node()
+        if root is None:
+            return None
+        _check_tree(root, where)
+        return loader.construct_document(root)
+    except RecursionError:
+        raise ConfigError(f"{where}: nesting too deep to parse (more than "
+                          f"{MAX_YAML_DEPTH} levels); a job YAML needs a handful") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise ConfigError(f"{where}: malformed YAML{at}: {problem}; fix the syntax") from None
+    finally:
+        if loader is not None:
+            loader.dispose()
+
+
+def load_yaml_file(path: Path | str, *, what: str = "job file") -> Any:
     """Parse a YAML file with a clear error for missing files and syntax errors."""
     p = Path(path)
     if not p.is_file():
-        raise ConfigError(f"job file {str(p)!r} does not exist; give the path to a .yaml job file")
+        raise ConfigError(f"{what} {str(p)!r} does not exist; give the path to a .yaml "
+                          f"{what}")
+    size = p.stat().st_size
+    if size > MAX_YAML_BYTES:
+        raise ConfigError(f"{p}: {size:,} bytes is not a {what} (limit {MAX_YAML_BYTES:,}); "
+                          "check the path")
     try:
         text = p.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"{p}: not UTF-8 text (byte {exc.start}); save the job file as UTF-8") \
-            from None
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{p}: malformed YAML{where}: {problem}; fix the syntax") from None
+        raise ConfigError(f"{p}: not UTF-8 text (byte {exc.start}); save the {what} as "
+                          "UTF-8") from None
+    return parse_yaml_text(text, str(p))
 
 
 def load_job(path: Path | str) -> JobConfig:
@@ -445,7 +590,7 @@ def load_model_spec(cfg: JobConfig) -> dict:
     if isinstance(cfg.model, str):
         p = (cfg.base / cfg.model).resolve()
         _check_allowed(p, cfg.base, "model")
-        data = load_yaml_file(p)
+        data = load_yaml_file(p, what="model file")
         if isinstance(data, dict) and "model" in data:
             data = data["model"]
         return data

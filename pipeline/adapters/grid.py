@@ -24,6 +24,16 @@ Each masked point has exactly one reason (checked in that order) and
 from slices of the table (sorted by signal), so peak memory is the table plus the grid
 plus one signal's arrays; the per-signal work is vectorised with
 :func:`numpy.searchsorted`.
+
+Memory bounded by the samples, not the span (``break_gap_s``): where *no* signal has a
+sample for longer than ``break_gap_s`` (every grid point there would be masked as a gap
+anyway), the grid is not laid over the break.  The record becomes *islands* of uniform
+grid joined by one masked point each (reason ``gap>max_gap_s``), so ``time`` is uniform
+inside an island and jumps across a break.  An island holding fewer than
+``stray_fraction`` of the samples (and fewer than :data:`STRAY_MAX_SAMPLES`) is a stray —
+one mistyped year 9999 or 1970 timestamp would otherwise ask for a 1.8 TiB grid — and is
+left out and listed in :attr:`Grid.dropped`.  A grid of more than ``max_values`` values is
+refused with the numbers and what to change.
 """
 
 from __future__ import annotations
@@ -39,7 +49,14 @@ import polars as pl
 
 from pipeline.errors import ConfigError, DataQualityError, IngestError
 
-__all__ = ["Grid", "SignalGridSpec", "grid_from_regular", "to_grid"]
+__all__ = ["Grid", "SignalGridSpec", "grid_from_regular", "to_grid", "MAX_GRID_VALUES",
+           "STRAY_MAX_SAMPLES"]
+
+MAX_GRID_VALUES = 1_500_000_000
+"""Largest grid (points x signals) built: 12 GB of values plus 1.5 GB of masks, half the
+24 GiB machines (a year at 1 s x 20 tags is 631 M)."""
+STRAY_MAX_SAMPLES = 1000
+"""An island with more samples than this is never a stray, whatever its share."""
 
 Interpolation = Literal["linear", "hold"]
 _REASON_BEFORE = "before_first_sample"
@@ -96,6 +113,11 @@ class Grid:
     interpolation : dict of str to str
         Per signal, ``"linear"`` or ``"hold"`` (``"regular"`` for
         :func:`grid_from_regular`).
+    islands : list of dict
+        The stretches of the record gridded (``start``, ``end`` ISO UTC, ``points``);
+        several when the record has breaks longer than ``break_gap_s`` (module notes).
+    dropped : list of dict
+        Stray samples left out (``signal``, ``samples``, ``first``, ``last``).
     """
 
     time: np.ndarray
@@ -106,6 +128,8 @@ class Grid:
     mask_reasons: dict[str, dict[str, int]]
     dt_s: float
     interpolation: dict[str, str] = field(default_factory=dict)
+    islands: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)
 
     def column(self, name: str) -> int:
         """Column index of a signal.
@@ -295,6 +319,9 @@ def to_grid(
     default_interpolation: Interpolation = "linear",
     default_max_gap_s: float | None = None,
     mask_suspect: bool = True,
+    break_gap_s: float | None = None,
+    stray_fraction: float = 0.0,
+    max_values: int = MAX_GRID_VALUES,
 ) -> Grid:
     """Resample a canonical table onto a uniform grid with quality masks.
 
@@ -319,6 +346,14 @@ def to_grid(
         For signals without their own setting; None means no limit.
     mask_suspect : bool
         Mask grid points that use suspect samples (default) or use them as good.
+    break_gap_s : float or None
+        Stretches with no sample of any signal for longer than this are not gridded
+        (islands, module notes); None grids the whole span.
+    stray_fraction : float
+        An island with fewer than this fraction of the samples (and at most
+        :data:`STRAY_MAX_SAMPLES`) is left out and listed in ``Grid.dropped``.
+    max_values : int
+        Refuse a grid of more values than this (the message says what to change).
 
     Returns
     -------
@@ -382,17 +417,46 @@ def to_grid(
     end_us = _to_us(end, "end") if end is not None else max(_to_us(x, "end") for x in lasts)
     if end_us < start_us:
         raise ConfigError(f"end ({end}) is before start ({start}); give end >= start")
-    n = (end_us - start_us) // dt_us + 1
-    g = start_us + np.arange(n, dtype=np.int64) * dt_us
+    arrays = {}
+    for name in specs:
+        lo, hi = bounds[name]
+        arrays[name] = _signal_arrays(table.slice(lo, hi - lo), mask_suspect)
+    islands, dropped = _islands(arrays, start_us, end_us, dt_us, break_gap_s, stray_fraction)
+    n = sum(k1 - k0 + 1 for k0, k1 in islands) + len(islands) - 1
     names = tuple(specs)
+    if n * len(names) > max_values:
+        span_d = (end_us - start_us) / 86_400e6
+        raise DataQualityError(
+            f"the grid would hold {n:,} points x {len(names)} signals = "
+            f"{n * len(names):,} values (limit {max_values:,}; {8 * n * len(names) / 1e9:.1f} "
+            f"GB) for {span_d:.1f} days at {dt_us / 1e6:g} s; set source.grid_dt_s larger, "
+            "or split the export into shorter files and run them as separate jobs")
+    # grid instants: each island's uniform points, one (masked) break point between
+    parts = []
+    breaks = []
+    for k, (k0, k1) in enumerate(islands):
+        if k:
+            breaks.append(sum(p.size for p in parts))
+            parts.append(np.array([start_us + (islands[k - 1][1] + 1) * dt_us], dtype=np.int64))
+        parts.append(start_us + np.arange(k0, k1 + 1, dtype=np.int64) * dt_us)
+    g = np.concatenate(parts)
     values = np.empty((n, len(names)))
     good = np.empty((n, len(names)), dtype=bool)
     reasons: dict[str, dict[str, int]] = {}
     for k, name in enumerate(names):
-        lo, hi = bounds[name]
-        part = table.slice(lo, hi - lo)
-        t, v, usable, label = _signal_arrays(part, mask_suspect)
+        t, v, usable, label = arrays.pop(name)
         values[:, k], good[:, k], reasons[name] = _grid_signal(g, t, v, usable, label, specs[name])
+        if breaks:  # a break point is a gap, whatever its neighbours say
+            was = good[breaks, k]
+            values[breaks, k] = np.nan
+            good[breaks, k] = False
+            r = reasons[name]
+            r[_REASON_GAP] = r.get(_REASON_GAP, 0) + int(was.sum())
+            reasons[name] = dict(sorted(r.items()))
+        del t, v, usable, label
+    island_info = [{"start": str(np.datetime64(start_us + k0 * dt_us, "us")) + "Z",
+                    "end": str(np.datetime64(start_us + k1 * dt_us, "us")) + "Z",
+                    "points": int(k1 - k0 + 1)} for k0, k1 in islands]
     return Grid(
         time=g.astype("datetime64[us]"),
         t_s=(g - start_us) / 1e6,
@@ -402,7 +466,74 @@ def to_grid(
         mask_reasons=reasons,
         dt_s=dt_us / 1e6,
         interpolation={s: specs[s].interpolation for s in names},
+        islands=island_info,
+        dropped=dropped,
     )
+
+
+def _islands(arrays: dict, start_us: int, end_us: int, dt_us: int,
+             break_gap_s: float | None, stray_fraction: float):
+    """Grid-index ranges ``(k0, k1)`` to build, and the stray samples left out.
+
+    Without ``break_gap_s`` one island spans ``start..end``.  Otherwise the stretches
+    every signal leaves empty for longer than ``break_gap_s`` are cut out (the union of
+    each signal's covered stretches, samples closer than the break joined)."""
+    k_end = (end_us - start_us) // dt_us
+    if break_gap_s is None or not math.isfinite(break_gap_s):
+        return [(0, int(k_end))], []
+    brk = break_gap_s * 1e6
+    spans = []  # (first µs, last µs) covered stretches of every signal
+    for t, *_ in arrays.values():
+        t = t[(t >= start_us) & (t <= end_us)]
+        if not t.size:
+            continue
+        cut = np.flatnonzero(np.diff(t) > brk)
+        firsts = np.concatenate([[t[0]], t[cut + 1]])
+        lasts = np.concatenate([t[cut], [t[-1]]])
+        spans.extend(zip(firsts.tolist(), lasts.tolist()))
+    if not spans:
+        return [(0, int(k_end))], []
+    spans.sort()
+    merged = [list(spans[0])]
+    for a, b in spans[1:]:
+        if a - merged[-1][1] <= brk:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    # samples per island (all signals) -> strays
+    counts = np.zeros(len(merged), dtype=np.int64)
+    lo_edges = np.array([m[0] for m in merged])
+    for t, *_ in arrays.values():
+        idx = np.searchsorted(lo_edges, t, side="right") - 1
+        counts += np.bincount(idx[idx >= 0], minlength=len(merged))
+    total = int(counts.sum())
+    stray = [(counts[k] <= STRAY_MAX_SAMPLES and counts[k] < stray_fraction * total)
+             for k in range(len(merged))]
+    if all(stray):
+        stray = [False] * len(merged)
+    dropped = []
+    for k, (a, b) in enumerate(merged):
+        if not stray[k]:
+            continue
+        for name, (t, *_rest) in arrays.items():
+            m = int(((t >= a) & (t <= b)).sum())
+            if m:
+                dropped.append({"signal": name, "samples": m,
+                                "first": str(np.datetime64(a, "us")) + "Z",
+                                "last": str(np.datetime64(b, "us")) + "Z"})
+    islands = []
+    for k, (a, b) in enumerate(merged):
+        if stray[k]:
+            continue
+        k0 = max(0, -(-(a - start_us) // dt_us))  # first grid point at or after a
+        k1 = min(int(k_end), (b - start_us) // dt_us + 1)  # up to the point after b
+        if k1 < k0:
+            continue
+        if islands and k0 <= islands[-1][1] + 1:  # a break shorter than a grid step
+            islands[-1] = (islands[-1][0], max(islands[-1][1], int(k1)))
+        else:
+            islands.append((int(k0), int(k1)))
+    return islands or [(0, int(k_end))], dropped
 
 
 def grid_from_regular(

@@ -743,8 +743,8 @@ def parse_timestamps(
             first = text.head(5).to_list()
             raise IngestError(
                 f"{path}, line {line_of(0)}: timestamps like {first!r} match none of the "
-                f"formats tried ({', '.join(_TIME_FORMATS)}); pass "
-                f"CsvOptions(time_format=...) with a strptime format"
+                f"formats tried ({', '.join(_TIME_FORMATS)}); set "
+                f"source.csv.time_format in the job YAML to a strptime format"
             )
     parsed = None
     fmt = candidates[0]
@@ -763,8 +763,8 @@ def parse_timestamps(
         i, bad = first_failure
         raise IngestError(
             f"{path}, line {line_of(i)}: timestamp {bad!r} does not parse; formats tried "
-            f"(each matched most sampled rows): {candidates}; fix the row or pass "
-            f"CsvOptions(time_format=...)"
+            f"(each matched most sampled rows): {candidates}; fix the row or set "
+            f"source.csv.time_format in the job YAML"
         )
     warnings: list[str] = []
     dst_resolved: dict[str, int] = {}
@@ -963,7 +963,7 @@ def _canonicalise(
     if unknown:
         warnings.append(
             f"{meta.path}: unrecognised quality flags {unknown[:10]} treated as suspect; "
-            f"map them with CsvOptions(quality_map={{...}})"
+            f"map them with source.csv.quality_map in the job YAML"
         )
     value = pre["value"].clone()
     state = pre["state_text"].clone()

@@ -75,7 +75,7 @@ def _detect_encoding(head: bytes, options: CsvOptions, path: str, complete: bool
             return codecs.lookup(options.encoding).name
         except LookupError as exc:
             raise ConfigError(
-                f"CsvOptions(encoding={options.encoding!r}) is not a known codec; use e.g. "
+                f"source.csv.encoding: {options.encoding!r} is not a known codec; use e.g. "
                 f"'utf-8', 'utf-16', 'cp1252', 'latin-1'"
             ) from exc
     if head.startswith(codecs.BOM_UTF8):
@@ -102,15 +102,15 @@ def _detect_encoding(head: bytes, options: CsvOptions, path: str, complete: bool
         raise IngestError(
             f"{path}: unknown encoding — the file holds NUL bytes but no byte-order mark "
             f"and no UTF-16 pattern (a binary file?); export as UTF-8 or UTF-16 text, or "
-            f"pass CsvOptions(encoding=...)"
+            f"set source.csv.encoding in the job YAML"
         )
     try:
         codecs.getincrementaldecoder("utf-8")().decode(head, final=complete)
     except UnicodeDecodeError as exc:
         raise IngestError(
             f"{path}: unknown encoding — no byte-order mark and byte 0x{head[exc.start]:02X} "
-            f"at offset {exc.start} is not valid UTF-8; pass the export's code page, e.g. "
-            f"CsvOptions(encoding='cp1252') or 'latin-1'"
+            f"at offset {exc.start} is not valid UTF-8; set the export's code page in the "
+            f"job YAML, e.g. source.csv.encoding: cp1252 (or latin-1)"
         ) from exc
     return "utf-8"
 
@@ -120,8 +120,8 @@ def _decode_head(head: bytes, codec: str, complete: bool, path: str) -> str:
         text = codecs.getincrementaldecoder(codec)().decode(head, final=complete)
     except UnicodeDecodeError as exc:
         raise IngestError(
-            f"{path}: cannot decode the first bytes as {codec} (offset {exc.start}); pass "
-            f"the right CsvOptions(encoding=...)"
+            f"{path}: cannot decode the first bytes as {codec} (offset {exc.start}); set "
+            f"the right source.csv.encoding in the job YAML"
         ) from exc
     return text.lstrip("\ufeff")
 
@@ -135,7 +135,7 @@ def _polars_source(path: Path, codec: str) -> str | bytes:
     except UnicodeDecodeError as exc:
         raise IngestError(
             f"{path}: bytes at offset {exc.start} are not valid {codec}; the file is "
-            f"corrupt or in another encoding (pass CsvOptions(encoding=...))"
+            f"corrupt or in another encoding (set source.csv.encoding in the job YAML)"
         ) from exc
     return text.lstrip("\ufeff").encode("utf-8")
 
@@ -243,13 +243,59 @@ def read_csv_raw(
     return _read_wide(source, rows, sep, options, timezone, tags, name, encoding)
 
 
+def _check_row_shapes(header: list[str] | None, data_rows: list[list[str]], sep: str,
+                      name: str, first_line: int) -> None:
+    """The sampled data rows have no more fields than the header (module note at
+    :func:`_row_shape_error`); the rest of the file is checked when polars reads it."""
+    if header is None:
+        return
+    n = len(header)
+    for k, row in enumerate(data_rows):
+        if len(row) > n and any(c.strip() for c in row[n:]):
+            raise _row_shape_error(name, first_line + k, len(row), n, row, sep)
+
+
 def _replace(options: CsvOptions, **changes: Any) -> CsvOptions:
     from dataclasses import replace
 
     return replace(options, **changes)
 
 
-def _polars_read(source: str | bytes, name: str, **kwargs: Any) -> pl.DataFrame:
+def _row_shape_error(name: str, line: int, n_fields: int, n_header: int,
+                     row: list[str], sep: str) -> IngestError:
+    """A row with more fields than the header: the columns would shift (the classic
+    decimal comma in a comma-separated export turns 0.013 into two fields 0 and 013)."""
+    commas = [c for c in row if c.strip().lstrip("-").isdigit()]
+    hint = ("values split at a decimal comma (cells like "
+            f"{', '.join(repr(c) for c in row[1:5])})" if sep == "," and commas else
+            "an unquoted separator inside a value, or a column missing from the header")
+    return IngestError(
+        f"{name}, line {line}: {n_fields} fields but the header has {n_header} — the columns "
+        f"after it would shift; likely cause: {hint}. Re-export with ';' as the separator "
+        "(decimal commas are then read as such) or with the values quoted, or fix the line")
+
+
+def first_ragged_line(source: str | bytes, sep: str, n_header: int, skip: int,
+                      header_line: int) -> tuple[int, list[str]] | None:
+    """First data line (1-based in the file) with more fields than ``n_header`` (extra
+    fields that are all empty — a trailing separator — do not count); one streaming pass
+    with the csv module, used only after polars refused the file."""
+    import io
+
+    fh: Any = io.StringIO(source.decode("utf-8", errors="replace")) if isinstance(source, bytes) \
+        else open(source, encoding="utf-8", errors="replace", newline="")
+    with fh:
+        reader = _csv.reader(fh, delimiter=sep)
+        for k, row in enumerate(reader):
+            if k < skip:
+                continue
+            if len(row) > n_header and any(c.strip() for c in row[n_header:]):
+                return header_line + (k - skip), row
+    return None
+
+
+def _polars_read(source: str | bytes, name: str, *, expected_fields: int | None = None,
+                 first_data_line: int = 1, **kwargs: Any) -> pl.DataFrame:
     import io
 
     src: Any = io.BytesIO(source) if isinstance(source, bytes) else source
@@ -257,14 +303,22 @@ def _polars_read(source: str | bytes, name: str, **kwargs: Any) -> pl.DataFrame:
         return pl.read_csv(src, infer_schema=False, raise_if_empty=False, **kwargs)
     except pl.exceptions.PolarsError as exc:
         msg = str(exc)
+        if "more fields than" in msg and expected_fields is not None:
+            found = first_ragged_line(source, kwargs.get("separator", ","), expected_fields,
+                                      kwargs.get("skip_lines", 0) +
+                                      (1 if kwargs.get("has_header") else 0), first_data_line)
+            if found is not None:
+                line, row = found
+                raise _row_shape_error(name, line, len(row), expected_fields, row,
+                                       kwargs.get("separator", ",")) from None
         if "utf-8" in msg.lower() or "utf8" in msg.lower():
             raise IngestError(
                 f"{name}: invalid UTF-8 further into the file ({msg.splitlines()[0]}); "
-                f"pass the export's code page, e.g. CsvOptions(encoding='cp1252')"
+                f"set the export's code page in the job YAML, e.g. source.csv.encoding: cp1252"
             ) from exc
         raise IngestError(
             f"{name}: the CSV reader failed ({type(exc).__name__}: {msg.splitlines()[0]}); "
-            f"check the separator/quoting or pass CsvOptions(separator=...)"
+            f"check the separator/quoting or set source.csv.separator in the job YAML"
         ) from exc
 
 
@@ -293,13 +347,13 @@ def _read_long(
         if i_tag is None or i_value is None:
             raise IngestError(
                 f"{name}: long layout needs a tag and a value column; header is "
-                f"{[h.strip() for h in header]}; name them tag/value or pass "
-                f"CsvOptions(tag_column=..., value_column=...)"
+                f"{[h.strip() for h in header]}; name them tag/value or set "
+                f"source.csv.tag_column and source.csv.value_column in the job YAML"
             )
         if i_time is None:
             raise IngestError(
                 f"{name}: no time column in header {[h.strip() for h in header]}; name it "
-                f"one of time/timestamp/datetime/date or pass CsvOptions(time_column=...)"
+                f"one of time/timestamp/datetime/date or set source.csv.time_column in the job YAML"
             )
         data_rows = rows[1:]
     else:
@@ -313,6 +367,7 @@ def _read_long(
     sample_values = [_cell(r, i_value) for r in data_rows]
     decimal = options.decimal or _detect_decimal(sample_values, sep)
     first_line = options.skip_lines + (2 if has_header else 1)
+    _check_row_shapes(rows[0] if has_header else None, data_rows, sep, name, first_line)
     df = _polars_read(
         source,
         name,
@@ -321,6 +376,8 @@ def _read_long(
         skip_lines=options.skip_lines,
         columns=[i for _, i in by_index],
         row_index_name="_row" if tags is not None else None,
+        expected_fields=len(rows[0]) if has_header else None,
+        first_data_line=first_line,
     )
     names = (["_row"] if tags is not None else []) + [r for r, _ in by_index]
     df = df.rename(dict(zip(df.columns, names, strict=True)))
@@ -402,8 +459,8 @@ def _read_wide(
             raise IngestError(
                 f"{name}: no time column — none of the first {len(rows)} rows has a "
                 f"timestamp in column {i_time + 1} ({_cell(header0, i_time)!r}); put the "
-                f"time first, name it Time, or pass CsvOptions(time_column=..., "
-                f"time_format=...)"
+                f"time first, name it Time, or set source.csv.time_column and "
+                f"source.csv.time_format in the job YAML"
             )
     if n_header == 0:
         raise IngestError(
@@ -412,9 +469,11 @@ def _read_wide(
         )
     header = rows[:n_header]
     data_rows = rows[n_header:]
+    _check_row_shapes(header[options.tag_row] if 0 <= options.tag_row < n_header else None,
+                      data_rows, sep, name, options.skip_lines + n_header + 1)
     if not (0 <= options.tag_row < n_header):
         raise ConfigError(
-            f"CsvOptions(tag_row={options.tag_row}) must be in 0..{n_header - 1} "
+            f"source.csv.tag_row: {options.tag_row} must be in 0..{n_header - 1} "
             f"(the file has {n_header} header rows)"
         )
     tag_row = header[options.tag_row]
@@ -453,8 +512,8 @@ def _read_wide(
         if tag in value_cols:
             raise IngestError(
                 f"{name}: tag {tag!r} names two columns ({value_cols[tag] + 1} and {c + 1}) in "
-                f"header row {options.tag_row + 1}; make the header unique or pass "
-                f"CsvOptions(tag_row=...) for the row that names the tags"
+                f"header row {options.tag_row + 1}; make the header unique or set "
+                f"source.csv.tag_row in the job YAML to the row that names the tags"
             )
         value_cols[tag] = c
         last_tag = tag
@@ -493,6 +552,8 @@ def _read_wide(
         has_header=False,
         skip_lines=options.skip_lines + n_header,
         columns=wanted,
+        expected_fields=len(tag_row),
+        first_data_line=options.skip_lines + n_header + 1,
     )
     df = df.rename(dict(zip(df.columns, [f"c{i}" for i in wanted], strict=True)))
     if len(df) == 0:

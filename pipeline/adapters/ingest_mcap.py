@@ -201,15 +201,32 @@ def _json_frame(datas: list[bytes], log_times: list[int], name: str, topic: str)
     try:
         df = pl.read_ndjson(io.BytesIO(buf), infer_schema_length=None)
     except pl.exceptions.PolarsError:
-        # Mixed types polars cannot unify (e.g. a list of numbers and state texts):
-        # decode with the json module and keep leaf values as text.
+        # Mixed types polars cannot unify (e.g. a list of numbers and state texts, a
+        # list on one message and a scalar on another): decode with the json module, keep
+        # leaf values as text, and make a field a list on every message if it is on one.
+        rows = []
+        for i, d in enumerate(datas):
+            try:
+                obj = json.loads(d)
+            except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError
+                raise IngestError(
+                    f"{name}: topic {topic!r}, message {i} (log time {log_times[i]} ns) is "
+                    f"not valid JSON ({exc}); fix or re-export the recording") from None
+            if not isinstance(obj, dict):
+                raise IngestError(
+                    f"{name}: topic {topic!r}, message {i} (log time {log_times[i]} ns) is a "
+                    f"JSON {type(obj).__name__}, not an object with 't' and 'value' fields; "
+                    "re-export the recording")
+            rows.append(_stringify(obj))
+        listed = {k for r in rows for k, v in r.items() if isinstance(v, list)}
+        rows = [{k: ([v] if k in listed and not isinstance(v, list) else v)
+                 for k, v in r.items()} for r in rows]
         try:
-            rows = [json.loads(d) for d in datas]
-        except json.JSONDecodeError as exc:
+            df = pl.from_dicts(rows, infer_schema_length=None)
+        except pl.exceptions.PolarsError as exc:
             raise IngestError(
-                f"{name}: topic {topic!r} has a message that is not valid JSON ({exc})"
-            ) from exc
-        df = pl.from_dicts([_stringify(r) for r in rows], infer_schema_length=None)
+                f"{name}: topic {topic!r}: its messages do not share one layout ({exc}); "
+                "every message needs the same fields with the same kinds of values") from None
     if len(df) != len(log_times):
         raise IngestError(
             f"{name}: topic {topic!r}: {len(log_times)} messages decoded into {len(df)} rows; "
@@ -276,7 +293,7 @@ def _pick(
     if value is None:
         raise IngestError(
             f"{name}: topic {topic!r}: no value field {options.value_field!r} in its messages "
-            f"(fields: {df.columns}); pass mcap=McapOptions(value_field=...)"
+            f"(fields: {df.columns}); set source.mcap.value_field in the job YAML"
         )
     exprs["value"] = value
     fields = (("time", options.time_field), ("flag", options.quality_field), ("tag", tag_field))
@@ -309,8 +326,8 @@ def _object_frame(
         if value is _MISSING:
             raise IngestError(
                 f"{name}: topic {topic!r}: no field {options.value_field!r} in "
-                f"{type(obj).__name__} messages; pass mcap=McapOptions(value_field=...) with "
-                f"a dotted path (e.g. 'data' for std_msgs/Float64)"
+                f"{type(obj).__name__} messages; set source.mcap.value_field in the job YAML "
+                f"to a dotted path (e.g. 'data' for std_msgs/Float64)"
             )
         t = _get_path(obj, options.time_field) if options.time_field else _MISSING
         q = _get_path(obj, options.quality_field) if options.quality_field else _MISSING
@@ -336,7 +353,7 @@ def _object_frame(
             except TypeError as exc:
                 raise IngestError(
                     f"{name}: topic {topic!r}: time field {options.time_field!r}: {exc}; point "
-                    f"McapOptions(time_field=...) at a number, ISO text, or a stamp"
+                    f"source.mcap.time_field in the job YAML at a number, ISO text, or a stamp"
                 ) from exc
             times.append(tn if tn is not None else log_ns)
             values.append(v)
@@ -419,8 +436,8 @@ def _to_pre(
         if log_time.null_count():
             raise IngestError(
                 f"{name}: topic {topic!r}: samples without a time field "
-                f"{options.time_field!r} in many-sample messages; name the time field with "
-                f"mcap=McapOptions(time_field=...)"
+                f"{options.time_field!r} in many-sample messages; name the time field in "
+                f"source.mcap.time_field in the job YAML"
             )
         time_us = log_time // 1000
     time = time_us.cast(pl.Datetime("us")).dt.replace_time_zone("UTC").alias("time")
@@ -439,6 +456,19 @@ def _to_pre(
         ),
         fmt,
     )
+
+
+_MAX_LOG_TIME_NS = 2**63 - 1
+
+
+def _check_log_times(log_times: list[int], name: str, topic: str) -> None:
+    """MCAP log times are unsigned 64-bit; beyond int64 (year 2262) they are corrupt."""
+    for i, t in enumerate(log_times):
+        if t > _MAX_LOG_TIME_NS:
+            raise IngestError(
+                f"{name}: topic {topic!r}, message {i}: log time {t} ns is beyond year 2262 "
+                "(not a valid time); the file is corrupt or was written with the wrong time "
+                "unit — re-export the recording")
 
 
 def read_mcap_raw(
@@ -470,6 +500,7 @@ def read_mcap_raw(
         topic = channel.topic
         if wanted_topics is not None and topic not in wanted_topics:
             continue
+        _check_log_times(log_times, name, topic)
         encoding = channel.message_encoding
         topic_tag = topic.removeprefix(options.topic_prefix) if options.topic_prefix else topic
         if encoding == "json":
@@ -536,7 +567,7 @@ def read_mcap_raw(
         raise IngestError(
             f"{name}: no samples found (channels: {sorted(c.topic for c in channels.values())}, "
             f"{sum(len(m[0]) for m in messages.values())} messages); check "
-            f"McapOptions(topics=..., value_field=...)"
+            f"source.mcap.topics and source.mcap.value_field in the job YAML"
         )
     meta = _ReaderMeta(
         path=name,
