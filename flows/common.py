@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import os
+import sys
+import threading
+import time
 
 from pipeline.errors import UserInputError
 
@@ -14,6 +18,46 @@ def prefect_env_defaults() -> None:
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+
+
+def say(t_start: float, stage: str, message: str) -> None:
+    """A stage line on stderr (written directly: a flow's ``log_prints`` would turn a print
+    into a log record, and Prefect's console logging is quiet by default)."""
+    sys.stderr.write(f"[{time.perf_counter() - t_start:7.1f} s] {stage}: {message}\n")
+    sys.stderr.flush()
+
+
+_STARTED = threading.Event()
+
+
+def flow_started() -> None:
+    """Called by a flow's first line: the ticker of :func:`starting` stops."""
+    _STARTED.set()
+
+
+@contextlib.contextmanager
+def starting(what: str, every_s: float = 5.0):
+    """Say that ``what`` is starting and, until the flow's first stage line, how long it has
+    taken (Prefect's embedded server takes 10-30 s on a first run, in silence)."""
+    t0 = time.perf_counter()
+    _STARTED.clear()
+    print(f"starting {what}...", file=sys.stderr, flush=True)
+    stop = threading.Event()
+
+    def tick():
+        while not stop.wait(every_s):
+            if _STARTED.is_set():
+                return
+            print(f"[{time.perf_counter() - t0:7.1f} s] still starting Prefect (embedded "
+                  "server and database)...", file=sys.stderr, flush=True)
+
+    th = threading.Thread(target=tick, daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        th.join(timeout=1)
 
 
 def retry_transient_io(task, task_run, state) -> bool:

@@ -5,7 +5,6 @@ Each task body is one call into :mod:`pipeline.discrepancy_job` (the same stages
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +17,12 @@ from prefect.artifacts import (
 )
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import console_without_user_error_tracebacks, retry_transient_io
+from flows.common import (
+    console_without_user_error_tracebacks,
+    flow_started,
+    retry_transient_io,
+    say,
+)
 from pipeline import discrepancy_job as dj
 from pipeline import jobs
 from pipeline.adapters.config import load_job
@@ -44,9 +48,8 @@ def prepare_task(cfg, rec, model):
 @task(name="analyse", **_T)
 def analyse_task(cfg, model, data):
     start = time.perf_counter()
-    return dj.analyse(cfg, model, data, progress=lambda stage, message: print(
-        f"[{time.perf_counter() - start:7.1f} s] analyse/{stage}: {message}", file=sys.stderr,
-        flush=True))
+    return dj.analyse(cfg, model, data,
+                      progress=lambda stage, message: say(start, f"analyse/{stage}", message))
 
 
 @task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
@@ -61,6 +64,7 @@ def _key(job: str, suffix: str) -> str:
 @flow(name="discrepancy", log_prints=True)
 def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
     """Compare a job's simulation model with its measured data; name the missing effect."""
+    flow_started()
     cfg = load_job(job_path)
     timings: dict[str, float] = {}
     progress = create_progress_artifact(0.0, key=_key(cfg.job, "progress"),

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
@@ -18,7 +17,9 @@ from prefect.cache_policies import NO_CACHE
 
 from flows.common import (
     console_without_user_error_tracebacks,
+    flow_started,
     retry_transient_io,
+    say,
     task_runner_for,
 )
 from pipeline import jobs
@@ -59,10 +60,6 @@ def store_task(cfg, summary, prep, sr, timings, run_id):
     return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
 
 
-def _say(t_start: float, stage: str, message: str) -> None:
-    """Stage progress on stderr (Prefect's own logging is quiet by default)."""
-    print(f"[{time.perf_counter() - t_start:7.1f} s] {stage}: {message}", file=sys.stderr,
-          flush=True)
 
 
 def _artifact_key(job: str, suffix: str) -> str:
@@ -72,28 +69,29 @@ def _artifact_key(job: str, suffix: str) -> str:
 @flow(name="estimate", log_prints=True)
 def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
     """Estimate step responses for one job YAML (optionally on given files)."""
+    flow_started()
     cfg = load_job(job_path)
     timings: dict[str, float] = {}
     progress = create_progress_artifact(0.0, key=_artifact_key(cfg.job, "progress"),
                                         description=f"{cfg.job}: estimation progress")
     start = time.perf_counter()
-    _say(start, "ingest", f"reading {files or cfg.source.path}")
+    say(start, "ingest", f"reading {files or cfg.source.path}")
     t0 = time.perf_counter()
     rec = ingest_task(cfg, [Path(f) for f in files] if files else None)
     timings["ingest"] = time.perf_counter() - t0
     update_progress_artifact(progress, 15.0, description="ingested")
-    _say(start, "ingest", f"{rec.values.shape[0]} grid samples at {rec.dt_s:g} s, "
+    say(start, "ingest", f"{rec.values.shape[0]} grid samples at {rec.dt_s:g} s, "
          f"{sum(q['masked'] for q in rec.quality.values())} masked")
     t0 = time.perf_counter()
     prep = prepare_task(cfg, rec)
     timings["prepare"] = time.perf_counter() - t0
-    _say(start, "prepare", f"T = {prep.dt_s:g} s (decimation {prep.decimation}), "
+    say(start, "prepare", f"T = {prep.dt_s:g} s (decimation {prep.decimation}), "
          f"conditioning {prep.conditioning['method']}")
     t0 = time.perf_counter()
     sr = search_task(cfg, prep)
     timings["search"] = time.perf_counter() - t0
     update_progress_artifact(progress, 50.0, description=f"N_p chosen, N_d={sr.n_d}")
-    _say(start, "search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
+    say(start, "search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
          f"{len(sr.windows)} windows")
     t0 = time.perf_counter()
     windows = [None] + [tuple(w) for w in sr.windows]
@@ -102,11 +100,11 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     ests = futures.result()
     timings["estimate"] = time.perf_counter() - t0
     update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
-    _say(start, "estimate", f"{len(windows)} estimates (all + windows)")
+    say(start, "estimate", f"{len(windows)} estimates (all + windows)")
     t0 = time.perf_counter()
     summary = summarise_task(cfg, prep, sr, ests[0], ests[1:])
     timings["summarise"] = time.perf_counter() - t0
-    _say(start, "store", "writing run directory and Rerun recording")
+    say(start, "store", "writing run directory and Rerun recording")
     report = store_task(cfg, summary, prep, sr, timings, run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(summary.report_md, key=_artifact_key(cfg.job, "report"),

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
+
 from prefect import flow, task, unmapped
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import console_without_user_error_tracebacks, task_runner_for
+from flows.common import console_without_user_error_tracebacks, flow_started, task_runner_for
 from pipeline.adapters.config import load_job
 from pipeline.nightly import discover_files, process_file
 
@@ -18,14 +20,22 @@ def discover_task(cfg):
 
 @task(name="process-file", cache_policy=NO_CACHE, persist_result=False)
 def process_file_task(cfg, item):
-    return process_file(cfg, item[0], item[1])
+    row = process_file(cfg, item[0], item[1])
+    # as each file finishes (stderr directly: the flow's log_prints would swallow it)
+    sys.stderr.write(f"[nightly] {row['status']}: {item[0]}"
+                     f"{'  -> ' + str(row['run_id']) if row.get('run_id') else ''}"
+                     f"{'  (' + str(row['error'])[:200] + ')' if row.get('error') else ''}\n")
+    sys.stderr.flush()
+    return row
 
 
 @flow(name="nightly", log_prints=True)
 def nightly_flow(job_path: str) -> list[dict]:
     """Discover new files of the job (``source.path`` glob) and process each once."""
+    flow_started()
     cfg = load_job(job_path)
     items = discover_task(cfg)
+    sys.stderr.write(f"[nightly] {cfg.job}: {len(items)} file(s) in {cfg.source.path}\n")
     rows = process_file_task.map(unmapped(cfg), items).result() if items else []
     failed = [r for r in rows if r["status"] in ("failed", "error")]
     lines = [f"# nightly {cfg.job}", "",

@@ -7,6 +7,7 @@ Exit codes (design.md): 0 success, 2 bad configuration or input (message on stde
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -29,37 +30,79 @@ class _Progress:
               flush=True)
 
 
-def _cmd_run(args) -> int:
-    from pipeline.adapters.config import load_job
+def _check_job(path: str, *, files: bool = True):
+    """Everything that can be checked before work starts (config, paths, roots, storage,
+    run id), once — so a bad job fails in a second, with one message, before Prefect."""
+    from pipeline.adapters.config import load_job, resolve_sources
 
-    cfg = load_job(args.job)  # validate before starting Prefect: fast, clear errors
+    cfg = load_job(path)
+    if files:
+        resolve_sources(cfg)
+    root = cfg.storage_root
+    if root.exists() and not root.is_dir():
+        from pipeline.errors import ConfigError
+
+        raise ConfigError(f"storage: {str(root)!r} is a file, not a folder")
+    return cfg
+
+
+def _check_run_id(run_id: str | None) -> None:
+    if run_id is not None:
+        from pipeline.adapters.store import _NAME_RE, _check_name
+
+        _check_name(run_id, what="--run-id", pattern=_NAME_RE)
+
+
+def _cmd_run(args) -> int:
+    cfg = _check_job(args.job)
+    _check_run_id(args.run_id)
     if args.no_prefect:
         from pipeline.jobs import run_job
 
         report = run_job(cfg, run_id=args.run_id, progress=_Progress())
     else:
-        from flows.common import prefect_env_defaults
+        from flows.common import prefect_env_defaults, starting
 
         prefect_env_defaults()
-        print("starting the Prefect flow 'estimate' (embedded server unless PREFECT_API_URL "
-              "is set)...", file=sys.stderr, flush=True)
-        from flows.estimate import run_estimate
+        with starting("the Prefect flow 'estimate' (embedded server unless PREFECT_API_URL "
+                      "is set)"):
+            from flows.estimate import run_estimate
 
-        report = run_estimate(args.job, run_id=args.run_id)
+            report = run_estimate(args.job, run_id=args.run_id)
     print(report, file=sys.stderr)
     print(report.run_dir)
     return 0
 
 
 def _cmd_nightly(args) -> int:
-    from flows.common import prefect_env_defaults
+    from flows.common import prefect_env_defaults, starting
 
+    _check_job(args.job, files=False)  # an empty drop folder is a normal night
     prefect_env_defaults()
-    from flows.nightly import run_nightly
+    with starting("the Prefect flow 'nightly'"):
+        from flows.nightly import run_nightly
 
-    rows = run_nightly(args.job)
-    failed = [r for r in rows if r["status"] in ("failed", "error")]
-    return 0 if not failed else 2
+        rows = run_nightly(args.job)
+    for r in rows:  # one line per file: status, run dir or message
+        where = r.get("run_dir") or r.get("run_id") or ""
+        print(f"{r['status']:>10}  {Path(r['path']).name}  {where}  {r.get('error') or ''}"
+              .rstrip())
+    counts = {s: sum(r["status"] == s for r in rows) for s in
+              sorted({r["status"] for r in rows})}
+    summary = ", ".join(f"{n} {s}" for s, n in counts.items()) or "no new files"
+    print(f"nightly: {len(rows)} file(s): {summary}", file=sys.stderr)
+    if any(r["status"] == "error" for r in rows):
+        bad = next(r for r in rows if r["status"] == "error")
+        print(f"plantdyn: internal error on {bad['path']} (exit 1; it is retried next night): "
+              f"{bad.get('error')}", file=sys.stderr)
+        return 1
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        print(f"plantdyn: error: {len(failed)} of {len(rows)} file(s) failed with bad data "
+              f"(not retried until they change): {Path(failed[0]['path']).name}: "
+              f"{failed[0].get('error')}", file=sys.stderr)
+        return 2
+    return 0
 
 
 def _cmd_runs(args) -> int:
@@ -73,7 +116,9 @@ def _cmd_runs(args) -> int:
         root, job = cfg.storage_root, cfg.job
     else:
         root, job = Path(args.storage).resolve(), args.job
-    store = ResultStore(root)
+    # read-only: listing never creates a catalog (a --storage typo) nor needs write access
+    # (an archive on a read-only disk)
+    store = ResultStore(root, readonly=True)
     runs = store.list_runs(job)
     if runs.height == 0:
         print(f"no runs of job {job!r} under {root}")
@@ -88,6 +133,24 @@ def _cmd_runs(args) -> int:
             metrics = args.metric or ["gain", "rate", "dead_time_s", "static_gain",
                                       "holdout_rms_before", "holdout_rms_after", "reduction"]
             print(trend.filter(pl.col("metric").is_in(metrics)).select(keep))
+    return 0
+
+
+def _cmd_reindex(args) -> int:
+    from pipeline.adapters.store import CATALOG_NAME, ResultStore
+
+    root = Path(args.storage).resolve()
+    if not root.is_dir():
+        print(f"plantdyn: error: storage {root} is not a folder", file=sys.stderr)
+        return 2
+    if not (root / CATALOG_NAME).exists() and not any(p.is_dir() for p in root.iterdir()):
+        print(f"plantdyn: error: storage {root} has neither a catalog nor run folders; "
+              "give the results root (the job's storage:)", file=sys.stderr)
+        return 2
+    res = ResultStore(root).reindex()
+    print(f"catalog rebuilt from {res.n_runs} run folder(s) under {root}")
+    for s in res.skipped:
+        print(f"  skipped {s}")
     return 0
 
 
@@ -109,9 +172,8 @@ def _cmd_serve(args) -> int:
 
 
 def _cmd_discrepancy(args) -> int:
-    from pipeline.adapters.config import load_job
-
-    cfg = load_job(args.job)  # validate before starting Prefect: fast, clear errors
+    cfg = _check_job(args.job)
+    _check_run_id(args.run_id)
     if args.no_prefect:
         from pipeline.discrepancy_job import check_job, run_discrepancy
 
@@ -124,11 +186,12 @@ def _cmd_discrepancy(args) -> int:
         from flows.common import prefect_env_defaults
 
         prefect_env_defaults()
-        print("starting the Prefect flow 'discrepancy' (embedded server unless "
-              "PREFECT_API_URL is set)...", file=sys.stderr, flush=True)
+        from flows.common import starting
         from flows.discrepancy import run_discrepancy_flow
 
-        report = run_discrepancy_flow(args.job, run_id=args.run_id)
+        with starting("the Prefect flow 'discrepancy' (embedded server unless "
+                      "PREFECT_API_URL is set)"):
+            report = run_discrepancy_flow(args.job, run_id=args.run_id)
     print(report, file=sys.stderr)
     print(report.run_dir)
     return 0
@@ -170,6 +233,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="results root when JOB is a name")
     ru.add_argument("--metric", action="append", help="metrics to trend (repeatable)")
     ru.set_defaults(fn=_cmd_runs)
+    rx = sub.add_parser("reindex", help="rebuild a results root's catalog from its run "
+                                        "folders (after a read-only or lost catalog)")
+    rx.add_argument("storage", help="the results root (a job's storage: folder)")
+    rx.set_defaults(fn=_cmd_reindex)
     dc = sub.add_parser("discrepancy", help="simulation-vs-measurement workflow; prints the "
                                             "run directory")
     dc.add_argument("job", help="job YAML file with model: (or discrepancy.simulator_outputs)")
@@ -189,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserInputError as exc:
         print(f"plantdyn: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `plantdyn runs JOB | head`: the reader left, nothing to say
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except KeyboardInterrupt:
         print("plantdyn: interrupted", file=sys.stderr)
         return 1

@@ -52,5 +52,11 @@ class IngestError(UserInputError, ValueError):
     """A recording cannot be read (format, encoding, truncation, missing tags)."""
 
 
+class StorageError(UserInputError, OSError):
+    """The storage root cannot take a result: disk full, read-only, not a folder, a
+    catalog that cannot be opened.  The user can fix it (free space, permissions, another
+    ``storage:``), so it is exit code 2, and it is never retried."""
+
+
 class ModelError(ConfigError):
     """A block-diagram model is invalid (unknown block, algebraic loop, bad parameter)."""

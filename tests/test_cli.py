@@ -53,8 +53,18 @@ def test_demo_writes_export_runs_job_and_says_where_results_are(tmp_path):
 
 
 def test_runs_of_unknown_job_says_so(tmp_path):
-    r = cli("runs", "nojob", "--storage", str(tmp_path))
+    from pipeline.adapters.store import ResultStore
+
+    ResultStore(tmp_path / "storage")  # a results root with a catalog, no runs
+    r = cli("runs", "nojob", "--storage", str(tmp_path / "storage"))
     assert r.returncode == 0 and "no runs of job 'nojob'" in r.stdout
+
+
+def test_runs_with_a_mistyped_storage_is_an_error_and_creates_nothing(tmp_path):
+    r = cli("runs", "nojob", "--storage", str(tmp_path / "storgae"))
+    assert r.returncode == 2 and "no catalog (catalog.sqlite) — not a plantdyn results " \
+        "folder, or a typo" in r.stderr
+    assert not (tmp_path / "storgae").exists()
 
 
 def test_bad_command_line_is_exit_2():

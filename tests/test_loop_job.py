@@ -112,7 +112,7 @@ def test_a_useless_instrument_is_a_clear_error_and_nothing_is_written(tmp_path, 
     write_export(tmp_path / "drop" / "x.csv", {LOOP_TAGS["OP"]: sig["OP"],
                                              LOOP_TAGS["PV"]: sig["PV"], "XX-999.PV": other},
                  seed=6_200_002)
-    job = {"job": "bad_iv", "source": {"path": "drop/*.csv"},
+    job = {"job": "bad_iv", "source": {"path": "drop/*.csv", "timezone": "UTC"},
            "signals": {"inputs": {"valve": {"tag": LOOP_TAGS["OP"]}},
                        "outputs": {"flow": {"tag": LOOP_TAGS["PV"]}},
                        "instruments": {"other": {"tag": "XX-999.PV"}}},

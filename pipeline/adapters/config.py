@@ -46,17 +46,18 @@ __all__ = [
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # every float finite: .inf / .nan pass a "> 0" check and crash later
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class SignalConfig(_Strict):
     """One measured signal: its historian tag and how to put it on the grid."""
 
-    tag: str = Field(min_length=1)
+    tag: str = Field(min_length=1, max_length=200)
     integrating: bool = False
     interpolation: Literal["linear", "hold"] | None = None
     """Default: linear for inputs, hold for outputs (exception-reported PVs)."""
-    max_gap_s: float | None = Field(default=None, gt=0)
+    max_gap_s: float | None = Field(default=None, gt=0, le=30 * 86_400)
     """Longest span bridged by interpolation/hold; default 10 grid periods."""
     unit: str | None = None
 
@@ -136,12 +137,14 @@ class CsvConfig(_Strict):
 class SourceConfig(_Strict):
     path: str = Field(min_length=1)
     """File or glob, relative to the job file; .csv or .mcap."""
-    timezone: str = "UTC"
+    timezone: str
+    """Zone of the export's naive timestamps — required: a wrong guess shifts every
+    sample by hours (and DST) without a sign."""
     layout: Literal["auto", "long", "wide", "mcap"] = "auto"
     on_truncated: Literal["error", "warn"] = "error"
     mcap: McapOptions | None = None
     csv: CsvConfig | None = None
-    grid_dt_s: float | None = Field(default=None, gt=0)
+    grid_dt_s: float | None = Field(default=None, ge=0.001, le=86_400)
     """Period of the uniform grid before α_T resampling; default: median sample spacing."""
     time_order: Literal["fix", "strict"] = "fix"
     """``fix``: duplicates (last wins) and out-of-order rows are resolved and counted in
@@ -164,7 +167,7 @@ class SourceConfig(_Strict):
 
 
 class SamplingConfig(_Strict):
-    dt_s: float | None = Field(default=None, gt=0)
+    dt_s: float | None = Field(default=None, ge=0.001, le=86_400)
     """Fix the sample period; default: chosen by the α_T criterion."""
     target_input: float = Field(default=0.05, gt=0, lt=1)
     target_output: float = Field(default=0.01, gt=0, lt=1)
@@ -172,25 +175,32 @@ class SamplingConfig(_Strict):
 
 class ConditioningConfig(_Strict):
     method: Literal["mean", "detrend", "difference", "highpass"] = "detrend"
-    kdiff1: int = Field(default=1, ge=1)
-    cutoff_period_s: float | None = Field(default=None, gt=0)
+    kdiff1: int = Field(default=1, ge=1, le=100_000)
+    cutoff_period_s: float | None = Field(default=None, gt=0, le=1e8)
     order: int = Field(default=2, ge=1, le=8)
 
 
 class SearchConfig(_Strict):
-    n_p: int | None = Field(default=None, ge=1)
+    n_p: int | None = Field(default=None, ge=1, le=5000)
     """Fix N_p for every pair (skips the N_p search)."""
-    settling_time_s: float | None = Field(default=None, gt=0)
+    settling_time_s: float | None = Field(default=None, gt=0, le=1e8)
     """If known: N_p = settling_time_s / T (method.md §5)."""
-    n_p_min: int = Field(default=3, ge=1)
-    n_p_max: int | None = Field(default=None, ge=1)
-    n_d_start: int | None = Field(default=None, ge=1)
+    n_p_min: int = Field(default=3, ge=1, le=5000)
+    n_p_max: int | None = Field(default=None, ge=1, le=5000)
+    n_d_start: int | None = Field(default=None, ge=1, le=100_000_000)
     max_windows: int = Field(default=4, ge=2, le=50)
+
+    @model_validator(mode="after")
+    def _orders(self):
+        if self.n_p_max is not None and self.n_p_min > self.n_p_max:
+            raise ValueError(f"search.n_p_min ({self.n_p_min}) is above search.n_p_max "
+                             f"({self.n_p_max}); lower n_p_min or raise n_p_max")
+        return self
 
 
 class ChecksConfig(_Strict):
-    ljung_box_lags: int = Field(default=20, ge=1)
-    xcorr_max_lag: int | None = Field(default=None, ge=1)
+    ljung_box_lags: int = Field(default=20, ge=1, le=1000)
+    xcorr_max_lag: int | None = Field(default=None, ge=1, le=5000)
     """Default: the pair's N_p."""
 
 
@@ -231,7 +241,7 @@ class QualityConfig(_Strict):
     spikes: Literal["mask", "off"] = "mask"
     """``mask``: isolated samples far from their neighbours are masked and reported
     (:mod:`pipeline.spikes`); ``off`` keeps every sample."""
-    spike_sigmas: float = Field(default=8.0, ge=3.0, le=1e6, allow_inf_nan=False)
+    spike_sigmas: float = Field(default=20.0, ge=3.0, le=1e6, allow_inf_nan=False)
     """Deviation from the running median, in robust noise s.d., that makes a spike."""
 
 
@@ -294,7 +304,7 @@ class DaskConfig(_Strict):
 class JobConfig(_Strict):
     """A validated estimation (or discrepancy) job."""
 
-    job: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", min_length=1)
+    job: str = Field(pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$", min_length=1, max_length=64)
     source: SourceConfig
     signals: SignalsConfig
     storage: str = "../storage"
@@ -389,6 +399,9 @@ class JobConfig(_Strict):
     def storage_root(self) -> Path:
         root = (self.base / self.storage).resolve()
         _check_allowed(root, self.base, "storage")
+        if root.exists() and not root.is_dir():
+            raise ConfigError(f"storage: {str(root)!r} is a file, not a folder; point "
+                              "storage at a folder for the results (it is created if missing)")
         return root
 
     def tags(self) -> dict[str, str]:
@@ -414,6 +427,15 @@ def _check_allowed(path: Path, base: Path, key: str) -> None:
         )
 
 
+_MISSING_HINTS = {
+    "source.timezone": "the zone of the export's naive timestamps, e.g. UTC or Europe/Berlin "
+                       "(a wrong zone shifts every sample by hours)",
+    "source.path": "the export file or glob, relative to the job file",
+    "signals.inputs": "the manipulated or measured inputs, {name: {tag: ...}}",
+    "signals.outputs": "the outputs, {name: {tag: ...}}",
+}
+
+
 def _format_validation_error(exc: ValidationError, where: str) -> str:
     parts = []
     for err in exc.errors():
@@ -422,7 +444,8 @@ def _format_validation_error(exc: ValidationError, where: str) -> str:
             parts.append(f"{loc}: unknown key (not allowed here; check the spelling)")
             continue
         if err["type"] == "missing":
-            parts.append(f"{loc}: required key is missing")
+            hint = _MISSING_HINTS.get(loc)
+            parts.append(f"{loc}: required key is missing" + (f" — {hint}" if hint else ""))
             continue
         val = err.get("input")
         text = repr(val) if not isinstance(val, dict) else "{...}"

@@ -46,7 +46,7 @@ import numpy as np
 import polars as pl
 
 import pipeline
-from pipeline.errors import ConfigError, DataQualityError, PipelineError
+from pipeline.errors import ConfigError, DataQualityError, PipelineError, StorageError
 
 __all__ = [
     "CATALOG_NAME",
@@ -345,7 +345,73 @@ def _atomic_write_bytes(path: Path, data: bytes) -> None:
     _fsync_dir(path.parent)
 
 
+MAX_NAME_LENGTH = 100
+"""Longest job name or run id: with the temp-folder suffix and the file names they must fit
+the 255-byte name limit of common file systems."""
+
+
+STALE_TMP_S = 3600.0
+"""A ``.tmp-*`` run folder untouched this long was left by a killed process (a run writes
+its folder in seconds) and is removed when a writable store opens."""
+
+
+def _storage_error(exc: BaseException, path: Path, doing: str) -> StorageError | None:
+    """A clear :class:`StorageError` for what the user can fix, else None."""
+    import errno
+
+    if isinstance(exc, sqlite3.Error):
+        text = str(exc).lower()
+        if "readonly" in text or "read-only" in text:
+            cause = "the catalog is read-only"
+            fix = (f"make {path} (and its folder) writable, or point storage: at a writable "
+                   "folder")
+        elif "disk is full" in text or "disk i/o" in text:
+            cause = "the disk is full"
+            fix = "free space on that disk or point storage: at another one"
+        elif "unable to open" in text:
+            cause = "the catalog cannot be opened"
+            fix = f"check that {path.parent} exists and is writable"
+        elif "not a database" in text or "malformed" in text:
+            cause = "the catalog file is not an SQLite database (corrupt or replaced)"
+            fix = (f"move {path} aside and run `plantdyn reindex {path.parent}` to rebuild it "
+                   "from the run folders")
+        else:
+            return None
+        return StorageError(f"storage {path}: {cause} while {doing}; {fix}")
+    if isinstance(exc, OSError):
+        code = exc.errno
+        where = exc.filename or path
+        if code in (errno.ENOSPC, getattr(errno, "EDQUOT", -1)):
+            free = ""
+            with contextlib.suppress(OSError):
+                free = f" ({shutil.disk_usage(path if path.exists() else path.parent).free / 1e6:.0f} MB free)"
+            return StorageError(f"storage {where}: the disk is full{free} while {doing}; free "
+                                "space or point storage: at another disk — nothing was written")
+        if code in (errno.EROFS, errno.EACCES, errno.EPERM):
+            return StorageError(f"storage {where}: not writable ({os.strerror(code)}) while "
+                                f"{doing}; fix the permissions or point storage: at a writable "
+                                "folder — nothing was written")
+        if code in (errno.ENOTDIR, errno.EEXIST, errno.EISDIR):
+            return StorageError(f"storage {where}: {os.strerror(code)} while {doing}; storage: "
+                                "must be a folder")
+    return None
+
+
+@contextlib.contextmanager
+def _storage_faults(path: Path, doing: str) -> Iterator[None]:
+    try:
+        yield
+    except (OSError, sqlite3.Error) as exc:
+        err = _storage_error(exc, path, doing)
+        if err is None:
+            raise
+        raise err from None
+
+
 def _check_name(name: str, *, what: str, pattern: re.Pattern[str] = _NAME_RE) -> str:
+    if isinstance(name, str) and len(name) > MAX_NAME_LENGTH:
+        raise ConfigError(f"{what} of {len(name)} characters is too long (at most "
+                          f"{MAX_NAME_LENGTH}: it becomes a folder name); shorten it")
     if not isinstance(name, str) or not pattern.fullmatch(name):
         raise ConfigError(
             f"{what} {name!r} is not allowed: it becomes a directory or file name under the storage "
@@ -660,23 +726,46 @@ class ResultStore:
         claim_lease_s: float = 3600.0,
         busy_timeout_s: float = 30.0,
         clock: Callable[[], float] = time.time,
+        readonly: bool = False,
     ) -> None:
         if claim_lease_s <= 0:
             raise ConfigError(f"claim_lease_s={claim_lease_s} must be > 0 s")
         self.root = Path(root).expanduser().resolve()
-        self.root.mkdir(parents=True, exist_ok=True)
+        self.readonly = bool(readonly)
         self.claim_lease_s = float(claim_lease_s)
         self.busy_timeout_s = float(busy_timeout_s)
         self._clock = clock
         self._token = secrets.token_hex(4)
         self.catalog_path = self.root / CATALOG_NAME
-        with self._transaction() as con:
-            for statement in _CATALOG_DDL:
-                con.execute(statement)
+        if self.catalog_path.is_symlink():
+            raise StorageError(f"storage {self.catalog_path}: the catalog is a symbolic link "
+                               f"(to {os.readlink(self.catalog_path)}); it must be a file of the "
+                               "storage root — replace the link by the file")
+        if self.readonly:
+            if not self.catalog_path.is_file():
+                raise StorageError(
+                    f"storage {self.root}: no catalog ({CATALOG_NAME}) — not a plantdyn "
+                    "results folder, or a typo in --storage / storage:")
+            return
+        with _storage_faults(self.root, "creating the results folder"):
+            if self.root.exists() and not self.root.is_dir():
+                raise StorageError(f"storage {self.root}: is a file, not a folder; point "
+                                   "storage: at a folder")
+            self.root.mkdir(parents=True, exist_ok=True)
+        with _storage_faults(self.catalog_path, "opening the catalog"):
+            with self._transaction() as con:
+                for statement in _CATALOG_DDL:
+                    con.execute(statement)
+        with contextlib.suppress(OSError):
+            self.clean_stale(STALE_TMP_S)
 
     # ----------------------------------------------------------------- catalog plumbing
 
     def _connect(self) -> sqlite3.Connection:
+        if self.readonly:  # never creates or changes anything (an archive on a read-only disk)
+            con = sqlite3.connect(f"{self.catalog_path.as_uri()}?mode=ro&immutable=1", uri=True,
+                                  timeout=self.busy_timeout_s, isolation_level=None)
+            return con
         # isolation_level=None: we issue BEGIN IMMEDIATE / COMMIT ourselves, so a writer takes
         # the write lock before reading (no read-then-upgrade deadlocks between processes).
         con = sqlite3.connect(self.catalog_path, timeout=self.busy_timeout_s, isolation_level=None)
@@ -690,6 +779,15 @@ class ResultStore:
 
     @contextlib.contextmanager
     def _transaction(self) -> Iterator[sqlite3.Connection]:
+        if self.readonly:
+            raise StorageError(f"storage {self.root} was opened read-only; the catalog cannot "
+                               "be changed")
+        with _storage_faults(self.catalog_path, "writing the catalog"):
+            with self._write_transaction() as con:
+                yield con
+
+    @contextlib.contextmanager
+    def _write_transaction(self) -> Iterator[sqlite3.Connection]:
         con = self._connect()
         try:
             # IMMEDIATE: take the write lock up front.  A DEFERRED transaction that reads
@@ -706,11 +804,12 @@ class ResultStore:
             con.close()
 
     def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
-        con = self._connect()
-        try:
-            return con.execute(sql, params).fetchall()
-        finally:
-            con.close()
+        with _storage_faults(self.catalog_path, "reading the catalog"):
+            con = self._connect()
+            try:
+                return con.execute(sql, params).fetchall()
+            finally:
+                con.close()
 
     def _owner(self) -> str:
         # pid read at call time: a forked child of this process gets its own token.
@@ -774,20 +873,25 @@ class ResultStore:
         final = self._run_dir(job, run_id)
         if final.exists():
             raise ConfigError(f"run {job}/{run_id} already exists at {final}; run ids must be unique")
+        if self.readonly:
+            raise StorageError(f"storage {self.root} was opened read-only; cannot write a run")
         resolved_inputs = _normalise_inputs(inputs)
         config_json = _json_ready(dict(config), "config")
-        final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = final.parent / f"{_TMP_PREFIX}{run_id}-{secrets.token_hex(4)}"
-        tmp.mkdir()
+        with _storage_faults(final.parent, "creating the run folder"):
+            final.parent.mkdir(parents=True, exist_ok=True)
+            tmp = final.parent / f"{_TMP_PREFIX}{run_id}-{secrets.token_hex(4)}"
+            tmp.mkdir()
         writer = RunWriter(job=job, run_id=run_id, created_utc=moment, path=tmp)
         try:
-            yield writer
-            writer._closed = True
-            manifest = self._manifest(writer, config_json, resolved_inputs)
-            _atomic_write_bytes(tmp / MANIFEST_NAME, to_json_text(manifest).encode("utf-8"))
-            if final.exists():  # os.rename would silently replace an *empty* directory
-                raise ConfigError(f"run {job}/{run_id} appeared at {final} while writing; run ids must be unique")
-            os.rename(tmp, final)
+            with _storage_faults(tmp, f"writing run {job}/{run_id}"):
+                yield writer
+                writer._closed = True
+                manifest = self._manifest(writer, config_json, resolved_inputs)
+                _atomic_write_bytes(tmp / MANIFEST_NAME, to_json_text(manifest).encode("utf-8"))
+                if final.exists():  # os.rename would silently replace an *empty* directory
+                    raise ConfigError(f"run {job}/{run_id} appeared at {final} while writing; "
+                                      "run ids must be unique")
+                os.rename(tmp, final)
         except BaseException:
             writer._closed = True
             shutil.rmtree(tmp, ignore_errors=True)
@@ -796,12 +900,16 @@ class ResultStore:
         writer.path = final
         try:
             self._insert_run(manifest)
-        except sqlite3.Error as exc:
-            exc.add_note(
-                f"run directory {final} was written but is missing from the catalog; "
-                "ResultStore(root).reindex() adds it"
-            )
-            raise
+        except (sqlite3.Error, StorageError) as exc:
+            note = (f"the run folder {final} is complete but missing from the catalog; "
+                    f"`plantdyn reindex {self.root}` adds it once the catalog is writable")
+            if isinstance(exc, sqlite3.Error):
+                err = _storage_error(exc, self.catalog_path, f"cataloguing run {job}/{run_id}")
+                if err is None:
+                    exc.add_note(note)
+                    raise
+                exc = err
+            raise StorageError(f"{exc}; {note}") from None
 
     def _manifest(self, writer: RunWriter, config: Any, inputs: list[dict[str, Any]]) -> dict[str, Any]:
         files = []
@@ -882,11 +990,12 @@ class ResultStore:
                     skipped.append(f"{run_dir}: {exc}")
                     continue
                 manifests.append(manifest)
-        with self._transaction() as con:
-            con.execute("DELETE FROM runs")
-            con.execute("DELETE FROM pair_metrics")
-            for manifest in manifests:
-                self._insert_rows(con, manifest)
+        with _storage_faults(self.catalog_path, "rebuilding the catalog"):
+            with self._transaction() as con:
+                con.execute("DELETE FROM runs")
+                con.execute("DELETE FROM pair_metrics")
+                for manifest in manifests:
+                    self._insert_rows(con, manifest)
         return ReindexResult(n_runs=len(manifests), skipped=tuple(skipped))
 
     def clean_stale(self, older_than_s: float) -> list[Path]:
