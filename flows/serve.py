@@ -53,8 +53,8 @@ __all__ = [
     "serve",
 ]
 
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_PREFECT_HOME = PROJECT_ROOT / "storage" / ".prefect"
+DEFAULT_PREFECT_HOME = Path("storage") / ".prefect"
+"""Relative to the current folder (``plantdyn serve`` runs where the jobs are)."""
 #: A fresh database runs its migrations on first start (≈ 15 s on 2 cores); later ≈ 5 s.
 SERVER_STARTUP_TIMEOUT_S = 120.0
 #: How long a stopping server may take before it is killed.

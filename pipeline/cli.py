@@ -16,7 +16,6 @@ from pathlib import Path
 
 from pipeline.errors import UserInputError
 
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
 
 class _Progress:
@@ -168,7 +167,13 @@ def _cmd_demo(args) -> int:
 def _cmd_serve(args) -> int:
     from flows.serve import serve
 
-    return serve([Path(p) for p in args.jobs], limit=args.limit, once=args.once)
+    jobs = args.jobs if args.jobs else sorted(str(q) for q in Path("configs").glob("*.yaml"))
+    if not jobs:
+        from pipeline.errors import ConfigError
+
+        raise ConfigError(f"no job YAMLs given and none in {Path('configs').resolve()}; give "
+                          "the jobs to serve: plantdyn serve JOB.yaml ...")
+    return serve([Path(p) for p in jobs], limit=args.limit, once=args.once)
 
 
 def _cmd_discrepancy(args) -> int:
@@ -212,25 +217,25 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("job")
     n.set_defaults(fn=_cmd_nightly)
     d = sub.add_parser("demo", help="make a demo historian export and run the demo job")
-    d.add_argument("--dir", default=str(PROJECT_ROOT / "demo"),
-                   help="folder for the demo export and job (default: ./demo)")
+    d.add_argument("--dir", default="demo",
+                   help="folder for the demo export and job (default: ./demo in the current "
+                        "folder; results go to ./storage beside it)")
     d.add_argument("--no-prefect", action="store_true")
     d.add_argument("--discrepancy", action="store_true",
                    help="the discrepancy demo instead: a plant whose controller gain is 20 %% "
                         "above the model's (configs/demo_discrepancy.yaml)")
     d.set_defaults(fn=_cmd_demo)
     s = sub.add_parser("serve", help="serve the scheduled (nightly) deployments")
-    s.add_argument("jobs", nargs="*", default=sorted(str(q) for q in
-                                                     (PROJECT_ROOT / "configs").glob("*.yaml")),
-                   help="job YAMLs with a 'schedule:' (default: configs/*.yaml)")
+    s.add_argument("jobs", nargs="*", default=None,
+                   help="job YAMLs with a 'schedule:' (default: ./configs/*.yaml)")
     s.add_argument("--limit", type=int, default=1, help="concurrent runs")
     s.add_argument("--once", action="store_true",
                    help="register the deployments, run each once now, and exit")
     s.set_defaults(fn=_cmd_serve)
     ru = sub.add_parser("runs", help="list runs of a job and trend its pairs")
     ru.add_argument("job", help="job name or job YAML")
-    ru.add_argument("--storage", default=str(PROJECT_ROOT / "storage"),
-                    help="results root when JOB is a name")
+    ru.add_argument("--storage", default="storage",
+                    help="results root when JOB is a name (default: ./storage)")
     ru.add_argument("--metric", action="append", help="metrics to trend (repeatable)")
     ru.set_defaults(fn=_cmd_runs)
     rx = sub.add_parser("reindex", help="rebuild a results root's catalog from its run "

@@ -20,9 +20,11 @@ import scipy.signal as ss
 from pipeline.model import model_from_dict
 from pipeline.simulate import simulate
 
-PROJECT_ROOT = Path(__file__).resolve().parents[1]
-DEMO_JOB = PROJECT_ROOT / "configs" / "demo_boiler.yaml"
-BOILER_MODEL = PROJECT_ROOT / "configs" / "models" / "boiler_pressure.yaml"
+# The shipped jobs and models: configs/ of the checkout, reached through the package's
+# _shipped link, which the wheel carries as package data (so an installed plantdyn has them).
+SHIPPED = Path(__file__).parent / "_shipped"
+DEMO_JOB = SHIPPED / "demo_boiler.yaml"
+BOILER_MODEL = SHIPPED / "models" / "boiler_pressure.yaml"
 
 # operating point the deviations of the model are added to
 STEAM0, PRESSURE0, FUEL0 = 50.0, 120.0, 8.0
@@ -82,14 +84,12 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
     import sys
 
     folder = folder.resolve()
-    job = DEMO_JOB
     exports = folder / "exports"
-    if folder != (PROJECT_ROOT / "demo").resolve():
-        # a copy of the bundled job that points at this folder
-        text = DEMO_JOB.read_text().replace("../demo/exports/*.csv", "exports/*.csv")
-        folder.mkdir(parents=True, exist_ok=True)
-        job = folder / "demo_boiler.yaml"
-        job.write_text(text)
+    # a copy of the shipped job pointing at this folder; results go to ../storage beside it
+    text = DEMO_JOB.read_text().replace("../demo/exports/*.csv", "exports/*.csv")
+    folder.mkdir(parents=True, exist_ok=True)
+    job = folder / "demo_boiler.yaml"
+    job.write_text(text)
     if exports.exists():
         shutil.rmtree(exports)
     if progress:
@@ -116,12 +116,20 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
     print(f"report:    {report.run_dir / 'report.md'}")
     if report.recording:
         print(f"recording: {report.recording}")
-        print(f"view it:   .venv/bin/rerun {report.recording}")
+        print(f"view it:   {rerun_command()} {report.recording}")
     return 0
 
 
+def rerun_command() -> str:
+    """The Rerun viewer beside this Python (works from any folder), else ``rerun``."""
+    import sys
+
+    exe = Path(sys.executable).parent / "rerun"
+    return str(exe) if exe.exists() else "rerun"
+
+
 # ------------------------------------------------------------------ discrepancy demo
-DISCREPANCY_JOB = PROJECT_ROOT / "configs" / "demo_discrepancy.yaml"
+DISCREPANCY_JOB = SHIPPED / "demo_discrepancy.yaml"
 AUX0 = 20.0  # operating point of the unrelated auxiliary flow
 
 
@@ -156,15 +164,13 @@ def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=Non
     import sys
 
     folder = folder.resolve()
-    job = DISCREPANCY_JOB
     exports = folder / "discrepancy"
-    if folder != (PROJECT_ROOT / "demo").resolve():
-        text = DISCREPANCY_JOB.read_text()
-        text = text.replace("../demo/discrepancy/*.csv", "discrepancy/*.csv")
-        (folder / "models").mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(BOILER_MODEL, folder / "models" / BOILER_MODEL.name)
-        job = folder / "demo_discrepancy.yaml"
-        job.write_text(text)
+    text = DISCREPANCY_JOB.read_text()
+    text = text.replace("../demo/discrepancy/*.csv", "discrepancy/*.csv")
+    (folder / "models").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(BOILER_MODEL, folder / "models" / BOILER_MODEL.name)
+    job = folder / "demo_discrepancy.yaml"
+    job.write_text(text)
     if exports.exists():
         shutil.rmtree(exports)
     if progress:
@@ -193,5 +199,5 @@ def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=Non
     print(f"model:     {report.run_dir / 'model_augmented.yaml'}")
     if report.recording:
         print(f"recording: {report.recording}")
-        print(f"view it:   .venv/bin/rerun {report.recording}")
+        print(f"view it:   {rerun_command()} {report.recording}")
     return 0
