@@ -274,16 +274,14 @@ def _report_dict(report) -> dict:
 
 
 def _median_spacing_s(table: pl.DataFrame) -> float:
-    d = (table.sort(["signal", "time"])
-         .with_columns(pl.col("time").diff().over("signal").dt.total_microseconds()
-                       .alias("d_us"))
-         .filter(pl.col("d_us") > 0)["d_us"])
-    if d.len() == 0:
+    from pipeline.adapters.grid import median_spacing_s
+
+    med = median_spacing_s(table)
+    if med is None:
         raise InsufficientDataError(
             "the recording has fewer than two distinct timestamps per signal; it cannot be "
             "put on a grid — export a longer period"
         )
-    med = float(d.median()) / 1e6
     # Exception-reported timestamps jitter (1.002 s); two significant figures give the
     # period the historian was configured for, and grids of nightly files line up.
     return max(float(f"{med:.2g}"), 0.001)

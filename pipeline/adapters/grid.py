@@ -47,10 +47,11 @@ from typing import Any, Literal
 import numpy as np
 import polars as pl
 
+from pipeline.adapters.canonical import signal_slices
 from pipeline.errors import ConfigError, DataQualityError, IngestError
 
-__all__ = ["Grid", "SignalGridSpec", "grid_from_regular", "to_grid", "MAX_GRID_VALUES",
-           "STRAY_MAX_SAMPLES"]
+__all__ = ["Grid", "SignalGridSpec", "grid_from_regular", "median_spacing_s", "to_grid",
+           "MAX_GRID_VALUES", "STRAY_MAX_SAMPLES"]
 
 MAX_GRID_VALUES = 1_500_000_000
 """Largest grid (points x signals) built: 12 GB of values plus 1.5 GB of masks, half the
@@ -202,7 +203,7 @@ def _to_us(value: Any, what: str) -> int:
 
 
 def _canonical_times(table: pl.DataFrame) -> pl.DataFrame:
-    """Ensure time is Datetime(us, UTC) and rows are sorted by signal."""
+    """Ensure time is Datetime(us, UTC), signal Categorical, rows sorted by signal."""
     missing = {"time", "signal", "value", "quality"} - set(table.columns)
     if missing:
         raise DataQualityError(
@@ -218,40 +219,50 @@ def _canonical_times(table: pl.DataFrame) -> pl.DataFrame:
         table = table.with_columns(
             pl.col("time").dt.convert_time_zone("UTC").dt.cast_time_unit("us")
         )
+    if table.schema["signal"] != pl.Categorical:
+        table = table.with_columns(pl.col("signal").cast(pl.String).cast(pl.Categorical))
     if not table["signal"].is_sorted():
         table = table.sort(["signal", "time"], maintain_order=True)
     return table
 
 
+def _times_us(table: pl.DataFrame, lo: int, n: int) -> np.ndarray:
+    """Sorted sample times (int µs) of rows ``lo .. lo+n`` (zero-copy when one chunk)."""
+    part = table["time"].slice(lo, n)
+    t = part.to_physical().to_numpy()
+    return t if part.is_sorted() else np.sort(t)
+
+
 def _signal_arrays(
     part: pl.DataFrame, mask_suspect: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Sorted unique times (int µs), values, usable flags, and state labels."""
-    t = part["time"].dt.epoch("us").to_numpy()
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Sorted unique times (int µs), values, usable flags, and the labels of the unusable
+    samples as (sorted sample indices, label texts) — few, so never one per sample."""
+    t = part["time"].to_physical().to_numpy()
     v = part["value"].cast(pl.Float64).fill_null(np.nan).to_numpy()
     quality = part["quality"]  # Enum or String: both compare with plain strings
     bad = (quality == "bad").to_numpy()
     suspect = (quality == "suspect").to_numpy()
     usable = ~bad & ~(suspect & mask_suspect) & np.isfinite(v)
-    if "state" in part.columns:
-        states = part["state"].cast(pl.String)
-    else:
-        states = pl.repeat(None, len(part), dtype=pl.String, eager=True)
-    # Label of each unusable sample: built only for the (few) unusable rows.
-    label = np.full(len(t), "", dtype=object)
-    idx = np.flatnonzero(~usable)
-    if len(idx):
-        st = states.gather(idx).fill_null("unknown").to_numpy()
-        kind = np.where(suspect[idx] & ~bad[idx], "suspect_quality:", "bad_quality:")
-        st = np.where(bad[idx] | suspect[idx], st, "NaN")
-        label[idx] = np.char.add(kind.astype(str), st.astype(str))
     if len(t) > 1 and not np.all(np.diff(t) > 0):
         # Not canonical (hand-made table): stable sort and keep the last duplicate.
         order = np.argsort(t, kind="stable")
-        t, v, usable, label = t[order], v[order], usable[order], label[order]
-        last = np.append(t[1:] != t[:-1], True)
-        t, v, usable, label = t[last], v[last], usable[last], label[last]
-    return t, v, usable, label
+        last = np.append(t[order][1:] != t[order][:-1], True)
+        order = order[last]
+        part = part[pl.Series(order)]
+        t, v, usable, bad, suspect = t[order], v[order], usable[order], bad[order], suspect[order]
+    idx = np.flatnonzero(~usable)
+    if len(idx):
+        if "state" in part.columns:
+            st = part["state"].cast(pl.String).gather(idx).fill_null("unknown").to_numpy()
+        else:
+            st = np.full(len(idx), "unknown", dtype=object)
+        kind = np.where(suspect[idx] & ~bad[idx], "suspect_quality:", "bad_quality:")
+        st = np.where(bad[idx] | suspect[idx], st, "NaN")
+        text = np.char.add(kind.astype(str), st.astype(str))
+    else:
+        text = np.zeros(0, dtype=str)
+    return t, v, usable, (idx, text)
 
 
 def _grid_signal(
@@ -259,7 +270,7 @@ def _grid_signal(
     t: np.ndarray,
     v: np.ndarray,
     usable: np.ndarray,
-    label: np.ndarray,
+    label: tuple[np.ndarray, np.ndarray],
     spec: SignalGridSpec,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """One signal onto grid instants ``g`` (int µs). Returns values, good, reasons."""
@@ -304,7 +315,9 @@ def _grid_signal(
             reasons[key] = n
     off = offender[offender >= 0]
     if len(off):
-        labels, counts = np.unique(label[off].astype(str), return_counts=True)
+        label_idx, label_text = label  # every offender is an unusable sample: listed
+        labels, counts = np.unique(label_text[np.searchsorted(label_idx, off)],
+                                   return_counts=True)
         reasons.update({str(k): int(c) for k, c in zip(labels, counts, strict=True)})
     return values, ok, dict(sorted(reasons.items()))
 
@@ -372,10 +385,9 @@ def to_grid(
     if dt_us < 1 or abs(dt_us - dt_s * 1e6) > 1e-6 * dt_us:
         raise ConfigError(f"dt_s={dt_s!r} must be a whole number of microseconds (>= 1e-6 s)")
     table = _canonical_times(table)
-    sig = table["signal"]
+    slices = signal_slices(table)
+    present = list(slices)  # sorted by name
     if signals is None:
-        # The column is sorted: its runs are the signals (no hashing of every row).
-        present = sig.rle().struct.field("value").to_list() if len(sig) else []
         items: Any = ((s, None) for s in present)
     elif isinstance(signals, Mapping):
         items = signals.items()
@@ -387,29 +399,21 @@ def to_grid(
     if not specs:
         raise DataQualityError("to_grid: the table has no signals")
     # Slices of the signal-sorted table: zero-copy views, one signal in memory at a time.
-    bounds = {}
-    for name in specs:
-        lo = int(sig.search_sorted(name, side="left"))
-        hi = int(sig.search_sorted(name, side="right"))
-        bounds[name] = (lo, hi)
-    missing = [s for s, (lo, hi) in bounds.items() if hi == lo]
+    missing = [s for s in specs if s not in slices]
     if missing:
-        present = sig.rle().struct.field("value").to_list() if len(sig) else []
         raise IngestError(
             f"signal(s) {missing} are not in the recording; it has {present}; fix "
             f"the tag names in the job's signals section"
         )
+    bounds = {name: slices[name] for name in specs}
     if start is None or end is None:
         firsts, lasts = [], []
         tcol = table["time"]
-        for lo, hi in bounds.values():
-            if hi > lo:
-                # min/max, not the first/last row: a hand-made table may be unsorted in time.
-                part = tcol.slice(lo, hi - lo)
-                firsts.append(part.min())
-                lasts.append(part.max())
-        if not firsts:
-            raise DataQualityError("to_grid: the selected signals have no samples")
+        for lo, n in bounds.values():
+            # min/max, not the first/last row: a hand-made table may be unsorted in time.
+            part = tcol.slice(lo, n)
+            firsts.append(part.min())
+            lasts.append(part.max())
     if start is not None:
         start_us = _to_us(start, "start")
     else:
@@ -417,11 +421,8 @@ def to_grid(
     end_us = _to_us(end, "end") if end is not None else max(_to_us(x, "end") for x in lasts)
     if end_us < start_us:
         raise ConfigError(f"end ({end}) is before start ({start}); give end >= start")
-    arrays = {}
-    for name in specs:
-        lo, hi = bounds[name]
-        arrays[name] = _signal_arrays(table.slice(lo, hi - lo), mask_suspect)
-    islands, dropped = _islands(arrays, start_us, end_us, dt_us, break_gap_s, stray_fraction)
+    times = {name: (lambda lo=lo, n=n: _times_us(table, lo, n)) for name, (lo, n) in bounds.items()}
+    islands, dropped = _islands(times, start_us, end_us, dt_us, break_gap_s, stray_fraction)
     n = sum(k1 - k0 + 1 for k0, k1 in islands) + len(islands) - 1
     names = tuple(specs)
     if n * len(names) > max_values:
@@ -444,7 +445,8 @@ def to_grid(
     good = np.empty((n, len(names)), dtype=bool)
     reasons: dict[str, dict[str, int]] = {}
     for k, name in enumerate(names):
-        t, v, usable, label = arrays.pop(name)
+        lo, m = bounds[name]
+        t, v, usable, label = _signal_arrays(table.slice(lo, m), mask_suspect)
         values[:, k], good[:, k], reasons[name] = _grid_signal(g, t, v, usable, label, specs[name])
         if breaks:  # a break point is a gap, whatever its neighbours say
             was = good[breaks, k]
@@ -471,19 +473,45 @@ def to_grid(
     )
 
 
-def _islands(arrays: dict, start_us: int, end_us: int, dt_us: int,
+#: Spacings per signal the median sampling period is taken from (evenly strided beyond).
+SPACING_SAMPLE = 1_000_000
+
+
+def median_spacing_s(table: pl.DataFrame) -> float | None:
+    """Median spacing of consecutive distinct sample times, over every signal (seconds).
+
+    One signal at a time; a signal with more than :data:`SPACING_SAMPLE` spacings
+    contributes an evenly strided subset (the median of a year of 1 Hz data does not
+    need all 31 M). None when no signal has two distinct times.
+    """
+    table = _canonical_times(table)
+    parts = []
+    for lo, n in signal_slices(table).values():
+        d = np.diff(_times_us(table, lo, n))
+        d = d[d > 0]
+        if d.size > SPACING_SAMPLE:
+            d = d[:: -(-d.size // SPACING_SAMPLE)]
+        parts.append(d)
+    d = np.concatenate(parts) if parts else np.zeros(0)
+    return float(np.median(d)) / 1e6 if d.size else None
+
+
+def _islands(times: Mapping[str, Any], start_us: int, end_us: int, dt_us: int,
              break_gap_s: float | None, stray_fraction: float):
     """Grid-index ranges ``(k0, k1)`` to build, and the stray samples left out.
 
-    Without ``break_gap_s`` one island spans ``start..end``.  Otherwise the stretches
-    every signal leaves empty for longer than ``break_gap_s`` are cut out (the union of
-    each signal's covered stretches, samples closer than the break joined)."""
+    ``times`` maps each signal to a callable giving its sample times (int µs, sorted),
+    fetched one signal at a time. Without ``break_gap_s`` one island spans
+    ``start..end``.  Otherwise the stretches every signal leaves empty for longer than
+    ``break_gap_s`` are cut out (the union of each signal's covered stretches, samples
+    closer than the break joined)."""
     k_end = (end_us - start_us) // dt_us
     if break_gap_s is None or not math.isfinite(break_gap_s):
         return [(0, int(k_end))], []
     brk = break_gap_s * 1e6
     spans = []  # (first µs, last µs) covered stretches of every signal
-    for t, *_ in arrays.values():
+    for get in times.values():
+        t = get()
         t = t[(t >= start_us) & (t <= end_us)]
         if not t.size:
             continue
@@ -503,8 +531,8 @@ def _islands(arrays: dict, start_us: int, end_us: int, dt_us: int,
     # samples per island (all signals) -> strays
     counts = np.zeros(len(merged), dtype=np.int64)
     lo_edges = np.array([m[0] for m in merged])
-    for t, *_ in arrays.values():
-        idx = np.searchsorted(lo_edges, t, side="right") - 1
+    for get in times.values():
+        idx = np.searchsorted(lo_edges, get(), side="right") - 1
         counts += np.bincount(idx[idx >= 0], minlength=len(merged))
     total = int(counts.sum())
     stray = [(counts[k] <= STRAY_MAX_SAMPLES and counts[k] < stray_fraction * total)
@@ -515,7 +543,8 @@ def _islands(arrays: dict, start_us: int, end_us: int, dt_us: int,
     for k, (a, b) in enumerate(merged):
         if not stray[k]:
             continue
-        for name, (t, *_rest) in arrays.items():
+        for name, get in times.items():
+            t = get()
             m = int(((t >= a) & (t <= b)).sum())
             if m:
                 dropped.append({"signal": name, "samples": m,

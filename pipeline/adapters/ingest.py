@@ -57,19 +57,26 @@ __all__ = [
     "read_recordings",
 ]
 
-GOOD, SUSPECT, BAD = "good", "suspect", "bad"
-#: dtype of the ``quality`` column: a polars Enum, so it compares with plain strings
-#: (``pl.col("quality") == "good"``) and costs one byte per row instead of a string.
-QUALITY_DTYPE = pl.Enum([GOOD, SUSPECT, BAD])
+from pipeline.adapters.canonical import (  # noqa: E402 - re-exported here
+    BAD,
+    Chunk,
+    prepare_chunk,
+    runs as _signal_runs,
+    CANONICAL_SCHEMA,
+    GOOD,
+    QUALITY_DTYPE,
+    SUSPECT,
+    assemble,
+    empty_canonical_table,
+)
 
-#: dtypes of the canonical table, in column order.
-CANONICAL_SCHEMA: dict[str, pl.DataType] = {
-    "time": pl.Datetime("us", "UTC"),
-    "signal": pl.String(),
-    "value": pl.Float64(),
-    "quality": QUALITY_DTYPE,
-    "state": pl.String(),
-}
+#: Cells (rows x fields) a CSV reader parses at a time — a million rows of a 4-column
+#: long export (module note in ingest_csv): the text of a chunk is freed once its rows
+#: are compact, so memory follows the parsed data, not the text.
+CHUNK_CELLS = 4_000_000
+#: MCAP messages per channel decoded at a time (the payloads of one batch per channel
+#: are held, not the file's).
+CHUNK_MESSAGES = 200_000
 
 Layout = Literal["auto", "long", "wide", "mcap"]
 _LAYOUTS = ("auto", "long", "wide", "mcap")
@@ -438,15 +445,19 @@ def _map_flags(
                     f"quality_map[{k!r}] = {v!r}; allowed values are 'good', 'suspect', 'bad'"
                 )
             extra[str(k).strip().lower()] = v
-    if flags.dtype != pl.String:
-        flags = flags.cast(pl.String)
-    # The distinct flags of a sample usually cover the column; checking that with
-    # is_in is ~4x cheaper than hashing every row for unique().
-    sample = _sample(flags).unique().to_list()
-    if sample and bool(flags.is_in(sample).all()):
-        distinct = sample
+    if flags.dtype == pl.Categorical:
+        distinct = [str(f) for f in flags.unique().to_list() if f is not None]
     else:
-        distinct = flags.drop_nulls().unique().to_list()
+        if flags.dtype != pl.String:
+            flags = flags.cast(pl.String)
+        # The distinct flags of a sample usually cover the column; counting equal cells
+        # per sampled flag checks that with a comparison each (no hashing of every row).
+        sample = _sample(flags).unique().drop_nulls().to_list()
+        covered = sum(int((flags == f).sum()) for f in sample) if len(sample) <= 16 else -1
+        if sample and covered + flags.null_count() == len(flags):
+            distinct = sample
+        else:
+            distinct = flags.drop_nulls().unique().to_list()
     mapping: dict[str, str] = {}
     unknown: list[str] = []
     for f in distinct:
@@ -459,7 +470,8 @@ def _map_flags(
     quality = pl.repeat(GOOD, len(flags), dtype=QUALITY_DTYPE, eager=True)
     if len(not_good) > 16:
         # Many distinct codes (e.g. OPC numbers): one hashed pass beats a pass per code.
-        mapped = flags.replace_strict(mapping, default=None, return_dtype=QUALITY_DTYPE)
+        mapped = flags.cast(pl.String).replace_strict(mapping, default=None,
+                                                      return_dtype=QUALITY_DTYPE)
         return mapped.fill_null(GOOD), sorted(unknown)
     for f, q in not_good.items():
         idx = (flags == f).arg_true()
@@ -689,6 +701,8 @@ def parse_timestamps(
     signal: pl.Series | None,
     line_of: Callable[[int], int],
     path: str,
+    fold_state: FoldState | None = None,
+    format_sample: pl.Series | None = None,
 ) -> tuple[pl.Series, str, dict[str, int], list[str]]:
     """Parse timestamp text to UTC; naive times are local in ``timezone``.
 
@@ -707,6 +721,13 @@ def parse_timestamps(
         Maps a row index to the file line number, for error messages.
     path : str
         File name for error messages.
+    fold_state : FoldState or None
+        The file's repeated-hour state when it is read in chunks (then ``dst_resolved``
+        and ``warnings`` come from the state once the last chunk is read, and the two
+        returned here are empty); None for a whole file.
+    format_sample : polars.Series of str or None
+        Timestamps the format is detected from (a chunked file's head and tail, so every
+        chunk detects the same); None samples ``raw``.
 
     Returns
     -------
@@ -736,9 +757,8 @@ def parse_timestamps(
     if time_format is not None:
         candidates = [time_format]
     else:
-        candidates = formats_matching(_sample(text)) or formats_matching(
-            _sample(text), min_fraction=0.5
-        )
+        fs = format_sample if format_sample is not None else _sample(text)
+        candidates = formats_matching(fs) or formats_matching(fs, min_fraction=0.5)
         if not candidates:
             first = text.head(5).to_list()
             raise IngestError(
@@ -769,9 +789,11 @@ def parse_timestamps(
     warnings: list[str] = []
     dst_resolved: dict[str, int] = {}
     if parsed.dtype.time_zone is None:  # type: ignore[union-attr]
-        parsed, dst_resolved, warnings = _localize(
-            parsed, timezone=timezone, signal=signal, line_of=line_of, path=path
-        )
+        state = fold_state if fold_state is not None else FoldState()
+        parsed = _localize(parsed, timezone=timezone, signal=signal, line_of=line_of,
+                           path=path, state=state)
+        if fold_state is None:
+            dst_resolved, warnings = dict(state.counts), state.warnings(timezone)
     else:
         parsed = parsed.dt.convert_time_zone("UTC")
     return parsed.alias("time"), fmt, dst_resolved, warnings
@@ -796,6 +818,30 @@ def time_expr(col: pl.Expr, fmt: str, *, timezone: str) -> pl.Expr:
     )
 
 
+_FAST_TIME = "__time"
+
+
+def _fast_value(col: str) -> str:
+    return f"__value_{col}"
+
+
+def fast_parse_exprs(*, time_col: str, value_cols: Sequence[str], fmt: str | None,
+                     timezone: str, decimal_comma: bool) -> list[pl.Expr]:
+    """The optimistic parse as expressions a streaming read evaluates while it reads.
+
+    Added to a CSV scan, the time parse (format ``fmt``, zone conversion) and the value
+    casts run in polars' streaming engine beside the reading, on every core, instead of
+    after it; :func:`parse_time_and_values` then finds their columns in the frame (and
+    takes its careful path only where the optimistic time parse left a null). ``fmt``
+    None (padded or undetected timestamps) adds the value casts only.
+    """
+    exprs = [value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(_fast_value(c))
+             for c in value_cols]
+    if fmt is not None:
+        exprs.append(time_expr(pl.col(time_col), fmt, timezone=timezone).alias(_FAST_TIME))
+    return exprs
+
+
 def parse_time_and_values(
     frame: pl.DataFrame,
     *,
@@ -807,13 +853,18 @@ def parse_time_and_values(
     signal: pl.Series | None,
     line_of: Callable[[int], int],
     path: str,
+    fold_state: FoldState | None = None,
+    format_sample: pl.Series | None = None,
+    fast_format: str | None = None,
 ) -> tuple[pl.Series, dict[str, tuple[pl.Series, pl.Series]], str, dict[str, int], list[str]]:
     """Parse the time column and value columns of a text table, in parallel.
 
     The optimistic path evaluates the time parse (first candidate format, zone
     conversion) and every value cast in one polars query, which polars runs on all
     cores; when any timestamp fails there (bad text, a DST fold or gap) the time column
-    is parsed again by :func:`parse_timestamps`, which resolves or reports it.
+    is parsed again by :func:`parse_timestamps`, which resolves or reports it. A frame
+    from a streaming read that evaluated :func:`fast_parse_exprs` (format
+    ``fast_format``) already holds the optimistic results.
 
     Returns
     -------
@@ -824,36 +875,47 @@ def parse_time_and_values(
     warnings : list of str
     """
     raw_time = frame[time_col]
-    sample = _sample(raw_time)
-    padded = bool(sample.str.contains(r"^\s|\s$").any())
-    fmt: str | None = time_format
-    if fmt is None and not padded:
-        cands = formats_matching(sample, first_only=True)
-        fmt = cands[0] if cands else None
-    queries = [
-        frame.lazy().select(
-            value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(c) for c in value_cols
-        )
-    ]
-    fast_time = fmt is not None and not padded and raw_time.null_count() == 0
-    if fast_time:
-        assert fmt is not None
-        # Time parsing is the costliest step and polars runs it on one thread per
-        # expression: parse slices of the column as separate queries, which
-        # collect_all runs concurrently with the value casts.
-        n = len(frame)
-        step = max(n // 4, 250_000)
-        expr = time_expr(pl.col(time_col), fmt, timezone=timezone)
-        queries += [frame.slice(a, step).lazy().select(expr) for a in range(0, n, step)]
-    results = pl.collect_all(queries)
-    out = results[0]
     dst: dict[str, int] = {}
     warnings: list[str] = []
     time = None
-    if fast_time:
-        time = pl.concat([r.to_series() for r in results[1:]], rechunk=False).alias("time")
-        if time.null_count():
-            time = None
+    if all(_fast_value(c) in frame.columns for c in value_cols):
+        # parsed by the streaming read itself (fast_parse_exprs)
+        out = frame.select(pl.col(_fast_value(c)).alias(c) for c in value_cols)
+        fmt = fast_format
+        if _FAST_TIME in frame.columns and raw_time.null_count() == 0:
+            time = frame[_FAST_TIME].alias("time")
+            if time.null_count():
+                time = None
+    else:
+        sample = _sample(raw_time)
+        padded = bool(sample.str.contains(r"^\s|\s$").any())
+        fmt = time_format
+        if fmt is None and not padded:
+            cands = formats_matching(format_sample if format_sample is not None else sample,
+                                     first_only=True)
+            fmt = cands[0] if cands else None
+        queries = [
+            frame.lazy().select(
+                value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(c)
+                for c in value_cols
+            )
+        ]
+        fast_time = fmt is not None and not padded and raw_time.null_count() == 0
+        if fast_time:
+            assert fmt is not None
+            # Time parsing is the costliest step and polars runs it on one thread per
+            # expression: parse slices of the column as separate queries, which
+            # collect_all runs concurrently with the value casts.
+            n = len(frame)
+            step = max(n // 4, 250_000)
+            expr = time_expr(pl.col(time_col), fmt, timezone=timezone)
+            queries += [frame.slice(a, step).lazy().select(expr) for a in range(0, n, step)]
+        results = pl.collect_all(queries)
+        out = results[0]
+        if fast_time:
+            time = pl.concat([r.to_series() for r in results[1:]], rechunk=False).alias("time")
+            if time.null_count():
+                time = None
     if time is None:
         time, fmt, dst, warnings = parse_timestamps(
             raw_time,
@@ -862,11 +924,39 @@ def parse_time_and_values(
             signal=signal,
             line_of=line_of,
             path=path,
+            fold_state=fold_state,
+            format_sample=format_sample,
         )
     values = {
         c: parse_value_text(frame[c], decimal_comma=decimal_comma, value=out[c]) for c in value_cols
     }
     return time, values, fmt, dst, warnings
+
+
+@dataclass
+class FoldState:
+    """The repeated autumn hour of one file, carried across the chunks it is read in.
+
+    Resolution is by order of appearance per tag (:func:`_localize`); a file read in
+    chunks must give the same answer as one read whole, so what the order has shown so
+    far travels from chunk to chunk: each tag's direction in the file, and per (tag,
+    day) the last ambiguous time seen and whether the clock has visibly rolled back.
+    """
+
+    direction: dict[str, bool] = field(default_factory=dict)
+    last: dict[tuple[str, Any], tuple[Any, bool]] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
+    folds: set[str] = field(default_factory=set)
+
+    def warnings(self, timezone: str) -> list[str]:
+        """Tags whose repeated-hour times showed no roll-back (all put in the first pass)."""
+        return [
+            f"tag {t or '(all)'}: {n} timestamps in the repeated DST hour of {timezone} and no "
+            f"clock roll-back seen among them; all assigned to the first (daylight) pass — "
+            f"check the export or give it in UTC"
+            for t, n in sorted(self.counts.items())
+            if t not in self.folds
+        ]
 
 
 def _localize(
@@ -876,21 +966,24 @@ def _localize(
     signal: pl.Series | None,
     line_of: Callable[[int], int],
     path: str,
-) -> tuple[pl.Series, dict[str, int], list[str]]:
+    state: FoldState,
+) -> pl.Series:
     """Naive local wall-clock times → UTC, resolving the repeated autumn hour by order.
 
     The repeated hour is resolved per tag: in file order, the tag's timestamps inside
     the repeated hour belong to the first (daylight, earlier UTC) pass until the clock
     visibly rolls back (a timestamp earlier than the previous one of the same tag),
     and to the second (standard) pass after it. Files in descending time order are
-    recognised per tag (first row later than last) and handled mirror-wise.
+    recognised per tag (first row later than last, in the chunk where the tag's first
+    repeated-hour time appears) and handled mirror-wise. ``state`` carries the order
+    seen so far from one chunk of a file to the next and collects the counts.
     """
     if timezone == "UTC":
-        return naive.dt.replace_time_zone("UTC"), {}, []
+        return naive.dt.replace_time_zone("UTC")
     local = naive.dt.replace_time_zone(timezone, ambiguous="null", non_existent="null")
     problem = local.is_null()
     if not problem.any():
-        return local.dt.convert_time_zone("UTC"), {}, []
+        return local.dt.convert_time_zone("UTC")
     idx = problem.arg_true()
     sub = naive.gather(idx)
     early = sub.dt.replace_time_zone(timezone, ambiguous="earliest", non_existent="null")
@@ -904,70 +997,82 @@ def _localize(
             f"zone is not {timezone} or the row is corrupt — pass the right timezone "
             f"(e.g. a fixed offset such as 'Etc/GMT+6') or remove the row"
         )
-    tags = signal.gather(idx) if signal is not None else pl.Series([""] * len(idx))
-    amb = pl.DataFrame(
-        {"row": idx, "tag": tags, "naive": sub, "day": sub.dt.date()}
-    )
-    # Direction of each tag in the file (first row vs last row), from the full column.
-    if signal is not None:
-        direction = (
-            pl.DataFrame({"tag": signal, "naive": naive})
-            .filter(pl.col("tag").is_in(amb["tag"].unique().implode()))
-            .group_by("tag")
-            .agg(desc=pl.col("naive").first() > pl.col("naive").last())
-        )
-    else:
-        direction = pl.DataFrame({"tag": [""], "desc": [bool(naive[0] > naive[-1])]})
-    amb = amb.join(direction, on="tag", how="left", maintain_order="left")
+    tags = signal.gather(idx).cast(pl.String) if signal is not None \
+        else pl.Series([""] * len(idx), dtype=pl.String)
+    amb = pl.DataFrame({"row": idx.cast(pl.Int64), "tag": tags, "naive": sub,
+                        "day": sub.dt.date()})
+    # Direction of each tag (first row vs last row), fixed where it first matters.
+    new_tags = [t for t in amb["tag"].unique().to_list() if t not in state.direction]
+    if new_tags:
+        if signal is not None:
+            per = (pl.DataFrame({"tag": signal.cast(pl.String), "naive": naive})
+                   .filter(pl.col("tag").is_in(new_tags))
+                   .group_by("tag")
+                   .agg(desc=pl.col("naive").first() > pl.col("naive").last()))
+            state.direction.update(dict(per.iter_rows()))
+        else:
+            state.direction[""] = bool(naive[0] > naive[-1])
+    amb = amb.with_columns(desc=pl.col("tag").replace_strict(state.direction,
+                                                              return_dtype=pl.Boolean))
+    # The last repeated-hour time of each (tag, day) of earlier chunks leads its group.
+    keys = amb.select("tag", "day").unique(maintain_order=True)
+    lead = [(t, d, *state.last[(t, d)]) for t, d in keys.iter_rows() if (t, d) in state.last]
+    amb = amb.with_columns(init=pl.lit(0, dtype=pl.Int32))
+    if lead:
+        virtual = pl.DataFrame(
+            {"row": pl.Series([-1] * len(lead), dtype=pl.Int64),
+             "tag": [x[0] for x in lead], "naive": pl.Series([x[2] for x in lead],
+                                                             dtype=sub.dtype),
+             "day": [x[1] for x in lead],
+             "init": pl.Series([int(x[3]) for x in lead], dtype=pl.Int32)},
+        ).with_columns(desc=pl.col("tag").replace_strict(state.direction,
+                                                         return_dtype=pl.Boolean))
+        amb = pl.concat([virtual.select(amb.columns), amb])
     step = pl.col("naive").diff().over(["tag", "day"])
     jump = pl.when(pl.col("desc")).then(step > pl.duration()).otherwise(step < pl.duration())
     amb = amb.with_columns(
-        fold=(jump.fill_null(False).cast(pl.Int32).cum_sum().over(["tag", "day"]) > 0)
+        fold=((jump.fill_null(False).cast(pl.Int32) + pl.col("init")).cum_sum()
+              .over(["tag", "day"]) > 0)
     )
+    ends = amb.group_by(["tag", "day"], maintain_order=True).agg(
+        pl.col("naive").last(), pl.col("fold").last())
+    for t, d, last_naive, fold in ends.iter_rows():
+        state.last[(t, d)] = (last_naive, bool(fold))
+    amb = amb.filter(pl.col("row") >= 0)
     use_late = (amb["fold"] ^ amb["desc"]).to_numpy()
     resolved = pl.Series(np.where(use_late, late.to_numpy(), early.to_numpy()))
     resolved = resolved.cast(pl.Datetime("us")).dt.replace_time_zone("UTC")
     utc = local.dt.convert_time_zone("UTC").scatter(idx, resolved)
     counts = amb.group_by("tag").agg(n=pl.len(), folds=pl.col("fold").any())
-    dst_resolved = dict(zip(counts["tag"].to_list(), counts["n"].to_list(), strict=True))
-    warnings = [
-        f"tag {t or '(all)'}: {n} timestamps in the repeated DST hour of {timezone} and no "
-        f"clock roll-back seen among them; all assigned to the first (daylight) pass — "
-        f"check the export or give it in UTC"
-        for t, n, f in counts.sort("tag").iter_rows()
-        if not f
-    ]
-    return utc, dst_resolved, warnings
+    for t, n, f in counts.iter_rows():
+        state.counts[t] = state.counts.get(t, 0) + n
+        if f:
+            state.folds.add(t)
+    return utc
 
 
 # ----------------------------------------------------------------------------- canonical
-def empty_canonical_table() -> pl.DataFrame:
-    """A canonical table with no rows."""
-    return pl.DataFrame(schema=CANONICAL_SCHEMA)
+def mask_chunk(
+    pre: pl.DataFrame, quality_map: Mapping[str, str] | None
+) -> tuple[pl.DataFrame, dict[str, int], list[str]]:
+    """One pre-chunk (signal, time, value, state_text, flag) → canonical columns.
 
+    Masks bad samples (value null, state kept) and drops empty cells without a bad
+    flag; order is kept (sorting is :func:`pipeline.adapters.canonical.assemble`'s).
 
-def _canonicalise(
-    pre: pl.DataFrame,
-    meta: _ReaderMeta,
-    *,
-    quality_map: Mapping[str, str] | None,
-    timezone: str,
-) -> tuple[pl.DataFrame, IngestReport]:
-    """Pre-table (signal, time, value, state_text, flag) → canonical table + report.
-
-    Masks bad samples (value null, state kept), drops empty cells without a bad flag,
-    sorts by (signal, time) with a stable sort and keeps the last of duplicates.
+    Returns
+    -------
+    chunk : polars.DataFrame
+        Canonical columns, file order.
+    dropped : dict of str to int
+        Empty cells dropped, per signal.
+    unknown : list of str
+        Quality flags not recognised (treated as suspect).
     """
-    warnings = list(meta.warnings)
     quality, unknown = _map_flags(pre["flag"], quality_map)
-    if unknown:
-        warnings.append(
-            f"{meta.path}: unrecognised quality flags {unknown[:10]} treated as suspect; "
-            f"map them with source.csv.quality_map in the job YAML"
-        )
-    value = pre["value"].clone()
-    state = pre["state_text"].clone()
-    flag = pre["flag"].cast(pl.String)
+    value = pre["value"]
+    state = pre["state_text"]
+    flag = pre["flag"]
     # Work with index lists of the (usually few) non-good rows instead of when/then over
     # whole string columns: building a 5-million-row string column costs ~0.1 s each.
     has_text = state.is_not_null()
@@ -979,7 +1084,7 @@ def _canonicalise(
     not_good = (quality != GOOD) & ~has_text
     if not_good.any():
         idx = not_good.arg_true()
-        state = state.scatter(idx, flag.gather(idx))
+        state = state.scatter(idx, flag.gather(idx).cast(pl.String))
     empty = value.is_null() & ~has_text
     drop = empty & (quality != BAD)
     bad = quality == BAD
@@ -988,111 +1093,48 @@ def _canonicalise(
         idx = idx.filter(value.gather(idx).is_not_null())
         if len(idx):
             value = value.scatter(idx, _nulls(len(idx), pl.Float64(), "value"))
+    signal = pre["signal"]
+    if signal.dtype != pl.Categorical:
+        signal = signal.cast(pl.Categorical)
     df = pl.DataFrame(
-        {
-            "time": pre["time"],
-            "signal": pre["signal"],
-            "value": value,
-            "quality": quality,
-            "state": state,
-        }
+        {"time": pre["time"], "signal": signal, "value": value, "quality": quality,
+         "state": state}
     )
     dropped: dict[str, int] = {}
     if drop.any():
         per = df.filter(drop).group_by("signal").len()
-        dropped = dict(zip(per["signal"].to_list(), per["len"].to_list(), strict=True))
+        dropped = {str(k): int(v) for k, v in per.iter_rows()}
         df = df.filter(~drop)
-
-    table, backward, dups, runs = _sort_dedupe(df)
-    report = _build_report(
-        table,
-        runs=runs,
-        paths=(meta.path,),
-        layout=meta.layout,
-        encoding=meta.encoding,
-        separator=meta.separator,
-        decimal=meta.decimal,
-        time_format=meta.time_format,
-        header_rows=meta.header_rows,
-        rows=None,
-        backward=backward,
-        dups=dups,
-        dropped=dropped,
-        dst=meta.dst_resolved,
-        units=meta.units,
-        descriptions=meta.descriptions,
-        warnings=warnings,
-        truncated=meta.truncated,
-        timezone=timezone,
-    )
-    return table, report
+    return df, dropped, unknown
 
 
-def _runs(signal: pl.Series) -> tuple[list[str], np.ndarray]:
-    """Names and start offsets of the runs of a sorted signal column."""
-    runs = signal.rle().struct.unnest()
-    lengths = runs["len"].to_numpy().astype(np.int64)
-    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    return runs["value"].to_list(), starts
+class ChunkSink:
+    """Collects the masked chunks of the files a table is assembled from.
 
-
-def _pair_counts(
-    flags: np.ndarray, names: list[str], starts: np.ndarray
-) -> dict[str, int]:
-    """Count flagged neighbour pairs (i, i+1) per run."""
-    pos = np.flatnonzero(flags)
-    if len(pos) == 0:
-        return {}
-    run = np.searchsorted(starts, pos, side="right") - 1
-    counts = np.bincount(run, minlength=len(names))
-    return {names[i]: int(n) for i, n in enumerate(counts) if n}
-
-
-def _sort_dedupe(
-    df: pl.DataFrame,
-) -> tuple[pl.DataFrame, dict[str, int], dict[str, int], tuple[list[str], np.ndarray]]:
-    """Stable sort by (signal, time), keep the last of equal (signal, time) rows.
-
-    Returns the table; per signal, the number of backward steps in the input order and
-    the number of duplicates removed; and the signal runs of the result (names, row
-    counts).
+    A reader calls it with each pre-chunk as soon as the chunk is parsed; the chunk's
+    text and parsing columns are then free.
     """
-    df = df.select(list(CANONICAL_SCHEMA))
-    if len(df) == 0:
-        return df, {}, {}, ([], np.zeros(0, dtype=np.int64))
-    # Neighbour comparisons on the int64 time in numpy, with run boundaries of the
-    # signal column, replace group-bys and string comparisons over every row (3-4x
-    # faster on 5 M rows). Runs whose names are strictly increasing mean the column
-    # is sorted.
-    names, starts = _runs(df["signal"])
-    signal_sorted = all(a < b for a, b in zip(names, names[1:]))
-    if signal_sorted:
-        t = df["time"].to_physical().to_numpy()
-        same = np.ones(len(t) - 1, dtype=bool)
-        same[starts[1:] - 1] = False  # pair (i, i+1) crosses into the next signal
-        d = np.diff(t)
-        backward = _pair_counts((d < 0) & same, names, starts)
-    else:
-        per = df.group_by("signal").agg(n=(pl.col("time").diff() < pl.duration()).sum())
-        backward = {s: n for s, n in per.iter_rows() if n}
-    if backward or not signal_sorted:
-        df = df.sort(["signal", "time"], maintain_order=True)
-        names, starts = _runs(df["signal"])
-        t = df["time"].to_physical().to_numpy()
-        same = np.ones(len(t) - 1, dtype=bool)
-        same[starts[1:] - 1] = False
-        d = np.diff(t)
-    dup_pairs = (d == 0) & same
-    dups = _pair_counts(dup_pairs, names, starts)
-    lengths = np.diff(np.append(starts, len(t)))
-    if dups:
-        # Of equal (signal, time) neighbours drop the earlier: the stable sort kept
-        # file order, so the last row in the file survives.
-        keep = np.ones(len(t), dtype=bool)
-        keep[:-1] = ~dup_pairs
-        df = df.filter(pl.Series(keep))
-        lengths = lengths - np.array([dups.get(n, 0) for n in names], dtype=np.int64)
-    return df, backward, dups, (names, lengths)
+
+    def __init__(self, quality_map: Mapping[str, str] | None = None) -> None:
+        self.quality_map = quality_map
+        self.chunks: list[Chunk] = []
+        self.file = 0
+        self.dropped: dict[str, int] = {}
+        self.unknown: dict[int, list[str]] = {}
+
+    def __call__(self, pre: pl.DataFrame) -> None:
+        df, dropped, unknown = mask_chunk(pre, self.quality_map)
+        self.chunks.append(prepare_chunk(self.file, df))
+        for k, v in dropped.items():
+            self.dropped[k] = self.dropped.get(k, 0) + v
+        if unknown:
+            have = self.unknown.setdefault(self.file, [])
+            have.extend(u for u in unknown if u not in have)
+
+    @property
+    def rows(self) -> int:
+        """Rows held so far."""
+        return sum(len(c.frame) for c in self.chunks)
 
 
 def _build_report(
@@ -1123,7 +1165,7 @@ def _build_report(
     """
     # The table is sorted by signal: run lengths give the totals in one linear pass.
     if runs is None:
-        names, starts = _runs(table["signal"]) if len(table) else ([], np.zeros(0, dtype=np.int64))
+        names, starts = _signal_runs(table["signal"]) if len(table) else ([], np.zeros(0, dtype=np.int64))
         runs = (names, np.diff(np.append(starts, len(table))))
     totals = {n: int(c) for n, c in zip(runs[0], runs[1], strict=True)}
     names = set(totals) | set(dropped) | set(rows or {})
@@ -1271,6 +1313,11 @@ def read_recording(
     _validate_common(layout, timezone, on_truncated)
     csv_opts: CsvOptions = _coerce_options(csv, CsvOptions, "csv")
     mcap_opts: McapOptions = _coerce_options(mcap, McapOptions, "mcap")
+    return _read_all([_check_path(path)], layout=layout, timezone=timezone, tags=tags, csv=csv_opts,
+                     mcap=mcap_opts, on_truncated=on_truncated)
+
+
+def _check_path(path: str | Path) -> Path:
     p = Path(path)
     if not p.exists():
         raise IngestError(
@@ -1281,22 +1328,91 @@ def read_recording(
         raise IngestError(f"recording {str(p)!r} is not a file (a directory?); give a file path")
     if p.stat().st_size == 0:
         raise IngestError(f"recording {str(p)!r} is empty (0 bytes); re-run the export")
+    return p
+
+
+def _read_all(
+    paths: Sequence[Path],
+    *,
+    layout: str,
+    timezone: str,
+    tags: Sequence[str] | None,
+    csv: CsvOptions,
+    mcap: McapOptions,
+    on_truncated: str,
+) -> tuple[pl.DataFrame, IngestReport]:
+    """Every file's chunks into one sink, assembled once (no per-file tables)."""
     tag_list = None if tags is None else list(tags)
-    if layout == "mcap" or (layout == "auto" and _is_mcap(p)):
-        from pipeline.adapters import ingest_mcap
+    sink = ChunkSink()
+    metas: list[_ReaderMeta] = []
+    unknown_warning: dict[int, str] = {}
+    for i, p in enumerate(paths):
+        sink.file = i
+        if layout == "mcap" or (layout == "auto" and _is_mcap(p)):
+            from pipeline.adapters import ingest_mcap
 
-        pre, meta = ingest_mcap.read_mcap_raw(
-            p, options=mcap_opts, timezone=timezone, tags=tag_list, on_truncated=on_truncated
-        )
-        quality_map = None
-    else:
-        from pipeline.adapters import ingest_csv
+            sink.quality_map = None
+            meta = ingest_mcap.read_mcap_raw(
+                p, options=mcap, timezone=timezone, tags=tag_list, on_truncated=on_truncated,
+                sink=sink,
+            )
+        else:
+            from pipeline.adapters import ingest_csv
 
-        pre, meta = ingest_csv.read_csv_raw(
-            p, layout=layout, options=csv_opts, timezone=timezone, tags=tag_list
-        )
-        quality_map = csv_opts.quality_map
-    return _canonicalise(pre, meta, quality_map=quality_map, timezone=timezone)
+            sink.quality_map = csv.quality_map
+            meta = ingest_csv.read_csv_raw(
+                p, layout=layout, options=csv, timezone=timezone, tags=tag_list, sink=sink
+            )
+        metas.append(meta)
+        if i in sink.unknown:
+            unknown_warning[i] = (
+                f"{meta.path}: unrecognised quality flags {sorted(sink.unknown[i])[:10]} "
+                f"treated as suspect; map them with source.csv.quality_map in the job YAML"
+            )
+    assembled = assemble(sink.chunks)
+    sink.chunks.clear()
+    dst: dict[str, int] = {}
+    units: dict[str, str] = {}
+    descriptions: dict[str, str] = {}
+    for m in metas:
+        for k, v in m.dst_resolved.items():
+            dst[k] = dst.get(k, 0) + v
+        for k, v in m.units.items():
+            units.setdefault(k, v)
+        for k, v in m.descriptions.items():
+            descriptions.setdefault(k, v)
+
+    def _join(values: Iterable[str | None]) -> str | None:
+        uniq = list(dict.fromkeys(v for v in values if v is not None))
+        return "+".join(uniq) if uniq else None
+
+    warnings = []
+    for i, m in enumerate(metas):
+        warnings.extend(m.warnings)
+        if i in unknown_warning:
+            warnings.append(unknown_warning[i])
+    report = _build_report(
+        assembled.table,
+        runs=(assembled.names, assembled.lengths),
+        paths=tuple(m.path for m in metas),
+        layout=_join(m.layout for m in metas) or "",
+        encoding=_join(m.encoding for m in metas) or "",
+        separator=_join(m.separator for m in metas),
+        decimal=_join(m.decimal for m in metas),
+        time_format=_join(m.time_format for m in metas),
+        header_rows=max(m.header_rows for m in metas),
+        rows=None,
+        backward=assembled.backward,
+        dups=assembled.dups,
+        dropped=sink.dropped,
+        dst=dst,
+        units=units,
+        descriptions=descriptions,
+        warnings=warnings,
+        truncated=any(m.truncated for m in metas),
+        timezone=timezone,
+    )
+    return assembled.table, report
 
 
 def read_recordings(
@@ -1324,58 +1440,19 @@ def read_recordings(
     paths = list(paths)
     if not paths:
         raise IngestError("read_recordings got no paths; check the glob in source.path")
-    tables, reports = [], []
-    for p in paths:
-        t, r = read_recording(p, **kwargs)
-        tables.append(t)
-        reports.append(r)
-    if len(tables) == 1:
-        return tables[0], reports[0]
-    table, _, dups, runs = _sort_dedupe(pl.concat(tables, how="vertical"))
-    # (backward steps across files are not disorder within a file: not counted)
-
-    def _sum(attr: str) -> dict[str, int]:
-        out: dict[str, int] = {}
-        for r in reports:
-            for s in r.signals:
-                out[s.signal] = out.get(s.signal, 0) + getattr(s, attr)
-        return out
-
-    dup_total = _sum("duplicates_removed")
-    for s, n in dups.items():
-        dup_total[s] = dup_total.get(s, 0) + n
-    units: dict[str, str] = {}
-    descriptions: dict[str, str] = {}
-    for r in reports:
-        for s in r.signals:
-            if s.unit:
-                units.setdefault(s.signal, s.unit)
-            if s.description:
-                descriptions.setdefault(s.signal, s.description)
-
-    def _join(values: Iterable[str | None]) -> str | None:
-        uniq = list(dict.fromkeys(v for v in values if v is not None))
-        return "+".join(uniq) if uniq else None
-
-    report = _build_report(
-        table,
-        runs=runs,
-        paths=tuple(p for r in reports for p in r.paths),
-        layout=_join(r.layout for r in reports) or "",
-        encoding=_join(r.encoding for r in reports) or "",
-        separator=_join(r.separator for r in reports),
-        decimal=_join(r.decimal for r in reports),
-        time_format=_join(r.time_format for r in reports),
-        header_rows=max(r.header_rows for r in reports),
-        rows=_sum("rows"),
-        backward=_sum("out_of_order"),
-        dups=dup_total,
-        dropped=_sum("empty_dropped"),
-        dst=_sum("dst_ambiguous_resolved"),
-        units=units,
-        descriptions=descriptions,
-        warnings=[w for r in reports for w in r.warnings],
-        truncated=any(r.truncated for r in reports),
-        timezone=reports[0].timezone,
+    layout = kwargs.get("layout", "auto")
+    timezone = kwargs.get("timezone", "UTC")
+    on_truncated = kwargs.get("on_truncated", "error")
+    unknown = sorted(set(kwargs) - {"layout", "timezone", "tags", "csv", "mcap", "on_truncated"})
+    if unknown:
+        raise TypeError(f"read_recordings got unexpected keyword(s) {unknown}")
+    _validate_common(layout, timezone, on_truncated)
+    return _read_all(
+        [_check_path(p) for p in paths],
+        layout=layout,
+        timezone=timezone,
+        tags=kwargs.get("tags"),
+        csv=_coerce_options(kwargs.get("csv"), CsvOptions, "csv"),
+        mcap=_coerce_options(kwargs.get("mcap"), McapOptions, "mcap"),
+        on_truncated=on_truncated,
     )
-    return table, report

@@ -1,9 +1,14 @@
-"""Historian CSV exports (long and wide layouts) → pre-canonical table.
+"""Historian CSV exports (long and wide layouts) → pre-canonical chunks.
 
 Detection works on the first 64 KiB (decoded): encoding (byte-order mark, else UTF-8),
-separator, decimal mark, layout, header rows, column roles. The whole file is then read
-once by :func:`polars.read_csv` with every column as text, and parsed with polars
-expressions (timestamps, numbers, text states) — no Python loop over rows.
+separator, decimal mark, layout, header rows, column roles; the timestamp format is
+detected from rows at the head and the tail of the file. The data is then read by
+polars' streaming CSV reader in chunks of :data:`~pipeline.adapters.ingest.CHUNK_CELLS`
+cells with every field as text (so a row with more fields than the header is an error
+wherever it is), and parsed with polars expressions (timestamps, numbers, text states) —
+no Python loop over rows. Each parsed chunk goes to the caller's sink at once, so the
+text of a long export is never in memory whole (a year of 1 Hz data from 20 tags is
+30 GB of text). Other encodings are transcoded in blocks to a temporary UTF-8 file.
 
 Use :func:`pipeline.adapters.ingest.read_recording`; this module is its CSV back end.
 """
@@ -13,19 +18,27 @@ from __future__ import annotations
 import codecs
 import csv as _csv
 import re
+import tempfile
 from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import polars as pl
 
+from pipeline.adapters import ingest as _ingest
 from pipeline.adapters.ingest import (
     CsvOptions,
+    FoldState,
     _BAD_FLAGS,
     _check_tags,
     _GOOD_FLAGS,
     _ReaderMeta,
     _SUSPECT_FLAGS,
+    _fast_value,
+    fast_parse_exprs,
+    formats_matching,
     looks_like_time,
     parse_time_and_values,
 )
@@ -126,18 +139,55 @@ def _decode_head(head: bytes, codec: str, complete: bool, path: str) -> str:
     return text.lstrip("\ufeff")
 
 
-def _polars_source(path: Path, codec: str) -> str | bytes:
-    """What polars reads: the path for UTF-8, else the file transcoded to UTF-8 bytes."""
+@contextmanager
+def _as_utf8(path: Path, codec: str, name: str) -> Iterator[Path]:
+    """The file itself when it is UTF-8, else a temporary UTF-8 copy (transcoded in
+    blocks, so memory stays small; removed afterwards) — polars reads UTF-8 only."""
     if codec in ("utf-8", "utf-8-sig"):
-        return str(path)  # polars skips a UTF-8 BOM itself
+        yield path
+        return
+    decoder = codecs.getincrementaldecoder(codec)()
+    fd, tmp_name = tempfile.mkstemp(prefix="plantdyn-", suffix=".csv")
+    tmp = Path(tmp_name)
     try:
-        text = path.read_bytes().decode(codec)
-    except UnicodeDecodeError as exc:
-        raise IngestError(
-            f"{path}: bytes at offset {exc.start} are not valid {codec}; the file is "
-            f"corrupt or in another encoding (set source.csv.encoding in the job YAML)"
-        ) from exc
-    return text.lstrip("\ufeff").encode("utf-8")
+        with path.open("rb") as src, open(fd, "wb") as dst:
+            consumed, first = 0, True
+            while True:
+                raw = src.read(16 * 2**20)
+                try:
+                    text = decoder.decode(raw, final=not raw)
+                except UnicodeDecodeError as exc:
+                    raise IngestError(
+                        f"{name}: bytes near offset {consumed + exc.start} are not valid "
+                        f"{codec}; the file is corrupt or in another encoding (set "
+                        "source.csv.encoding in the job YAML)") from exc
+                if first and text:
+                    text, first = text.lstrip("\ufeff"), False
+                dst.write(text.encode("utf-8", "surrogatepass"))
+                consumed += len(raw)
+                if not raw:
+                    break
+        yield tmp
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _tail_rows(path: Path, codec: str, sep: str, n_bytes: int = 65536) -> list[list[str]]:
+    """Whole rows from the last ``n_bytes`` of the file (for the format sample)."""
+    size = path.stat().st_size
+    if size <= n_bytes:
+        return []
+    width = {"utf-16-le": 2, "utf-16-be": 2, "utf-16": 2, "utf-32": 4}.get(codec, 1)
+    start = (size - n_bytes) // width * width
+    with path.open("rb") as f:
+        f.seek(start)
+        tail = f.read()
+    text = tail.decode(codec.replace("-sig", "") if codec != "utf-16" else "utf-16-le",
+                       errors="replace")
+    lines = text.splitlines()[1:]  # the first line is cut
+    if '"' in text:
+        return []  # a cut inside a quoted field would misalign the fields
+    return [r for r in _csv.reader(lines[-_SAMPLE_ROWS:], delimiter=sep) if r]
 
 
 # ----------------------------------------------------------------------------- layout
@@ -202,16 +252,17 @@ def read_csv_raw(
     options: CsvOptions,
     timezone: str,
     tags: list[str] | None,
-) -> tuple[pl.DataFrame, _ReaderMeta]:
-    """Read a historian CSV into the pre-canonical table.
+    sink: Callable[[pl.DataFrame], None],
+) -> _ReaderMeta:
+    """Read a historian CSV chunk by chunk into ``sink``.
+
+    Each pre-canonical chunk has the columns ``signal`` (str or Categorical), ``time``
+    (Datetime us UTC), ``value`` (Float64, null for text/empty), ``state_text`` (str),
+    ``flag`` (raw quality flag or null), in file order.
 
     Returns
     -------
-    pre : polars.DataFrame
-        Columns ``signal`` (str), ``time`` (Datetime us UTC), ``value`` (Float64, null
-        for text/empty), ``state_text`` (str), ``flag`` (str raw quality flag or null),
-        in file order.
-    meta : _ReaderMeta
+    _ReaderMeta
     """
     name = str(path)
     size = path.stat().st_size
@@ -236,11 +287,13 @@ def read_csv_raw(
     rows = [r for r in _csv.reader(lines[:_SAMPLE_ROWS], delimiter=sep)]
     if layout == "auto":
         layout = _detect_layout(rows, options)
-    source = _polars_source(path, codec)
     encoding = {"utf-8-sig": "utf-8-bom"}.get(codec, codec)
+    tail = _tail_rows(path, codec, sep)
     if layout == "long":
-        return _read_long(source, rows, sep, options, timezone, tags, name, encoding)
-    return _read_wide(source, rows, sep, options, timezone, tags, name, encoding)
+        return _read_long(path, codec, rows, tail, sep, options, timezone, tags, name,
+                          encoding, sink)
+    return _read_wide(path, codec, rows, tail, sep, options, timezone, tags, name, encoding,
+                      sink)
 
 
 def _check_row_shapes(header: list[str] | None, data_rows: list[list[str]], sep: str,
@@ -275,16 +328,42 @@ def _row_shape_error(name: str, line: int, n_fields: int, n_header: int,
         "(decimal commas are then read as such) or with the values quoted, or fix the line")
 
 
-def first_ragged_line(source: str | bytes, sep: str, n_header: int, skip: int,
+def first_ragged_line(path: Path, sep: str, n_header: int, skip: int,
                       header_line: int) -> tuple[int, list[str]] | None:
     """First data line (1-based in the file) with more fields than ``n_header`` (extra
-    fields that are all empty — a trailing separator — do not count); one streaming pass
-    with the csv module, used only after polars refused the file."""
-    import io
+    fields that are all empty — a trailing separator — do not count); used only after
+    polars refused the file. Files without quotes are scanned with numpy (separators per
+    line, about 1 GB/s); with quotes, one pass with the csv module."""
+    import numpy as np
 
-    fh: Any = io.StringIO(source.decode("utf-8", errors="replace")) if isinstance(source, bytes) \
-        else open(source, encoding="utf-8", errors="replace", newline="")
-    with fh:
+    line = 0  # physical lines before the current block
+    carry = b""
+    with path.open("rb") as f:
+        while True:
+            block = f.read(64 * 2**20)
+            buf = carry + block if carry else block
+            if b'"' in buf:
+                break  # quoted fields: the csv module from the start
+            end = len(buf) if not block else buf.rfind(b"\n") + 1
+            part, carry = buf[:end], buf[end:]
+            if part:
+                arr = np.frombuffer(part, dtype=np.uint8)
+                nl = np.flatnonzero(arr == 10)
+                if not len(nl) or nl[-1] != len(arr) - 1:
+                    nl = np.append(nl, len(arr))
+                per = np.diff(np.concatenate([[0], np.searchsorted(
+                    np.flatnonzero(arr == ord(sep)), nl)]))
+                ks = np.flatnonzero((per + 1 > n_header) & (line + np.arange(len(per)) >= skip))
+                starts = np.concatenate([[0], nl[:-1] + 1])
+                for k in ks:
+                    text = part[starts[k]:nl[k]].decode("utf-8", "replace").rstrip("\r")
+                    row = next(_csv.reader([text], delimiter=sep), [])
+                    if len(row) > n_header and any(c.strip() for c in row[n_header:]):
+                        return header_line + (line + int(k) - skip), row
+                line += len(per)
+            if not block:
+                return None
+    with path.open(encoding="utf-8", errors="replace", newline="") as fh:
         reader = _csv.reader(fh, delimiter=sep)
         for k, row in enumerate(reader):
             if k < skip:
@@ -294,44 +373,86 @@ def first_ragged_line(source: str | bytes, sep: str, n_header: int, skip: int,
     return None
 
 
-def _polars_read(source: str | bytes, name: str, *, expected_fields: int | None = None,
-                 first_data_line: int = 1, **kwargs: Any) -> pl.DataFrame:
-    import io
+def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
+             first_line: int, categorical: tuple[int, ...] = (),
+             exprs: Sequence[pl.Expr] = ()) -> Iterator[tuple[int, pl.DataFrame]]:
+    """The data lines in chunks of columns ``c0 .. c{n_fields-1}`` (text; Categorical for
+    the indices in ``categorical``) plus ``_row`` (the row within the chunk) and the
+    columns of ``exprs``, each chunk with the file line of its first row.
 
-    src: Any = io.BytesIO(source) if isinstance(source, bytes) else source
-    try:
-        return pl.read_csv(src, infer_schema=False, raise_if_empty=False, **kwargs)
-    except pl.exceptions.PolarsError as exc:
-        msg = str(exc)
-        if "more fields than" in msg and expected_fields is not None:
-            found = first_ragged_line(source, kwargs.get("separator", ","), expected_fields,
-                                      kwargs.get("skip_lines", 0) +
-                                      (1 if kwargs.get("has_header") else 0), first_data_line)
-            if found is not None:
-                line, row = found
-                raise _row_shape_error(name, line, len(row), expected_fields, row,
-                                       kwargs.get("separator", ",")) from None
-        if "utf-8" in msg.lower() or "utf8" in msg.lower():
-            raise IngestError(
-                f"{name}: invalid UTF-8 further into the file ({msg.splitlines()[0]}); "
-                f"set the export's code page in the job YAML, e.g. source.csv.encoding: cp1252"
-            ) from exc
-        raise IngestError(
-            f"{name}: the CSV reader failed ({type(exc).__name__}: {msg.splitlines()[0]}); "
-            f"check the separator/quoting or set source.csv.separator in the job YAML"
-        ) from exc
+    polars' streaming CSV reader cuts the chunks (quotes and all) and evaluates
+    ``exprs`` (the optimistic parse) beside the reading. Every field is read — a
+    projection would let polars skip the field count — so a row with more fields than
+    ``n_fields`` is an error here, and a row with fewer gets nulls. Blank lines come back
+    as rows of nulls (dropped by the caller).
+    """
+    rows = max(1, _ingest.CHUNK_CELLS // max(n_fields, 1))
+    schema = {f"c{i}": pl.Categorical() if i in categorical else pl.String()
+              for i in range(n_fields)}
+    lf = pl.scan_csv(path, has_header=False, separator=sep, skip_lines=skip, schema=schema,
+                     missing_columns="insert", raise_if_empty=False)
+    if exprs:
+        lf = lf.with_columns(exprs)
+    done = 0
+    it = iter(lf.collect_batches(chunk_size=rows))
+    while True:
+        try:
+            df = next(it)
+        except StopIteration:
+            return
+        except pl.exceptions.PolarsError as exc:
+            raise _reader_error(exc, path, name, sep=sep, n_fields=n_fields, skip=skip,
+                                first_line=first_line, near=first_line + done) from None
+        yield first_line + done, df.with_row_index("_row")
+        done += len(df)
+
+
+def _reader_error(exc: Exception, path: Path, name: str, *, sep: str, n_fields: int,
+                  skip: int, first_line: int, near: int) -> IngestError:
+    msg = str(exc)
+    if "more fields than" in msg:
+        found = first_ragged_line(path, sep, n_fields, skip, first_line)
+        if found is not None:
+            line, row = found
+            return _row_shape_error(name, line, len(row), n_fields, row, sep)
+    if "utf-8" in msg.lower() or "utf8" in msg.lower():
+        return IngestError(
+            f"{name}: invalid UTF-8 after line {near} ({msg.splitlines()[0]}); set the "
+            f"export's code page in the job YAML, e.g. source.csv.encoding: cp1252")
+    return IngestError(
+        f"{name}: the CSV reader failed after line {near} ({type(exc).__name__}: "
+        f"{msg.splitlines()[0]}); check the separator/quoting or set source.csv.separator "
+        f"in the job YAML")
+
+
+def _format_sample(rows: list[list[str]], i_time: int,
+                   time_format: str | None) -> tuple[pl.Series, str | None]:
+    """Timestamp cells of the sampled head and tail rows, stripped (format detection),
+    and the format the streaming read parses optimistically (None for padded cells,
+    which take the careful path)."""
+    raw = [r[i_time] for r in rows if i_time < len(r) and r[i_time]]
+    sample = pl.Series([c.strip() for c in raw if c.strip()], dtype=pl.String)
+    if time_format is not None:
+        return sample, time_format
+    if any(c != c.strip() for c in raw):
+        return sample, None
+    cands = formats_matching(sample, first_only=True)
+    return sample, (cands[0] if cands else None)
 
 
 def _read_long(
-    source: str | bytes,
+    path: Path,
+    codec: str,
     rows: list[list[str]],
+    tail: list[list[str]],
     sep: str,
     options: CsvOptions,
     timezone: str,
     tags: list[str] | None,
     name: str,
     encoding: str,
-) -> tuple[pl.DataFrame, _ReaderMeta]:
+    sink: Callable[[pl.DataFrame], None],
+) -> _ReaderMeta:
     header = rows[0]
     named = {_key(h) for h in header} & (_TAG_KEYS | _VALUE_KEYS | _TIME_KEYS)
     has_header = (
@@ -368,83 +489,106 @@ def _read_long(
     decimal = options.decimal or _detect_decimal(sample_values, sep)
     first_line = options.skip_lines + (2 if has_header else 1)
     _check_row_shapes(rows[0] if has_header else None, data_rows, sep, name, first_line)
-    df = _polars_read(
-        source,
-        name,
-        separator=sep,
-        has_header=has_header,
-        skip_lines=options.skip_lines,
-        columns=[i for _, i in by_index],
-        row_index_name="_row" if tags is not None else None,
-        expected_fields=len(rows[0]) if has_header else None,
-        first_data_line=first_line,
-    )
-    names = (["_row"] if tags is not None else []) + [r for r, _ in by_index]
-    df = df.rename(dict(zip(df.columns, names, strict=True)))
-    if len(df) == 0:
+    # every field of every row is read: one more than the widest sampled row is an error
+    n_fields = max(len(r) for r in rows)
+    fmt_sample, fast_fmt = _format_sample(data_rows + tail, i_time, options.time_format)
+    exprs = fast_parse_exprs(time_col=f"c{i_time}", value_cols=[f"c{i_value}"], fmt=fast_fmt,
+                             timezone=timezone, decimal_comma=decimal == ",")
+    fold = FoldState()
+    formats: list[str] = []
+    warnings: list[str] = []
+    seen_tags: set[str] = set()
+    done = 0
+    cols = {f"c{i}": r for r, i in by_index}
+    fast = {_fast_value(f"c{i_value}"): _fast_value("value")}
+    if fast_fmt is not None:
+        fast["__time"] = "__time"
+    categorical = (i_tag,) + ((i_flag,) if i_flag is not None else ())
+    with _as_utf8(path, codec, name) as src:
+        for base, df in _batches(src, name, sep=sep,
+                                 skip=options.skip_lines + (1 if has_header else 0),
+                                 n_fields=n_fields, first_line=first_line,
+                                 categorical=categorical, exprs=exprs):
+            done += len(df)
+            df = df.select("_row", *cols, *fast).rename({**cols, **fast})
+            blank = pl.all_horizontal(pl.col(list(cols.values())).is_null())
+            if df.select(blank.any()).item():
+                df = df.filter(~blank)
+            if len(df) == 0:
+                continue
+            tag_col = df["tag"]
+            if tag_col.null_count():
+                i = int(tag_col.is_null().arg_true()[0])
+                raise IngestError(f"{name}, line {base + int(df['_row'][i])}: empty tag name; "
+                                  "fix or remove the row")
+            head = tag_col.head(1000).cast(pl.String)
+            if bool(head.str.contains(r"^\s|\s$").any()):
+                df = df.with_columns(
+                    tag=tag_col.cast(pl.String).str.strip_chars().cast(pl.Categorical))
+            if tags is not None:
+                seen_tags.update(str(t) for t in df["tag"].unique().to_list())
+                df = df.filter(pl.col("tag").is_in(tags))
+                if len(df) == 0:
+                    continue
+            rows_idx = df["_row"]
+
+            def line_of(i: int, base: int = base, rows_idx: pl.Series = rows_idx) -> int:
+                return base + int(rows_idx[i])
+
+            time, values, fmt, _, _ = parse_time_and_values(
+                df,
+                time_col="time",
+                value_cols=["value"],
+                timezone=timezone,
+                time_format=options.time_format,
+                decimal_comma=decimal == ",",
+                signal=df["tag"],
+                line_of=line_of,
+                path=name,
+                fold_state=fold,
+                format_sample=fmt_sample,
+                fast_format=fast_fmt,
+            )
+            if fmt not in formats:
+                formats.append(fmt)
+            value, state = values["value"]
+            flag = df["flag"] if "flag" in df.columns else \
+                pl.repeat(None, len(df), dtype=pl.String, eager=True)
+            sink(pl.DataFrame(
+                {"signal": df["tag"], "time": time, "value": value, "state_text": state,
+                 "flag": flag}))
+            del df, time, values, value, state, flag
+    if done == 0:
         raise IngestError(f"{name}: the file has a header but no data rows; re-run the export")
-    tag_col = df["tag"]
-    if tag_col.null_count():
-        i = int(tag_col.is_null().arg_true()[0])
-        raise IngestError(f"{name}, line {first_line + i}: empty tag name; fix or remove the row")
-    if bool(tag_col.head(1000).str.contains(r"^\s|\s$").any()):
-        tag_col = tag_col.str.strip_chars()
-        df = df.with_columns(tag=tag_col)
     if tags is not None:
-        _check_tags(tag_col.unique().to_list(), tags, name)
-        df = df.filter(pl.col("tag").is_in(tags))
-        rows_idx = df["_row"]
-
-        def line_of(i: int) -> int:
-            return first_line + int(rows_idx[i])
-    else:
-
-        def line_of(i: int) -> int:
-            return first_line + i
-
-    time, values, fmt, dst, warnings = parse_time_and_values(
-        df,
-        time_col="time",
-        value_cols=["value"],
-        timezone=timezone,
-        time_format=options.time_format,
-        decimal_comma=decimal == ",",
-        signal=df["tag"],
-        line_of=line_of,
-        path=name,
-    )
-    value, state = values["value"]
-    if "flag" in df.columns:
-        flag = df["flag"]
-    else:
-        flag = pl.repeat(None, len(df), dtype=pl.String, eager=True)
-    pre = pl.DataFrame(
-        {"signal": df["tag"], "time": time, "value": value, "state_text": state, "flag": flag}
-    )
-    meta = _ReaderMeta(
+        _check_tags(seen_tags, tags, name)
+    warnings.extend(fold.warnings(timezone))
+    return _ReaderMeta(
         path=name,
         layout="long",
         encoding=encoding,
         separator=sep,
         decimal=decimal,
-        time_format=fmt,
+        time_format="+".join(formats) or options.time_format,
         header_rows=1 if has_header else 0,
-        dst_resolved=dst,
+        dst_resolved=dict(fold.counts),
         warnings=tuple(warnings),
     )
-    return pre, meta
 
 
 def _read_wide(
-    source: str | bytes,
+    path: Path,
+    codec: str,
     rows: list[list[str]],
+    tail: list[list[str]],
     sep: str,
     options: CsvOptions,
     timezone: str,
     tags: list[str] | None,
     name: str,
     encoding: str,
-) -> tuple[pl.DataFrame, _ReaderMeta]:
+    sink: Callable[[pl.DataFrame], None],
+) -> _ReaderMeta:
     header0 = rows[0]
     i_time = _find(header0, _TIME_KEYS, options.time_column, "time", name)
     if i_time is None:
@@ -545,63 +689,79 @@ def _read_wide(
     sample_values = [_cell(r, c) for r in data_rows for c in value_cols.values()]
     decimal = options.decimal or _detect_decimal(sample_values, sep)
     wanted = sorted({i_time, *value_cols.values(), *quality_cols.values()})
-    df = _polars_read(
-        source,
-        name,
-        separator=sep,
-        has_header=False,
-        skip_lines=options.skip_lines + n_header,
-        columns=wanted,
-        expected_fields=len(tag_row),
-        first_data_line=options.skip_lines + n_header + 1,
-    )
-    df = df.rename(dict(zip(df.columns, [f"c{i}" for i in wanted], strict=True)))
-    if len(df) == 0:
-        raise IngestError(f"{name}: the file has {n_header} header rows but no data rows")
     first_line = options.skip_lines + n_header + 1
-    time, values, fmt, dst, time_warnings = parse_time_and_values(
-        df,
-        time_col=f"c{i_time}",
-        value_cols=[f"c{c}" for c in value_cols.values()],
-        timezone=timezone,
-        time_format=options.time_format,
-        decimal_comma=decimal == ",",
-        signal=None,
-        line_of=lambda i: first_line + i,
-        path=name,
-    )
-    warnings.extend(time_warnings)
-    frames = []
-    null_flags = pl.repeat(None, len(df), dtype=pl.String, eager=True)
-    for tag, c in value_cols.items():
-        value, state = values[f"c{c}"]
-        flag = df[f"c{quality_cols[tag]}"] if tag in quality_cols else null_flags
-        frames.append(
-            pl.DataFrame(
-                {
-                    "signal": pl.repeat(tag, len(df), eager=True, dtype=pl.String),
-                    "time": time,
-                    "value": value,
-                    "state_text": state,
-                    "flag": flag,
-                }
+    fmt_sample, fast_fmt = _format_sample(data_rows + tail, i_time, options.time_format)
+    vcols = [f"c{c}" for c in value_cols.values()]
+    exprs = fast_parse_exprs(time_col=f"c{i_time}", value_cols=vcols, fmt=fast_fmt,
+                             timezone=timezone, decimal_comma=decimal == ",")
+    fast = [_fast_value(c) for c in vcols] + (["__time"] if fast_fmt is not None else [])
+    fold = FoldState()
+    formats: list[str] = []
+    done = 0
+    with _as_utf8(path, codec, name) as src:
+        for base, df in _batches(src, name, sep=sep, skip=options.skip_lines + n_header,
+                                 n_fields=n_cols, first_line=first_line, exprs=exprs):
+            done += len(df)
+            df = df.select("_row", *(f"c{i}" for i in wanted), *fast)
+            blank = pl.all_horizontal(pl.col(f"c{i}").is_null() for i in wanted)
+            if df.select(blank.any()).item():
+                df = df.filter(~blank)
+            if len(df) == 0:
+                continue
+            rows_idx = df["_row"]
+            time, values, fmt, _, _ = parse_time_and_values(
+                df,
+                time_col=f"c{i_time}",
+                value_cols=[f"c{c}" for c in value_cols.values()],
+                timezone=timezone,
+                time_format=options.time_format,
+                decimal_comma=decimal == ",",
+                signal=None,
+                line_of=lambda i, base=base, rows_idx=rows_idx: base + int(rows_idx[i]),
+                path=name,
+                fold_state=fold,
+                format_sample=fmt_sample,
+                fast_format=fast_fmt,
             )
-        )
-    pre = pl.concat(frames, how="vertical")
-    meta = _ReaderMeta(
+            if fmt not in formats:
+                formats.append(fmt)
+            frames = []
+            null_flags = pl.repeat(None, len(df), dtype=pl.String, eager=True)
+            for tag, c in value_cols.items():
+                value, state = values[f"c{c}"]
+                flag = df[f"c{quality_cols[tag]}"] if tag in quality_cols else null_flags
+                frames.append(
+                    pl.DataFrame(
+                        {
+                            # the tag as a category repeated: no string per row
+                            "signal": pl.Series([tag], dtype=pl.Categorical).new_from_index(
+                                0, len(df)),
+                            "time": time,
+                            "value": value,
+                            "state_text": state,
+                            "flag": flag,
+                        }
+                    )
+                )
+            sink(pl.concat(frames, how="vertical"))
+            del df, time, values, frames
+    if done == 0:
+        raise IngestError(f"{name}: the file has {n_header} header rows but no data rows")
+    warnings.extend(fold.warnings(timezone))
+    dst = fold.counts
+    return _ReaderMeta(
         path=name,
         layout="wide",
         encoding=encoding,
         separator=sep,
         decimal=decimal,
-        time_format=fmt,
+        time_format="+".join(formats) or options.time_format,
         header_rows=n_header,
         dst_resolved={tag: dst.get("", 0) for tag in value_cols} if dst else {},
         units=units,
         descriptions=descriptions,
         warnings=tuple(warnings),
     )
-    return pre, meta
 
 
 __all__ = ["read_csv_raw"]

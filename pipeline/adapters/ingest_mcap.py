@@ -1,8 +1,9 @@
-"""MCAP recordings (JSON, protobuf, ROS 2 channels) → pre-canonical table.
+"""MCAP recordings (JSON, protobuf, ROS 2 channels) → pre-canonical chunks.
 
 Records are read with :class:`mcap.stream_reader.StreamReader` (so a truncated file can
 still give its readable part and the byte offset where reading stopped). Messages are
-decoded per channel:
+decoded per channel, in batches of :data:`~pipeline.adapters.ingest.CHUNK_MESSAGES` as
+they stream past (memory holds one batch per channel, never the file):
 
 * ``json`` — the core mcap library has no JSON decoder; :class:`JsonDecoderFactory`
   provides one for :class:`mcap.reader.McapReader` users, but here a channel's messages
@@ -64,35 +65,49 @@ class JsonDecoderFactory(McapDecoderFactory):
 
 # ----------------------------------------------------------------------------- records
 def _read_records(
-    path: Path, *, options: McapOptions, on_truncated: str
-) -> tuple[
-    dict[int, Schema],
-    dict[int, Channel],
-    dict[int, tuple[list[bytes], list[int]]],
-    list[str],
-    bool,
-]:
-    """All schemas, channels and message payloads/log times, by channel id."""
+    path: Path,
+    *,
+    options: McapOptions,
+    on_truncated: str,
+    flush: Callable[[dict[int, Schema], dict[int, Channel], int, list[bytes], list[int], int],
+                    None],
+    batch: int,
+) -> tuple[dict[int, Channel], dict[int, int], list[str], bool]:
+    """Stream the records; each channel's payloads and log times go to ``flush`` in
+    batches of ``batch`` messages (and the rest at the end), with the index of the
+    batch's first message on its channel — so memory holds one batch per channel, not
+    the file. Returns the channels, messages per channel id, warnings, truncated."""
     name = str(path)
     size = path.stat().st_size
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
-    messages: dict[int, tuple[list[bytes], list[int]]] = {}
+    buffers: dict[int, tuple[list[bytes], list[int]]] = {}
+    counts: dict[int, int] = {}
     warnings: list[str] = []
     n_messages = 0
     offset = 0
     data_end = False
+
+    def drain(cid: int) -> None:
+        datas, times = buffers.pop(cid)
+        flush(schemas, channels, cid, datas, times, counts[cid] - len(datas))
+
+    truncated = False
     with path.open("rb") as f:
         reader = StreamReader(f, validate_crcs=options.validate_crcs)
         try:
             for record in reader.records:
                 if isinstance(record, Message):
-                    entry = messages.get(record.channel_id)
+                    cid = record.channel_id
+                    entry = buffers.get(cid)
                     if entry is None:
-                        entry = messages[record.channel_id] = ([], [])
+                        entry = buffers[cid] = ([], [])
                     entry[0].append(record.data)
                     entry[1].append(record.log_time)
+                    counts[cid] = counts.get(cid, 0) + 1
                     n_messages += 1
+                    if len(entry[0]) >= batch:
+                        drain(cid)
                 elif isinstance(record, Channel):
                     channels[record.id] = record
                 elif isinstance(record, Schema):
@@ -107,14 +122,19 @@ def _read_records(
                     f"recording or a CSV export"
                 ) from exc
             _truncated(name, offset, size, exc, n_messages, data_end, on_truncated, warnings)
-            return schemas, channels, messages, warnings, True
+            truncated = True
         # Any exception from the reader on this byte stream (EndOfFile, CRC mismatch,
         # decompression error, struct error on a short record) means the file is cut
-        # or corrupt at `offset`; the loop body above cannot raise by itself.
+        # or corrupt at `offset`; the loop body above raises only IngestError (from a
+        # batch's decoding), which is the user's message and passes through.
+        except IngestError:
+            raise
         except Exception as exc:  # noqa: BLE001
             _truncated(name, offset, size, exc, n_messages, data_end, on_truncated, warnings)
-            return schemas, channels, messages, warnings, True
-    return schemas, channels, messages, warnings, False
+            truncated = True
+    for cid in sorted(buffers):
+        drain(cid)
+    return channels, counts, warnings, truncated
 
 
 def _truncated(
@@ -193,7 +213,8 @@ def _time_from_object(obj: Any, unit_ns: int) -> int | str | None:
 
 
 # ----------------------------------------------------------------------------- channels
-def _json_frame(datas: list[bytes], log_times: list[int], name: str, topic: str) -> pl.DataFrame:
+def _json_frame(datas: list[bytes], log_times: list[int], name: str, topic: str,
+                first: int = 0) -> pl.DataFrame:
     """One row per message, columns from the JSON objects plus ``__log_time_ns``."""
     # One message per line: raw newlines in JSON are only whitespace (newlines inside
     # strings must be escaped), so replacing them keeps each message valid.
@@ -210,12 +231,12 @@ def _json_frame(datas: list[bytes], log_times: list[int], name: str, topic: str)
                 obj = json.loads(d)
             except ValueError as exc:  # JSONDecodeError and UnicodeDecodeError
                 raise IngestError(
-                    f"{name}: topic {topic!r}, message {i} (log time {log_times[i]} ns) is "
-                    f"not valid JSON ({exc}); fix or re-export the recording") from None
+                    f"{name}: topic {topic!r}, message {first + i} (log time {log_times[i]} ns) "
+                    f"is not valid JSON ({exc}); fix or re-export the recording") from None
             if not isinstance(obj, dict):
                 raise IngestError(
-                    f"{name}: topic {topic!r}, message {i} (log time {log_times[i]} ns) is a "
-                    f"JSON {type(obj).__name__}, not an object with 't' and 'value' fields; "
+                    f"{name}: topic {topic!r}, message {first + i} (log time {log_times[i]} ns) "
+                    f"is a JSON {type(obj).__name__}, not an object with 't' and 'value' fields; "
                     "re-export the recording")
             rows.append(_stringify(obj))
         listed = {k for r in rows for k, v in r.items() if isinstance(v, list)}
@@ -461,12 +482,12 @@ def _to_pre(
 _MAX_LOG_TIME_NS = 2**63 - 1
 
 
-def _check_log_times(log_times: list[int], name: str, topic: str) -> None:
+def _check_log_times(log_times: list[int], name: str, topic: str, first: int = 0) -> None:
     """MCAP log times are unsigned 64-bit; beyond int64 (year 2262) they are corrupt."""
     for i, t in enumerate(log_times):
         if t > _MAX_LOG_TIME_NS:
             raise IngestError(
-                f"{name}: topic {topic!r}, message {i}: log time {t} ns is beyond year 2262 "
+                f"{name}: topic {topic!r}, message {first + i}: log time {t} ns is beyond year 2262 "
                 "(not a valid time); the file is corrupt or was written with the wrong time "
                 "unit — re-export the recording")
 
@@ -478,33 +499,41 @@ def read_mcap_raw(
     timezone: str,
     tags: list[str] | None,
     on_truncated: str,
-) -> tuple[pl.DataFrame, _ReaderMeta]:
-    """Read an MCAP file into the pre-canonical table (see ``ingest_csv.read_csv_raw``)."""
+    sink: Callable[[pl.DataFrame], None],
+) -> _ReaderMeta:
+    """Read an MCAP file batch by batch into ``sink`` (pre-canonical chunks as in
+    ``ingest_csv.read_csv_raw``)."""
     from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
     from mcap_ros2.decoder import DecoderFactory as Ros2Factory
 
+    from pipeline.adapters import ingest as _ingest
+
     name = str(path)
-    schemas, channels, messages, warnings, truncated = _read_records(
-        path, options=options, on_truncated=on_truncated
-    )
     factories = {"protobuf": ProtobufFactory(), "cdr": Ros2Factory()}
     wanted_topics = None if options.topics is None else set(options.topics)
-    frames: list[pl.DataFrame] = []
     encodings: list[str] = []
     formats: list[str] = []
-    for cid, (datas, log_times) in sorted(messages.items()):
+    warnings: list[str] = []
+    skipped: set[int] = set()
+    seen_tags: set[str] = set()
+    rows_out = [0]
+
+    def convert(schemas: dict[int, Schema], channels: dict[int, Channel], cid: int,
+                datas: list[bytes], log_times: list[int], first: int) -> None:
         channel = channels.get(cid)
         if channel is None:
-            warnings.append(f"{name}: {len(datas)} messages on unknown channel id {cid}; skipped")
-            continue
+            if cid not in skipped:
+                skipped.add(cid)
+                warnings.append(f"{name}: messages on unknown channel id {cid}; skipped")
+            return
         topic = channel.topic
         if wanted_topics is not None and topic not in wanted_topics:
-            continue
-        _check_log_times(log_times, name, topic)
+            return
+        _check_log_times(log_times, name, topic, first)
         encoding = channel.message_encoding
         topic_tag = topic.removeprefix(options.topic_prefix) if options.topic_prefix else topic
         if encoding == "json":
-            df = _json_frame(datas, log_times, name, topic)
+            df = _json_frame(datas, log_times, name, topic, first)
             rows, _ = _samples_from_json(df, options, name, topic)
             ns_times = False
         elif encoding in factories:
@@ -517,25 +546,32 @@ def read_mcap_raw(
                     f"{getattr(schema, 'name', None)!r} ({type(exc).__name__}: {exc})"
                 ) from exc
             if decoder is None:
-                warnings.append(
-                    f"{name}: topic {topic!r}: {encoding} messages without a usable schema; skipped"
-                )
-                continue
-            try:
-                objs = [decoder(d) for d in datas]
-            except Exception as exc:  # noqa: BLE001 - decoder errors vary by library
-                raise IngestError(
-                    f"{name}: topic {topic!r}: a {encoding} message does not decode with schema "
-                    f"{schema.name if schema else None!r} ({type(exc).__name__}: {exc})"
-                ) from exc
+                if cid not in skipped:
+                    skipped.add(cid)
+                    warnings.append(f"{name}: topic {topic!r}: {encoding} messages without a "
+                                    "usable schema; skipped")
+                return
+            objs = []
+            for i, d in enumerate(datas):
+                try:
+                    objs.append(decoder(d))
+                except Exception as exc:  # noqa: BLE001 - decoder errors vary by library
+                    raise IngestError(
+                        f"{name}: topic {topic!r}, message {first + i} (log time "
+                        f"{log_times[i]} ns) does not decode as {encoding} with schema "
+                        f"{schema.name if schema else None!r} ({type(exc).__name__}: {exc}); "
+                        "fix or re-export the recording"
+                    ) from exc
             rows, _ = _object_frame(objs, log_times, options, options.tag_field, name, topic)
             ns_times = True
         else:
-            warnings.append(
-                f"{name}: topic {topic!r}: message encoding {encoding!r} is not supported "
-                f"(json, protobuf, cdr); skipped"
-            )
-            continue
+            if cid not in skipped:
+                skipped.add(cid)
+                warnings.append(
+                    f"{name}: topic {topic!r}: message encoding {encoding!r} is not supported "
+                    f"(json, protobuf, cdr); skipped"
+                )
+            return
         pre, fmt = _to_pre(
             rows,
             topic_tag=topic_tag,
@@ -545,36 +581,36 @@ def read_mcap_raw(
             topic=topic,
             ns_times=ns_times,
         )
-        frames.append(pre)
-        encodings.append(encoding)
-        formats.append(fmt)
-    if frames:
-        pre = pl.concat(frames, how="vertical")
-    else:
-        pre = pl.DataFrame(
-            schema={
-                "signal": pl.String,
-                "time": pl.Datetime("us", "UTC"),
-                "value": pl.Float64,
-                "state_text": pl.String,
-                "flag": pl.String,
-            }
-        )
+        del rows
+        if tags is not None:
+            seen_tags.update(pre["signal"].unique().to_list())
+            pre = pre.filter(pl.col("signal").is_in(tags))
+        if encoding not in encodings:
+            encodings.append(encoding)
+        if fmt not in formats:
+            formats.append(fmt)
+        rows_out[0] += len(pre)
+        if len(pre):
+            sink(pre)
+
+    channels, counts, read_warnings, truncated = _read_records(
+        path, options=options, on_truncated=on_truncated, flush=convert,
+        batch=_ingest.CHUNK_MESSAGES,
+    )
+    warnings = read_warnings + warnings
     if tags is not None:
-        _check_tags(pre["signal"].unique().to_list(), tags, name)
-        pre = pre.filter(pl.col("signal").is_in(tags))
-    if len(pre) == 0 and not truncated:
+        _check_tags(seen_tags, tags, name)
+    if rows_out[0] == 0 and not truncated:
         raise IngestError(
             f"{name}: no samples found (channels: {sorted(c.topic for c in channels.values())}, "
-            f"{sum(len(m[0]) for m in messages.values())} messages); check "
+            f"{sum(counts.values())} messages); check "
             f"source.mcap.topics and source.mcap.value_field in the job YAML"
         )
-    meta = _ReaderMeta(
+    return _ReaderMeta(
         path=name,
         layout="mcap",
-        encoding="+".join(dict.fromkeys(encodings)) or "none",
-        time_format="+".join(dict.fromkeys(formats)) or None,
+        encoding="+".join(encodings) or "none",
+        time_format="+".join(formats) or None,
         warnings=tuple(warnings),
         truncated=truncated,
     )
-    return pre, meta
