@@ -24,6 +24,7 @@ from flows.common import (
 )
 from pipeline import jobs
 from pipeline.adapters.config import load_job
+from pipeline.adapters.progress import bar as progress_bar
 
 # Big arrays flow between tasks: hashing them for a cache key would cost more than the
 # work, and results are not persisted, so caching is off.
@@ -32,7 +33,8 @@ _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 @task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def ingest_task(cfg, files):
-    return jobs.load_recording(cfg, files)
+    with progress_bar("ingest", "MB", 1e-6) as tick:  # a bar on a terminal only
+        return jobs.load_recording(cfg, files, tick=tick)
 
 
 @task(name="prepare", **_T)
@@ -42,7 +44,8 @@ def prepare_task(cfg, rec):
 
 @task(name="search", **_T)
 def search_task(cfg, prep):
-    return jobs.search_orders(cfg, prep)
+    with progress_bar("search", "steps") as tick:
+        return jobs.search_orders(cfg, prep, tick=tick)
 
 
 @task(name="estimate-window", **_T)

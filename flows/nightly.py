@@ -7,9 +7,11 @@ import sys
 from prefect import flow, task, unmapped
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
+from prefect.futures import as_completed
 
 from flows.common import console_without_user_error_tracebacks, flow_started, task_runner_for
 from pipeline.adapters.config import load_job
+from pipeline.adapters.progress import bar as progress_bar
 from pipeline.nightly import discover_files, process_file
 
 
@@ -36,7 +38,13 @@ def nightly_flow(job_path: str) -> list[dict]:
     cfg = load_job(job_path)
     items = discover_task(cfg)
     sys.stderr.write(f"[nightly] {cfg.job}: {len(items)} file(s) in {cfg.source.path}\n")
-    rows = process_file_task.map(unmapped(cfg), items).result() if items else []
+    rows = []
+    if items:
+        futures = process_file_task.map(unmapped(cfg), items)
+        with progress_bar("nightly", "files") as tick:  # a bar on a terminal only
+            for k, _ in enumerate(as_completed(futures)):
+                tick(k + 1, len(items))
+        rows = futures.result()
     failed = [r for r in rows if r["status"] in ("failed", "error")]
     lines = [f"# nightly {cfg.job}", "",
              f"{len(items)} file(s) seen, {sum(r['status'] == 'ok' for r in rows)} processed, "

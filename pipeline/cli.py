@@ -28,6 +28,13 @@ class _Progress:
         print(f"[{time.perf_counter() - self.t0:7.1f} s] {stage}: {message}", file=sys.stderr,
               flush=True)
 
+    def bar(self, stage: str, unit: str, scale: float = 1.0):
+        """A progress bar for long work inside ``stage`` (rate and ETA; terminal only
+        unless ``--progress always``)."""
+        from pipeline.adapters.progress import bar
+
+        return bar(stage, unit, scale)
+
 
 def _check_job(path: str, *, files: bool = True):
     """Everything that can be checked before work starts (config, paths, roots, storage,
@@ -207,16 +214,23 @@ def build_parser() -> argparse.ArgumentParser:
         prog="plantdyn",
         description="Step responses of every input->output pair from normal operating data.")
     sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="run an estimation job; prints the run directory")
+    shown = argparse.ArgumentParser(add_help=False)
+    shown.add_argument("--progress", choices=("auto", "always", "never"), default="auto",
+                       help="progress bars with rate and ETA on long work: auto (when stderr "
+                            "is a terminal), always (plain lines off a terminal), never")
+    r = sub.add_parser("run", help="run an estimation job; prints the run directory",
+                       parents=[shown])
     r.add_argument("job", help="job YAML file")
     r.add_argument("--run-id", default=None, help="run id (default: UTC time + random)")
     r.add_argument("--no-prefect", action="store_true",
                    help="call the pipeline directly instead of through the Prefect flow")
     r.set_defaults(fn=_cmd_run)
-    n = sub.add_parser("nightly", help="process new files of a job's drop folder once each")
+    n = sub.add_parser("nightly", help="process new files of a job's drop folder once each",
+                       parents=[shown])
     n.add_argument("job")
     n.set_defaults(fn=_cmd_nightly)
-    d = sub.add_parser("demo", help="make a demo historian export and run the demo job")
+    d = sub.add_parser("demo", help="make a demo historian export and run the demo job",
+                       parents=[shown])
     d.add_argument("--dir", default="demo",
                    help="folder for the demo export and job (default: ./demo in the current "
                         "folder; results go to ./storage beside it)")
@@ -243,7 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     rx.add_argument("storage", help="the results root (a job's storage: folder)")
     rx.set_defaults(fn=_cmd_reindex)
     dc = sub.add_parser("discrepancy", help="simulation-vs-measurement workflow; prints the "
-                                            "run directory")
+                                            "run directory", parents=[shown])
     dc.add_argument("job", help="job YAML file with model: (or discrepancy.simulator_outputs)")
     dc.add_argument("--run-id", default=None, help="run id (default: UTC time + random)")
     dc.add_argument("--no-prefect", action="store_true",
@@ -256,6 +270,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
+    if getattr(args, "progress", "auto") != "auto":
+        from pipeline.adapters.progress import ENV
+
+        os.environ[ENV] = "1" if args.progress == "always" else "0"
     try:
         return args.fn(args)
     except UserInputError as exc:

@@ -50,6 +50,7 @@ from pipeline.estimate import (
     residuals,
 )
 from pipeline.sampling import choose_sample_period, resample_average_masked
+from pipeline.progress import Tick, bar_of, silent
 from pipeline.search import SearchResult, search
 
 __all__ = [
@@ -179,8 +180,9 @@ class RunReport:
 
 
 # -------------------------------------------------------------------------- stages
-def load_recording(cfg, files: list[Path] | None = None) -> Recording:
-    """Ingest the job's files and put its signals on one uniform grid."""
+def load_recording(cfg, files: list[Path] | None = None, tick: Tick = silent) -> Recording:
+    """Ingest the job's files and put its signals on one uniform grid (``tick``: bytes
+    read, :mod:`pipeline.progress`)."""
     from pipeline.adapters.config import resolve_sources
     from pipeline.adapters.grid import to_grid
     from pipeline.adapters.ingest import read_recordings
@@ -194,7 +196,8 @@ def load_recording(cfg, files: list[Path] | None = None) -> Recording:
     csv = cfg.source.csv.model_dump() if cfg.source.csv else None
     table, report = read_recordings(files, layout=cfg.source.layout,
                                     timezone=cfg.source.timezone, tags=list(dict.fromkeys(tags)),
-                                    mcap=mcap, csv=csv, on_truncated=cfg.source.on_truncated)
+                                    mcap=mcap, csv=csv, on_truncated=cfg.source.on_truncated,
+                                    tick=tick)
     if cfg.source.time_order == "strict":
         _check_time_order(report)
     grid_dt = cfg.source.grid_dt_s or _median_spacing_s(table)
@@ -408,8 +411,9 @@ def _named(exc: PipelineError, prep: Prepared) -> PipelineError:
     return out
 
 
-def search_orders(cfg, prep: Prepared) -> SearchResult:
-    """N_p/N_d trial-and-error search (windows are estimated by the caller)."""
+def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
+    """N_p/N_d trial-and-error search (windows are estimated by the caller; ``tick``:
+    the search's steps, :mod:`pipeline.progress`)."""
     s, e = cfg.search, cfg.estimation
     n_p = s.n_p
     if n_p is None and s.settling_time_s is not None:
@@ -426,7 +430,7 @@ def search_orders(cfg, prep: Prepared) -> SearchResult:
             integrating=prep.integrating, mask=prep.good_xy, n_p_max=s.n_p_max,
             n_p_min=s.n_p_min, n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows,
             estimate_windows=False, noise=e.noise, n_k=cfg.n_k_matrix(), instruments=prep.r,
-            feedback=e.feedback)
+            feedback=e.feedback, tick=tick)
     except InstrumentError as exc:
         raise _instrument_error(cfg, prep, exc) from None
     except SingularSystemError as exc:
@@ -827,17 +831,21 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     """Run an estimation job end to end (no Prefect): the same stages the flow runs."""
     timings: dict[str, float] = {}
 
-    def stage(name, fn, *a, **k):
+    def stage(name, fn, *a, bar: tuple[str, float] | None = None, **k):
         progress(name, "start")
         t0 = time.perf_counter()
-        out = fn(*a, **k)
+        if bar is None:
+            out = fn(*a, **k)
+        else:
+            with bar_of(progress, name, *bar) as tick:
+                out = fn(*a, tick=tick, **k)
         timings[name] = time.perf_counter() - t0
         progress(name, f"done in {timings[name]:.2f} s")
         return out
 
-    rec = stage("ingest", load_recording, cfg, files)
+    rec = stage("ingest", load_recording, cfg, files, bar=("MB", 1e-6))
     prep = stage("prepare", prepare, cfg, rec)
-    sr = stage("search", search_orders, cfg, prep)
+    sr = stage("search", search_orders, cfg, prep, bar=("steps", 1.0))
     choice = (sr.n_p, sr.n_k, sr.noise, sr.instruments)
     all_est = stage("estimate_all", estimate_window, prep, None, *choice)
     wins = []

@@ -46,6 +46,7 @@ value was chosen.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,6 +69,7 @@ from pipeline.estimate import (
 )
 from pipeline._threads import single_threaded_blas
 from pipeline.feedback import FEEDBACK_LEADS, feedback_test
+from pipeline.progress import Tick, silent
 
 __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
            "TAIL_FRACTION", "TAIL_BAND"]
@@ -339,7 +341,8 @@ def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
 
 
 def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_fixed,
-                        sigma2, fit_cap: int, candidates: int = 16
+                        sigma2, fit_cap: int, candidates: int = 16,
+                        on_fit: Callable[[], None] = lambda: None,
                         ) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
     """Stage 1 with a noise model: every candidate is a GLS fit with the filters and the
     innovation variance found at ``n_p_max`` (module doc); BIC of the whitened problem
@@ -352,6 +355,7 @@ def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_f
         est = estimate_from_context(ctx, n_p=m, n_k=_clip_n_k(n_k, m, n_y, n_x), dt=dt,
                                     forms=forms, d_fixed=d_fixed, sigma2_fixed=sigma2,
                                     use_instruments=False)
+        on_fit()
         V = est.residual_rms ** 2 * est.n_d
         rss[m] = V
         bic[m] = est.n_d * np.log(np.maximum(V, 1e-300) / est.n_d) + m * n_x * np.log(est.n_d)
@@ -428,6 +432,7 @@ def search(
     n_k=0,
     instruments=None,
     feedback: str = "off",
+    tick: Tick = silent,
 ) -> SearchResult:
     """Run both stages of the search on one conditioned record.
 
@@ -466,6 +471,10 @@ def search(
         ``auto``: test every pair and give pairs with detected feedback ``n_k >= 1``
         when there are no instruments; ``report``: test, change nothing; ``off`` (the
         default, the thesis' search): no test.  Jobs default to ``auto``.
+    tick : callable (done, total), optional
+        Progress in steps (:mod:`pipeline.progress`): the fit at ``n_p_max``, each
+        stage-1 candidate fit and each stage-2 window trial; the total grows when the
+        refinement or longer windows need more.
     """
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -498,6 +507,18 @@ def search(
                                            instruments=instruments, n_lags=2 * P0 + 1,
                                            level_form=False), P0)
     nk = np.broadcast_to(np.asarray(n_k, dtype=int), (n_y, n_x)).copy()
+    # progress: stage 1 counts its fits (a noise model: one at n_p_max and ~16
+    # candidates and ~16 refinements; white: one nested solve), stage 2 its window
+    # lengths (doublings)
+    stage2 = max(1, int(np.log2(max(n / (2 * 10 * max(n_p_min, 1)), 1.0))) + 1)
+    steps = [0, (1 if fixed is not None or order == 0 else 34) + stage2]
+
+    def step() -> None:
+        steps[0] += 1
+        steps[1] = max(steps[1], steps[0] + 1)
+        tick(steps[0], steps[1])
+
+    tick(0, steps[1])
     fb: list = []
     noise_models: tuple = ()
     ctx = None
@@ -523,11 +544,12 @@ def search(
         ne = normal_equations(x, y, n_p_max=n_p_max, integrating=integrating, mask=mask)
         npm, settled, order_trace, bic_order = choose_orders(
             ne, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk)
+        step()
     elif fixed is None:
         npm, settled, order_trace, bic_order = _noise_model_orders(
             ctx, P=P0, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk,
             forms=[m.form for m in noise_models], d_fixed=[m.d for m in noise_models],
-            sigma2=est_max.sigma2, fit_cap=(n // 2 + 1 - extra) // 11)
+            sigma2=est_max.sigma2, fit_cap=(n // 2 + 1 - extra) // 11, on_fit=step)
     else:
         npm = fixed
         settled = np.ones((n_y, n_x), dtype=bool)
@@ -538,11 +560,14 @@ def search(
     nd_trace = []
     chosen = None
     kw = {"noise": noise, "n_k": nk, "instruments": instruments}
+    stage2_left = 1 + sum(1 for k in range(1, 30) if 2 * (2**k * n_d + P - 1 + extra) <= n)
+    steps[1] = steps[0] + stage2_left + 1
     while True:
         length = n_d + P - 1 + extra
         wins = split_windows_by_length(n, length, 2)
         if len(wins) < 2:
             break
+        step()
         try:
             ests = _window_estimates(x, y, mask, wins, npm, dt, integrating, **kw)
         except DataQualityError as exc:
@@ -569,6 +594,7 @@ def search(
         n_d *= 2
     if chosen is None:
         _too_short(n, P, extra)
+    tick(steps[1], steps[1])
     n_d, length = chosen
     wins = split_windows_by_length(n, length, max_windows)
     agreement = []

@@ -237,7 +237,20 @@ CSV_MUTATIONS = [m_truncate, m_flip_bytes, m_insert_bytes, m_delete_lines,
                  m_empty]
 
 
-def _mcap_mutate_payloads(data: bytes, rng: random.Random) -> bytes:
+_HOSTILE_PAYLOADS = [
+    b"\xff\xfe not utf-8", b'{"t": NaN, "value": 1}', b'{"t": Infinity, "value": 1}',
+    b'{"t": 1e300, "value": 1}', b'{"t": 1.7e9, "value": [1, 2]}',
+    b'{"t": 1.7e9, "value": {"a": 1}}', b'{"t": "soon", "value": 1}',
+    b'{"value": 1}', b'{"t": 1.7e12, "value": 1}', b"[]", b"{}", b"null",
+    b'{"t": -1e9, "value": 1}', b'{"t": 1.7e9, "value": "1,5"}']
+
+
+def _mcap_one_hostile(data: bytes, rng: random.Random) -> bytes:
+    """Exactly one hostile payload (so its own error is the one that surfaces)."""
+    return _mcap_mutate_payloads(data, rng, one=True)
+
+
+def _mcap_mutate_payloads(data: bytes, rng: random.Random, one: bool = False) -> bytes:
     """Rewrite the file with mutated JSON payloads (valid framing, hostile content)."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
@@ -251,11 +264,7 @@ def _mcap_mutate_payloads(data: bytes, rng: random.Random) -> bytes:
     w = Writer(out)
     w.start()
     schemas, channels = {}, {}
-    hostile = [b"\xff\xfe not utf-8", b'{"t": NaN, "value": 1}', b'{"t": Infinity, "value": 1}',
-               b'{"t": 1e300, "value": 1}', b'{"t": 1.7e9, "value": [1, 2]}',
-               b'{"t": 1.7e9, "value": {"a": 1}}', b'{"t": "soon", "value": 1}',
-               b'{"value": 1}', b'{"t": 1.7e12, "value": 1}', b"[]", b"{}", b"null",
-               b'{"t": -1e9, "value": 1}', b'{"t": 1.7e9, "value": "1,5"}']
+    target = rng.randrange(len(msgs)) if one and msgs else -1
     for i, (schema, channel, msg) in enumerate(msgs):
         if schema is not None and schema.id not in schemas:
             schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
@@ -264,9 +273,9 @@ def _mcap_mutate_payloads(data: bytes, rng: random.Random) -> bytes:
                 channel.topic, channel.message_encoding,
                 schemas.get(schema.id, 0) if schema is not None else 0)
         payload, log_time = msg.data, msg.log_time
-        if rng.random() < 0.02:
-            payload = rng.choice(hostile)
-        if rng.random() < 0.005:
+        if (i == target) if one else rng.random() < 0.02:
+            payload = rng.choice(_HOSTILE_PAYLOADS)
+        if not one and rng.random() < 0.005:
             log_time = rng.choice([0, 2**63 + 5, 2**64 - 1, log_time * 1000])
         w.add_message(channels[channel.id], log_time=min(log_time, 2**64 - 1),
                       data=payload, publish_time=min(log_time, 2**64 - 1))
@@ -275,7 +284,7 @@ def _mcap_mutate_payloads(data: bytes, rng: random.Random) -> bytes:
 
 
 MCAP_MUTATIONS = [m_truncate, m_flip_bytes, m_insert_bytes, _mcap_mutate_payloads,
-                  _mcap_mutate_payloads, m_empty]
+                  _mcap_mutate_payloads, _mcap_one_hostile, _mcap_one_hostile, m_empty]
 
 
 # ------------------------------------------------------------------ YAML mutations

@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import sqlite3
 from pathlib import Path
 
@@ -140,10 +141,14 @@ def test_nightly_prints_each_file_and_a_summary(tmp_path, prefect_harness):
     write_plant_csv(tmp_path / "drop" / "b.csv", seed=32, hours=1.0)
     (tmp_path / "drop" / "c.csv").write_text("tag,timestamp,value,status\nU.PV,garbage,1,Good\n")
     job = write_job(tmp_path)
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "nightly", str(job)],
-                       capture_output=True, text=True, timeout=600,
-                       env=subprocess_env(PREFECT_API_URL=prefect_harness))
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "nightly", "--progress", "always",
+                        str(job)], capture_output=True, text=True, timeout=600,
+                       env=subprocess_env(PREFECT_API_URL=prefect_harness,
+                                          PLANTDYN_PROGRESS_EVERY_S="0"))
     assert r.returncode == 2, r.stderr[-3000:]
+    # the file loop's progress (asked for: stderr is a pipe here), ending at all files
+    assert re.search(r"^nightly: 100 % 3 of 3 files, [\d.]+ files/s, ETA 0 s$", r.stderr, re.M), \
+        r.stderr[-3000:]
     assert "Traceback" not in r.stderr
     assert r.stderr.count("plantdyn: error: ") == 1
     assert "1 of 3 file(s) failed with bad data (not retried until they change): c.csv" in r.stderr
@@ -163,10 +168,17 @@ def test_default_prefect_path_reports_progress(tmp_path, prefect_harness):
 
     write_plant_csv(tmp_path / "drop" / "a.csv", seed=33, hours=1.0)
     job = write_job(tmp_path)
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(job)],
-                       capture_output=True, text=True, timeout=600,
-                       env=subprocess_env(PREFECT_API_URL=prefect_harness))
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--progress", "always",
+                        str(job)], capture_output=True, text=True, timeout=600,
+                       env=subprocess_env(PREFECT_API_URL=prefect_harness,
+                                          PLANTDYN_PROGRESS_EVERY_S="0"))
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stderr.startswith("starting the Prefect flow 'estimate'")
+    # the bars inside the flow's tasks: ingest in MB of the file, the search in steps
+    mb = (tmp_path / "drop" / "a.csv").stat().st_size / 1e6
+    m = re.search(r"^ingest: 100 % ([\d.,]+) of ([\d.,]+) MB, ", r.stderr, re.M)
+    assert r.stderr.count("ingest: 100 %") == 1
+    assert m and m.group(1) == m.group(2) == f"{mb:.2f}", r.stderr[-3000:]
+    assert re.search(r"^search: 100 % (\d+) of \1 steps, .* ETA 0 s$", r.stderr, re.M)
     for stage in ("ingest", "prepare", "search", "estimate", "store"):
         assert f"] {stage}: " in r.stderr, stage

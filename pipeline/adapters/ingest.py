@@ -43,6 +43,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.errors import ConfigError, IngestError
+from pipeline.progress import Tick, silent
 
 __all__ = [
     "CANONICAL_SCHEMA",
@@ -1115,12 +1116,23 @@ class ChunkSink:
     text and parsing columns are then free.
     """
 
-    def __init__(self, quality_map: Mapping[str, str] | None = None) -> None:
+    def __init__(self, quality_map: Mapping[str, str] | None = None, *,
+                 sizes: Sequence[int] = (), tick: Tick = silent) -> None:
         self.quality_map = quality_map
         self.chunks: list[Chunk] = []
         self.file = 0
         self.dropped: dict[str, int] = {}
         self.unknown: dict[int, list[str]] = {}
+        self._sizes = list(sizes)
+        self._tick = tick
+
+    def at(self, fraction: float) -> None:
+        """The reader is ``fraction`` of the way through the current file (progress in
+        bytes over all files)."""
+        if self._sizes:
+            before = sum(self._sizes[: self.file])
+            here = self._sizes[self.file] * min(max(fraction, 0.0), 1.0)
+            self._tick(before + here, sum(self._sizes))
 
     def __call__(self, pre: pl.DataFrame) -> None:
         df, dropped, unknown = mask_chunk(pre, self.quality_map)
@@ -1273,6 +1285,7 @@ def read_recording(
     csv: CsvOptions | Mapping[str, Any] | None = None,
     mcap: McapOptions | Mapping[str, Any] | None = None,
     on_truncated: Literal["error", "warn"] = "error",
+    tick: Tick = silent,
 ) -> tuple[pl.DataFrame, IngestReport]:
     """Read one historian CSV or MCAP recording into the canonical table.
 
@@ -1295,6 +1308,8 @@ def read_recording(
     on_truncated : {"error", "warn"}
         A truncated or corrupt MCAP file raises, or (``"warn"``) yields its readable
         part with a warning in the report.
+    tick : callable (done, total), optional
+        Called as the file is read, in bytes (:mod:`pipeline.progress`).
 
     Returns
     -------
@@ -1314,7 +1329,7 @@ def read_recording(
     csv_opts: CsvOptions = _coerce_options(csv, CsvOptions, "csv")
     mcap_opts: McapOptions = _coerce_options(mcap, McapOptions, "mcap")
     return _read_all([_check_path(path)], layout=layout, timezone=timezone, tags=tags, csv=csv_opts,
-                     mcap=mcap_opts, on_truncated=on_truncated)
+                     mcap=mcap_opts, on_truncated=on_truncated, tick=tick)
 
 
 def _check_path(path: str | Path) -> Path:
@@ -1340,10 +1355,11 @@ def _read_all(
     csv: CsvOptions,
     mcap: McapOptions,
     on_truncated: str,
+    tick: Tick = silent,
 ) -> tuple[pl.DataFrame, IngestReport]:
     """Every file's chunks into one sink, assembled once (no per-file tables)."""
     tag_list = None if tags is None else list(tags)
-    sink = ChunkSink()
+    sink = ChunkSink(sizes=[p.stat().st_size for p in paths], tick=tick)
     metas: list[_ReaderMeta] = []
     unknown_warning: dict[int, str] = {}
     for i, p in enumerate(paths):
@@ -1364,6 +1380,7 @@ def _read_all(
                 p, layout=layout, options=csv, timezone=timezone, tags=tag_list, sink=sink
             )
         metas.append(meta)
+        sink.at(1.0)
         if i in sink.unknown:
             unknown_warning[i] = (
                 f"{meta.path}: unrecognised quality flags {sorted(sink.unknown[i])[:10]} "
@@ -1428,7 +1445,8 @@ def read_recordings(
         and the row counts as a duplicate removed.
     **kwargs
         Passed to :func:`read_recording` (``layout``, ``timezone``, ``tags``, ``csv``,
-        ``mcap``, ``on_truncated``). With ``tags``, each file must hold every tag.
+        ``mcap``, ``on_truncated``, ``tick``). With ``tags``, each file must hold
+        every tag; ``tick`` counts bytes over all files.
 
     Returns
     -------
@@ -1443,7 +1461,8 @@ def read_recordings(
     layout = kwargs.get("layout", "auto")
     timezone = kwargs.get("timezone", "UTC")
     on_truncated = kwargs.get("on_truncated", "error")
-    unknown = sorted(set(kwargs) - {"layout", "timezone", "tags", "csv", "mcap", "on_truncated"})
+    unknown = sorted(set(kwargs) - {"layout", "timezone", "tags", "csv", "mcap", "on_truncated",
+                                    "tick"})
     if unknown:
         raise TypeError(f"read_recordings got unexpected keyword(s) {unknown}")
     _validate_common(layout, timezone, on_truncated)
@@ -1455,4 +1474,5 @@ def read_recordings(
         csv=_coerce_options(kwargs.get("csv"), CsvOptions, "csv"),
         mcap=_coerce_options(kwargs.get("mcap"), McapOptions, "mcap"),
         on_truncated=on_truncated,
+        tick=kwargs.get("tick", silent),
     )

@@ -357,7 +357,9 @@ def first_ragged_line(path: Path, sep: str, n_header: int, skip: int,
                 starts = np.concatenate([[0], nl[:-1] + 1])
                 for k in ks:
                     text = part[starts[k]:nl[k]].decode("utf-8", "replace").rstrip("\r")
-                    row = next(_csv.reader([text], delimiter=sep), [])
+                    # a lone CR (old Mac line ending) inside the "line" splits it
+                    row = max(_csv.reader(text.splitlines() or [""], delimiter=sep),
+                              key=len, default=[])
                     if len(row) > n_header and any(c.strip() for c in row[n_header:]):
                         return header_line + (line + int(k) - skip), row
                 line += len(per)
@@ -373,9 +375,15 @@ def first_ragged_line(path: Path, sep: str, n_header: int, skip: int,
     return None
 
 
+def _nowhere(fraction: float) -> None:
+    """Progress goes nowhere (a sink without ``at``)."""
+
+
 def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
              first_line: int, categorical: tuple[int, ...] = (),
-             exprs: Sequence[pl.Expr] = ()) -> Iterator[tuple[int, pl.DataFrame]]:
+             exprs: Sequence[pl.Expr] = (),
+             at: Callable[[float], None] = None,
+             ) -> Iterator[tuple[int, pl.DataFrame]]:
     """The data lines in chunks of columns ``c0 .. c{n_fields-1}`` (text; Categorical for
     the indices in ``categorical``) plus ``_row`` (the row within the chunk) and the
     columns of ``exprs``, each chunk with the file line of its first row.
@@ -384,9 +392,15 @@ def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
     ``exprs`` (the optimistic parse) beside the reading. Every field is read — a
     projection would let polars skip the field count — so a row with more fields than
     ``n_fields`` is an error here, and a row with fewer gets nulls. Blank lines come back
-    as rows of nulls (dropped by the caller).
+    as rows of nulls (dropped by the caller). ``at(fraction)`` is told how far through
+    the file each chunk ends (lines read x the mean line length of the first 64 KiB).
     """
+    at = at or _nowhere
     rows = max(1, _ingest.CHUNK_CELLS // max(n_fields, 1))
+    size = max(path.stat().st_size, 1)
+    with path.open("rb") as f:
+        head = f.read(65536)
+    line_bytes = len(head) / max(head.count(b"\n"), 1)
     schema = {f"c{i}": pl.Categorical() if i in categorical else pl.String()
               for i in range(n_fields)}
     lf = pl.scan_csv(path, has_header=False, separator=sep, skip_lines=skip, schema=schema,
@@ -405,6 +419,7 @@ def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
                                 first_line=first_line, near=first_line + done) from None
         yield first_line + done, df.with_row_index("_row")
         done += len(df)
+        at((skip + done) * line_bytes / size)
 
 
 def _reader_error(exc: Exception, path: Path, name: str, *, sep: str, n_fields: int,
@@ -508,7 +523,8 @@ def _read_long(
         for base, df in _batches(src, name, sep=sep,
                                  skip=options.skip_lines + (1 if has_header else 0),
                                  n_fields=n_fields, first_line=first_line,
-                                 categorical=categorical, exprs=exprs):
+                                 categorical=categorical, exprs=exprs,
+                                 at=getattr(sink, "at", _nowhere)):
             done += len(df)
             df = df.select("_row", *cols, *fast).rename({**cols, **fast})
             blank = pl.all_horizontal(pl.col(list(cols.values())).is_null())
@@ -700,7 +716,8 @@ def _read_wide(
     done = 0
     with _as_utf8(path, codec, name) as src:
         for base, df in _batches(src, name, sep=sep, skip=options.skip_lines + n_header,
-                                 n_fields=n_cols, first_line=first_line, exprs=exprs):
+                                 n_fields=n_cols, first_line=first_line, exprs=exprs,
+                                 at=getattr(sink, "at", _nowhere)):
             done += len(df)
             df = df.select("_row", *(f"c{i}" for i in wanted), *fast)
             blank = pl.all_horizontal(pl.col(f"c{i}").is_null() for i in wanted)

@@ -21,6 +21,7 @@ Use :func:`pipeline.adapters.ingest.read_recording`; this module is its MCAP bac
 from __future__ import annotations
 
 import io
+import math
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -72,11 +73,12 @@ def _read_records(
     flush: Callable[[dict[int, Schema], dict[int, Channel], int, list[bytes], list[int], int],
                     None],
     batch: int,
+    at: Callable[[float], None] = lambda fraction: None,
 ) -> tuple[dict[int, Channel], dict[int, int], list[str], bool]:
     """Stream the records; each channel's payloads and log times go to ``flush`` in
     batches of ``batch`` messages (and the rest at the end), with the index of the
     batch's first message on its channel — so memory holds one batch per channel, not
-    the file. Returns the channels, messages per channel id, warnings, truncated."""
+    the file; ``at(fraction)`` hears how far through the file the reader is. Returns the channels, messages per channel id, warnings, truncated."""
     name = str(path)
     size = path.stat().st_size
     schemas: dict[int, Schema] = {}
@@ -108,6 +110,8 @@ def _read_records(
                     n_messages += 1
                     if len(entry[0]) >= batch:
                         drain(cid)
+                    if not n_messages % 50_000:
+                        at(offset / max(size, 1))
                 elif isinstance(record, Channel):
                     channels[record.id] = record
                 elif isinstance(record, Schema):
@@ -253,7 +257,8 @@ def _json_frame(datas: list[bytes], log_times: list[int], name: str, topic: str,
             f"{name}: topic {topic!r}: {len(log_times)} messages decoded into {len(df)} rows; "
             f"each JSON message must be one object"
         )
-    return df.with_columns(__log_time_ns=pl.Series(log_times, dtype=pl.Int64))
+    return df.with_columns(__log_time_ns=pl.Series(log_times, dtype=pl.Int64),
+                           __msg=pl.int_range(first, first + len(df), dtype=pl.Int64))
 
 
 def _stringify(obj: Any) -> Any:
@@ -270,7 +275,7 @@ def _samples_from_json(
     """Rows of (tag?, time?, value, flag?, __log_time_ns); True when exploded."""
     sf = options.samples_field
     if sf in df.columns and isinstance(df.schema[sf], pl.List):
-        inner = df.select(pl.col(sf), "__log_time_ns").explode(sf)
+        inner = df.select(pl.col(sf), "__log_time_ns", "__msg").explode(sf)
         if not isinstance(inner.schema[sf], pl.Struct):
             raise IngestError(
                 f"{name}: topic {topic!r}: field {sf!r} must be a list of sample objects "
@@ -293,6 +298,17 @@ def _samples_from_json(
                 f"{name}: topic {topic!r}: fields {list_cols} are lists but the value is not; "
                 f"a many-sample message needs a list of values"
             )
+        if "time" in picked.columns and "time" not in list_cols:
+            many = picked["value"].list.len() > 1
+            if many.any():
+                r = int(many.arg_true()[0])
+                m = int(picked["__msg"][r]) if "__msg" in picked.columns else r
+                raise IngestError(
+                    f"{name}: topic {topic!r}, message {m} (log time "
+                    f"{picked['__log_time_ns'][r]} ns): field {options.value_field!r} is a list "
+                    f"of {int(picked['value'].list.len()[r])} values but "
+                    f"{options.time_field!r} is one time; give a many-sample message a list of "
+                    f"times too, or one value per message")
         try:
             picked = picked.explode(list_cols).with_columns(
                 pl.lit(None, dtype=pl.Int64).alias("__log_time_ns")
@@ -310,6 +326,8 @@ def _pick(
     df: pl.DataFrame, options: McapOptions, tag_field: str | None, name: str, topic: str
 ) -> pl.DataFrame:
     exprs: dict[str, pl.Expr] = {"__log_time_ns": pl.col("__log_time_ns")}
+    if "__msg" in df.columns:
+        exprs["__msg"] = pl.col("__msg")
     value = _struct_expr(df, options.value_field)
     if value is None:
         raise IngestError(
@@ -419,6 +437,7 @@ def _to_pre(
             time_us = t // 1000
             fmt = "mcap stamp"
         elif t.dtype.is_numeric():
+            _check_unix_times(t.cast(pl.Float64), None, rows, options, name, topic)
             scale = _UNIT_NS[options.time_unit] / 1000
             time_us = (t.cast(pl.Float64) * scale).round().cast(pl.Int64)
             fmt = f"unix {options.time_unit}"
@@ -427,6 +446,7 @@ def _to_pre(
             sub = t.gather(idx)
             asnum = sub.cast(pl.Float64, strict=False)
             if asnum.null_count() == 0:
+                _check_unix_times(asnum, idx, rows, options, name, topic)
                 sub_us = (asnum * (_UNIT_NS[options.time_unit] / 1000)).round().cast(pl.Int64)
                 fmt = f"unix {options.time_unit}"
             else:
@@ -480,6 +500,43 @@ def _to_pre(
 
 
 _MAX_LOG_TIME_NS = 2**63 - 1
+
+
+_UNIX_RANGE_S = (-2_208_988_800.0, 7_258_118_400.0)
+"""Numeric sample times accepted: 1900-01-01 .. 2200-01-01 (Unix seconds). Anything else
+is a corrupt value or a wrong ``source.mcap.time_unit`` (milliseconds read as seconds
+land in year ~55 000)."""
+
+
+def _check_unix_times(t_float: pl.Series, idx: pl.Series | None, rows: pl.DataFrame,
+                      options: McapOptions, name: str, topic: str) -> None:
+    """Every numeric time is finite and a date between 1900 and 2200 in the configured
+    unit; else an error naming the topic, message index and log time, and the unit
+    that would make it a date when there is one."""
+    lo, hi = _UNIX_RANGE_S
+    unit_s = _UNIT_NS[options.time_unit] / 1e9
+    secs = t_float * unit_s
+    bad = ~(secs.is_finite() & (secs >= lo) & (secs <= hi))
+    if not bad.any():
+        return
+    k = int(bad.arg_true()[0])
+    row = k if idx is None else int(idx[k])
+    value = float(t_float[k])
+    msg = int(rows["__msg"][row]) if "__msg" in rows.columns else row
+    log_ns = rows["__log_time_ns"][row]
+    where = f"message {msg}" + (f" (log time {log_ns} ns)" if log_ns is not None else "")
+    fits = [u for u in ("s", "ms", "us", "ns") if u != options.time_unit
+            and math.isfinite(value) and lo <= value * _UNIT_NS[u] / 1e9 <= hi]
+    if fits:
+        fix = (f"the recorder writes {fits[0]}: set source.mcap.time_unit: {fits[0]} in the "
+               f"job YAML")
+    else:
+        fix = ("the value is corrupt; fix or re-export the recording, or set "
+               "source.mcap.time_field: null in the job YAML to use the log times")
+    raise IngestError(
+        f"{name}: topic {topic!r}, {where}: time field {options.time_field!r} = {value:g} "
+        f"{options.time_unit} is not a time between 1900 and 2200 "
+        f"({int(bad.sum())} of {len(bad)} sample(s) like it); {fix}")
 
 
 def _check_log_times(log_times: list[int], name: str, topic: str, first: int = 0) -> None:
@@ -595,7 +652,7 @@ def read_mcap_raw(
 
     channels, counts, read_warnings, truncated = _read_records(
         path, options=options, on_truncated=on_truncated, flush=convert,
-        batch=_ingest.CHUNK_MESSAGES,
+        batch=_ingest.CHUNK_MESSAGES, at=getattr(sink, "at", lambda fraction: None),
     )
     warnings = read_warnings + warnings
     if tags is not None:

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from pipeline.adapters.progress import bar as progress_bar
 from pipeline.discrepancy import analyse_discrepancy, make_discrepancy_demo
 from pipeline.effects import EFFECT_NAMES, Effect, make_hidden_effect_trial
 from pipeline.model import Model, model_from_dict
@@ -140,9 +141,12 @@ def run_suite(trials: int, seed0: int, *, workers: int = 2, n: int = 10_000,
     """Run ``trials`` trials per effect plus ``trials`` null trials."""
     jobs = [(e, trial_seed(seed0, e, k), n) for e in (*effects, None) for k in range(trials)]
     results = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers) as pool, \
+            progress_bar("hidden-effect suite", "trials") as tick:  # terminal: rate and ETA
+        tick(0, len(jobs))
         for res in pool.map(_run, jobs, chunksize=1):
             results.append(res)
+            tick(len(results), len(jobs))
             if verbose:
                 mark = "ok " if res["correct"] else "BAD"
                 print(f"{mark} {res['effect']:>20} seed {res['seed']} {res['model']:>15} "

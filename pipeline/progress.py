@@ -1,0 +1,30 @@
+"""How long work reports its progress (pure: no I/O here).
+
+Library functions that can run for more than a few seconds (reading a large export, the
+N_p/N_d search, the nightly file loop, the benchmarks) take a ``tick`` callable and call
+``tick(done, total)`` as they go — in the unit they count (bytes, fits, files, trials);
+``total`` may grow while the work finds out how much there is. The front ends decide
+what a tick shows: :mod:`pipeline.adapters.progress` draws a bar with rate and ETA on
+a terminal and stays quiet otherwise.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Callable, ContextManager
+
+Tick = Callable[[float, float], None]
+"""``tick(done, total)``: called by long work as it advances."""
+
+
+def silent(done: float, total: float) -> None:  # noqa: ARG001 - the no-op Tick
+    """A :data:`Tick` that shows nothing (the default everywhere)."""
+
+
+def bar_of(progress, stage: str, unit: str, scale: float = 1.0) -> ContextManager[Tick]:
+    """The bar a stage reporter offers for ``stage`` (counting ``unit``, ``done * scale``
+    shown), or a silent tick when the reporter is a plain ``(stage, message)`` callable."""
+    make = getattr(progress, "bar", None)
+    if make is None:
+        return contextlib.nullcontext(silent)
+    return make(stage, unit, scale)

@@ -1,0 +1,29 @@
+"""CI sample of the seeded fuzz campaign (issue 10; the full campaign is scripts/fuzz.sh).
+
+Each case is a valid job + export mutated one to three times (``tests/fuzzing.py``); the
+case passes when ``plantdyn run --no-prefect`` ends with exit 0 or 2, prints no traceback
+(exactly one error line on exit 2), stays under the time and memory limits and leaves no
+half-written run.  The seeds here (10001..) are disjoint from the README campaign's
+(1..2000), so the sample checks cases the fixes were not written against.
+"""
+
+from __future__ import annotations
+
+from tests import fuzzing
+
+CI_CASES = 400
+CI_SEED = 10_001
+
+
+def test_fuzz_sample_has_no_internal_errors_hangs_or_leftovers():
+    outcomes = fuzzing.campaign(CI_CASES, CI_SEED)
+    s = fuzzing.summary(outcomes)
+    bad = [o for o in outcomes if o.problem]
+    detail = "\n".join(f"seed {o.seed} {o.base} {o.mutations}: {o.problem}\n  {o.stderr_tail[-400:]}"
+                       for o in bad)
+    assert not bad, f"{len(bad)} of {len(outcomes)} fuzz cases failed:\n{detail}"
+    # every base (CSV long/wide, MCAP, YAML, numeric) is exercised, and the mutations
+    # are hostile enough that a real share of cases is refused with exit 2
+    assert all(n > 0 for n in s["by_base"].values()), s["by_base"]
+    assert s["exit_codes"].get("2", 0) >= CI_CASES // 5, s["exit_codes"]
+    assert s["exit_codes"].get("0", 0) >= 1, s["exit_codes"]
