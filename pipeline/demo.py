@@ -79,55 +79,6 @@ def write_demo_export(folder: Path, *, hours: float = 12.0, seed: int = 7) -> Pa
     return path
 
 
-def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
-    """Write the export and run the demo job; print where results are and how to view."""
-    import sys
-
-    folder = folder.resolve()
-    exports = folder / "exports"
-    # a copy of the shipped job pointing at this folder; results go to ../storage beside it
-    text = DEMO_JOB.read_text().replace("../demo/exports/*.csv", "exports/*.csv")
-    folder.mkdir(parents=True, exist_ok=True)
-    job = folder / "demo_boiler.yaml"
-    job.write_text(text)
-    if exports.exists():
-        shutil.rmtree(exports)
-    if progress:
-        progress("demo", f"writing a 12 h historian export of the boiler loop to {exports}")
-    path = write_demo_export(exports)
-    if progress:
-        progress("demo", f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
-    from pipeline.adapters.config import load_job
-
-    cfg = load_job(job)
-    if no_prefect:
-        from pipeline.jobs import run_job
-
-        report = run_job(cfg, progress=progress or (lambda s, m: None))
-    else:
-        from flows.common import prefect_env_defaults
-
-        prefect_env_defaults()
-        from flows.estimate import run_estimate
-
-        report = run_estimate(job)
-    print(report, file=sys.stderr)
-    print(f"\nresults:   {report.run_dir}")
-    print(f"report:    {report.run_dir / 'report.md'}")
-    if report.recording:
-        print(f"recording: {report.recording}")
-        print(f"view it:   {rerun_command()} {report.recording}")
-    return 0
-
-
-def rerun_command() -> str:
-    """The Rerun viewer beside this Python (works from any folder), else ``rerun``."""
-    import sys
-
-    exe = Path(sys.executable).parent / "rerun"
-    return str(exe) if exe.exists() else "rerun"
-
-
 # ------------------------------------------------------------------ discrepancy demo
 DISCREPANCY_JOB = SHIPPED / "demo_discrepancy.yaml"
 AUX0 = 20.0  # operating point of the unrelated auxiliary flow
@@ -159,10 +110,31 @@ def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11
     return path
 
 
-def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
-    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml``."""
-    import sys
+def _say(progress, message: str) -> None:
+    if progress:
+        progress("demo", message)
 
+
+def prepare_demo(folder: Path, *, progress=None) -> Path:
+    """Write the demo export into ``folder/exports`` and a copy of the shipped demo job
+    pointing at it (results go to ``../storage`` beside the folder); returns the job."""
+    folder = folder.resolve()
+    exports = folder / "exports"
+    text = DEMO_JOB.read_text().replace("../demo/exports/*.csv", "exports/*.csv")
+    folder.mkdir(parents=True, exist_ok=True)
+    job = folder / "demo_boiler.yaml"
+    job.write_text(text)
+    if exports.exists():
+        shutil.rmtree(exports)
+    _say(progress, f"writing a 12 h historian export of the boiler loop to {exports}")
+    path = write_demo_export(exports)
+    _say(progress, f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
+    return job
+
+
+def prepare_discrepancy_demo(folder: Path, *, progress=None) -> Path:
+    """Write the discrepancy demo export, the shipped boiler model and a copy of
+    ``configs/demo_discrepancy.yaml`` into ``folder``; returns the job."""
     folder = folder.resolve()
     exports = folder / "discrepancy"
     text = DISCREPANCY_JOB.read_text()
@@ -173,31 +145,8 @@ def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=Non
     job.write_text(text)
     if exports.exists():
         shutil.rmtree(exports)
-    if progress:
-        progress("demo", f"writing an 8 h export of a boiler whose controller gain is 20 % "
-                         f"above the model's to {exports}")
+    _say(progress, f"writing an 8 h export of a boiler whose controller gain is 20 % above "
+                   f"the model's to {exports}")
     path = write_discrepancy_export(exports)
-    if progress:
-        progress("demo", f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
-    from pipeline.adapters.config import load_job
-
-    cfg = load_job(job)
-    if no_prefect:
-        from pipeline.discrepancy_job import run_discrepancy
-
-        report = run_discrepancy(cfg, progress=progress or (lambda s, m: None))
-    else:
-        from flows.common import prefect_env_defaults
-
-        prefect_env_defaults()
-        from flows.discrepancy import run_discrepancy_flow
-
-        report = run_discrepancy_flow(job)
-    print(report, file=sys.stderr)
-    print(f"\nresults:   {report.run_dir}")
-    print(f"report:    {report.run_dir / 'report.md'}")
-    print(f"model:     {report.run_dir / 'model_augmented.yaml'}")
-    if report.recording:
-        print(f"recording: {report.recording}")
-        print(f"view it:   {rerun_command()} {report.recording}")
-    return 0
+    _say(progress, f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
+    return job

@@ -52,7 +52,7 @@ import polars as pl
 
 from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
 from pipeline.errors import ConfigError, InsufficientDataError
-from pipeline.jobs import Recording, _longest_common_good, load_recording
+from pipeline.jobs import Recording, longest_common_good, load_recording
 from pipeline.model import Model, model_from_dict, model_to_dict
 from pipeline.sampling import resample_average_masked
 
@@ -234,7 +234,7 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
         vals, good = resample_average_masked(np.nan_to_num(vals), good, factor)
     t = rec.time[::factor][: vals.shape[0]]
     vals, good, filled = _bridge_short_gaps(vals, good, MAX_FILL_SAMPLES)
-    a, b = _longest_common_good(good)
+    a, b = longest_common_good(good)
     n_grid = vals.shape[0]
     dt_s = float(factor * rec.dt_s)
     if b - a < MIN_SAMPLES:
@@ -303,7 +303,7 @@ def analyse(cfg, model: Model, data: DiscrepancyData, *,
     seed = cfg.discrepancy.seed if cfg.discrepancy is not None else 0
     return analyse_discrepancy(model, inputs=data.inputs, measured=data.measured,
                                dt_s=data.dt_s, config=_core_config(cfg), seed=seed,
-                               progress=progress)
+                               progress=progress, clock=time.perf_counter)
 
 
 def series_table(result: DiscrepancyResult) -> pl.DataFrame:

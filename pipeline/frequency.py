@@ -46,7 +46,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import control
 import numpy as np
 import scipy.fft
 
@@ -224,10 +223,6 @@ class TransferFunctionFit:
     def zeros(self) -> np.ndarray:
         """Roots of the numerator (rad/s)."""
         return np.roots(self.num)
-
-    def to_control(self) -> control.TransferFunction:
-        """The fit as a continuous-time ``control.TransferFunction``."""
-        return control.tf(self.num, self.den)
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""

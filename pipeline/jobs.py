@@ -302,7 +302,7 @@ def _fill(values: np.ndarray, good: np.ndarray) -> np.ndarray:
     return out
 
 
-def _longest_common_good(good: np.ndarray) -> tuple[int, int]:
+def longest_common_good(good: np.ndarray) -> tuple[int, int]:
     segs = good_segments(good.all(axis=1))
     if not segs:
         return (0, 0)
@@ -311,7 +311,7 @@ def _longest_common_good(good: np.ndarray) -> tuple[int, int]:
 
 def prepare(cfg, rec: Recording) -> Prepared:
     """Choose T by α_T, average-then-decimate, condition inputs and outputs alike."""
-    a, b = _longest_common_good(rec.good)
+    a, b = longest_common_good(rec.good)
     if cfg.sampling.dt_s is not None:
         factor = max(1, int(round(cfg.sampling.dt_s / rec.dt_s)))
         if abs(factor * rec.dt_s - cfg.sampling.dt_s) > 1e-6 * cfg.sampling.dt_s:

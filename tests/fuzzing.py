@@ -423,7 +423,7 @@ def leftovers(folder: Path) -> list[str]:
 
 def run_in_process(folder: Path) -> dict:
     """``plantdyn run --no-prefect job.yaml`` in this process, output captured."""
-    from pipeline.cli import main
+    from flows.cli import main
 
     out, err = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()

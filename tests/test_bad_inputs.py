@@ -161,7 +161,7 @@ def test_more_than_fifteen_distinct_bad_inputs():
 def test_cli_bad_input_exits_2_with_message_and_writes_nothing(case, tmp_path, prefect_harness):
     job = case.make(tmp_path)
     env = subprocess_env(PREFECT_API_URL=prefect_harness, PLANTDYN_ALLOWED_ROOTS=None)
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(job)], env=env,
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "run", str(job)], env=env,
                          capture_output=True, text=True, timeout=180)
     assert res.returncode == 2, res.stderr[-3000:]
     assert res.stderr.count("plantdyn: error: ") == 1, res.stderr[-3000:]

@@ -23,7 +23,7 @@ import polars as pl
 import pytest
 import yaml
 
-from pipeline.cli import main
+from flows.cli import main
 from pipeline.discrepancy import DiscrepancyConfig
 from pipeline.model import model_from_dict
 from pipeline.simulate import simulate

@@ -197,7 +197,7 @@ def test_nightly_killed_midway_and_restarted_processes_each_file_exactly_once(
     storage = job.parent / "storage"
     files = drop_files(job.parent)
     expected_ids = sorted(nightly_run_id(file_sha256(f)) for f in files)
-    cmd = [sys.executable, "-m", "pipeline.cli", "nightly", str(job)]
+    cmd = [sys.executable, "-m", "flows.cli", "nightly", str(job)]
     # the harness server: the subprocess does not start its own embedded one
     env = subprocess_env(PREFECT_API_URL=prefect_harness, **{LEASE_ENV: None})
     with open(job.parent / "first.log", "wb") as log:
@@ -446,7 +446,7 @@ def test_cli_run_bad_job_exits_2_with_message_and_writes_nothing(case, tmp_path,
                                                                  prefect_harness):
     job = case.make(tmp_path)
     env = subprocess_env(PREFECT_API_URL=prefect_harness, PLANTDYN_ALLOWED_ROOTS=None)
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(job)], env=env,
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "run", str(job)], env=env,
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2, res.stderr
     assert res.stderr.count("plantdyn: error: ") == 1, res.stderr

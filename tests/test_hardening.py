@@ -2,7 +2,7 @@
 the file, key or line and the fix — or, for spikes, a run that masks and reports them —
 never a traceback, a hang, a blow-up or a half-written result.
 
-The cases run ``plantdyn run --no-prefect`` in-process (``pipeline.cli.main``, the same
+The cases run ``plantdyn run --no-prefect`` in-process (``flows.cli.main``, the same
 entry point the console script calls) so the suite stays fast; ``tests/test_bad_inputs.py``
 drives the default Prefect path in subprocesses.
 """
@@ -21,7 +21,7 @@ import polars as pl
 import pytest
 
 
-from pipeline.cli import main
+from flows.cli import main
 from tests.conftest import INPUT_TAG, OUTPUT_TAG, plant_signals, write_job, write_plant_csv
 
 

@@ -72,7 +72,7 @@ def drum_folder(tmp_path_factory):
 def test_plantdyn_run_stores_rates_peak_and_a_recording(drum_folder, prefect_harness):
     job = _job(drum_folder, rerun=True)
     env = subprocess_env(PREFECT_API_URL=prefect_harness)
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(job)],
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "run", str(job)],
                        capture_output=True, text=True, env=env, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     run_dir = Path(r.stdout.strip().splitlines()[-1])  # stdout's last line: the run dir
@@ -90,7 +90,7 @@ def test_plantdyn_run_stores_rates_peak_and_a_recording(drum_folder, prefect_har
     assert any(k.startswith("/step/drum_level/steam_flow/") for k in data)
     report = (run_dir / "report.md").read_text()
     assert "rate K" in report and "drum_level" in report
-    r2 = subprocess.run([sys.executable, "-m", "pipeline.cli", "runs", str(job)],
+    r2 = subprocess.run([sys.executable, "-m", "flows.cli", "runs", str(job)],
                         capture_output=True, text=True, env=env, timeout=120)
     assert r2.returncode == 0 and "rate" in r2.stdout
 

@@ -53,7 +53,7 @@ def _run(folder: Path, harness: str, *, instruments: bool) -> tuple[Path, dict, 
     }
     path = folder / f"{name}.yaml"
     path.write_text(yaml.safe_dump(job, sort_keys=False))
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(path)],
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "run", str(path)],
                        capture_output=True, text=True, timeout=600,
                        env=subprocess_env(PREFECT_API_URL=harness))
     assert r.returncode == 0, r.stderr[-3000:]
@@ -120,7 +120,7 @@ def test_a_useless_instrument_is_a_clear_error_and_nothing_is_written(tmp_path, 
            "rerun": {"enabled": False}}
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(job))
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--no-prefect", str(path)],
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "run", "--no-prefect", str(path)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2, r.stderr[-2000:]
     assert "Traceback" not in r.stderr

@@ -183,7 +183,7 @@ def test_cron_schedule_fires_under_plantdyn_serve(tmp_path, server_home):
     env = subprocess_env(PREFECT_API_URL=None, PREFECT_HOME=str(server_home))
     err_log = tmp_path / "serve.stderr.log"
     with open(tmp_path / "serve.stdout.log", "wb") as out, open(err_log, "wb") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve", str(job)],
+        proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "serve", str(job)],
                                 env=env, stdout=out, stderr=err)
     try:
         deadline = time.monotonic() + 150

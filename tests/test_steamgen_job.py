@@ -38,7 +38,7 @@ def run(tmp_path_factory):
     (folder / "configs").mkdir()
     path = folder / "configs" / "steamgen.yaml"
     path.write_text(yaml.safe_dump(job, sort_keys=False))
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--no-prefect", str(path)],
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "run", "--no-prefect", str(path)],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     run_dir = Path(r.stdout.strip().splitlines()[-1])

@@ -30,7 +30,7 @@ import pytest
 import yaml
 
 from pipeline.adapters.daisy import STEAMGEN_COLUMNS, convert, read_daisy
-from pipeline.cli import main
+from flows.cli import main
 from pipeline.conditioning import condition
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
 from pipeline.estimate import estimate_step_responses

@@ -141,7 +141,7 @@ def test_nightly_prints_each_file_and_a_summary(tmp_path, prefect_harness):
     write_plant_csv(tmp_path / "drop" / "b.csv", seed=32, hours=1.0)
     (tmp_path / "drop" / "c.csv").write_text("tag,timestamp,value,status\nU.PV,garbage,1,Good\n")
     job = write_job(tmp_path)
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "nightly", "--progress", "always",
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "nightly", "--progress", "always",
                         str(job)], capture_output=True, text=True, timeout=600,
                        env=subprocess_env(PREFECT_API_URL=prefect_harness,
                                           PLANTDYN_PROGRESS_EVERY_S="0"))
@@ -168,7 +168,7 @@ def test_default_prefect_path_reports_progress(tmp_path, prefect_harness):
 
     write_plant_csv(tmp_path / "drop" / "a.csv", seed=33, hours=1.0)
     job = write_job(tmp_path)
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "--progress", "always",
+    r = subprocess.run([sys.executable, "-m", "flows.cli", "run", "--progress", "always",
                         str(job)], capture_output=True, text=True, timeout=600,
                        env=subprocess_env(PREFECT_API_URL=prefect_harness,
                                           PLANTDYN_PROGRESS_EVERY_S="0"))

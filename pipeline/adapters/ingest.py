@@ -343,7 +343,7 @@ class IngestReport:
 
 
 @dataclass(frozen=True)
-class _ReaderMeta:
+class ReaderMeta:
     """What a format reader hands to the canonicaliser besides the pre-table."""
 
     path: str
@@ -361,10 +361,10 @@ class _ReaderMeta:
 
 
 # ----------------------------------------------------------------------------- quality
-_GOOD_FLAGS = frozenset(
+GOOD_FLAGS = frozenset(
     {"g", "good", "ok", "valid", "normal", "annotated", "true", "good_local_override"}
 )
-_BAD_FLAGS = frozenset(
+BAD_FLAGS = frozenset(
     {
         "b", "bad", "invalid", "error", "false", "fail", "failed", "bad input",
         "bad_input", "i/o timeout", "io timeout", "shutdown", "no data", "nodata",
@@ -373,7 +373,7 @@ _BAD_FLAGS = frozenset(
         "over range", "under range", "#n/a", "n/a", "na", "nan",
     }
 )  # fmt: skip
-_SUSPECT_FLAGS = frozenset(
+SUSPECT_FLAGS = frozenset(
     {"s", "suspect", "u", "uncertain", "q", "questionable", "substituted", "subst",
      "manual", "estimated", "stale", "last known value"}
 )  # fmt: skip
@@ -406,11 +406,11 @@ def quality_of_flag(flag: str | int | float | None) -> str | None:
     text = str(flag).strip().lower()
     if text == "":
         return GOOD
-    if text in _GOOD_FLAGS:
+    if text in GOOD_FLAGS:
         return GOOD
-    if text in _BAD_FLAGS:
+    if text in BAD_FLAGS:
         return BAD
-    if text in _SUSPECT_FLAGS:
+    if text in SUSPECT_FLAGS:
         return SUSPECT
     try:
         number = int(text, 16) if text.startswith("0x") else float(text)
@@ -482,7 +482,7 @@ def _map_flags(
 
 
 # ----------------------------------------------------------------------------- values
-def _nulls(n: int, dtype: pl.DataType, name: str) -> pl.Series:
+def null_series(n: int, dtype: pl.DataType, name: str) -> pl.Series:
     return pl.repeat(None, n, dtype=dtype, eager=True).alias(name)
 
 
@@ -514,7 +514,7 @@ def parse_value_text(
         value = pl.DataFrame({"v": raw}).select(value).to_series()
     else:
         value = value.clone()
-    state = _nulls(len(raw), pl.String(), "state")
+    state = null_series(len(raw), pl.String(), "state")
     if value.null_count() > raw.null_count():
         failed = value.is_null() & raw.is_not_null()
         # Retry with whitespace stripped, but only on the failed cells: stripping the
@@ -553,7 +553,7 @@ def _mask_nonfinite(
         idx = nonfinite.arg_true()
         text = (raw if raw is not None else value.cast(pl.String)).gather(idx).str.strip_chars()
         state = state.scatter(idx, text)
-        value = value.scatter(idx, _nulls(len(idx), pl.Float64(), "value"))
+        value = value.scatter(idx, null_series(len(idx), pl.Float64(), "value"))
     return value.alias("value"), state
 
 
@@ -563,9 +563,9 @@ def numeric_value(values: pl.Series) -> tuple[pl.Series, pl.Series]:
         return parse_value_text(values)
     n = len(values)
     if values.dtype == pl.Null:
-        return _nulls(n, pl.Float64(), "value"), _nulls(n, pl.String(), "state")
+        return null_series(n, pl.Float64(), "value"), null_series(n, pl.String(), "state")
     if values.dtype.is_numeric() or values.dtype == pl.Boolean:
-        return _mask_nonfinite(values.cast(pl.Float64), _nulls(n, pl.String(), "state"), None)
+        return _mask_nonfinite(values.cast(pl.Float64), null_series(n, pl.String(), "state"), None)
     return parse_value_text(values.cast(pl.String))
 
 
@@ -822,7 +822,7 @@ def time_expr(col: pl.Expr, fmt: str, *, timezone: str) -> pl.Expr:
 _FAST_TIME = "__time"
 
 
-def _fast_value(col: str) -> str:
+def fast_value_column(col: str) -> str:
     return f"__value_{col}"
 
 
@@ -836,7 +836,7 @@ def fast_parse_exprs(*, time_col: str, value_cols: Sequence[str], fmt: str | Non
     takes its careful path only where the optimistic time parse left a null). ``fmt``
     None (padded or undetected timestamps) adds the value casts only.
     """
-    exprs = [value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(_fast_value(c))
+    exprs = [value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(fast_value_column(c))
              for c in value_cols]
     if fmt is not None:
         exprs.append(time_expr(pl.col(time_col), fmt, timezone=timezone).alias(_FAST_TIME))
@@ -879,9 +879,9 @@ def parse_time_and_values(
     dst: dict[str, int] = {}
     warnings: list[str] = []
     time = None
-    if all(_fast_value(c) in frame.columns for c in value_cols):
+    if all(fast_value_column(c) in frame.columns for c in value_cols):
         # parsed by the streaming read itself (fast_parse_exprs)
-        out = frame.select(pl.col(_fast_value(c)).alias(c) for c in value_cols)
+        out = frame.select(pl.col(fast_value_column(c)).alias(c) for c in value_cols)
         fmt = fast_format
         if _FAST_TIME in frame.columns and raw_time.null_count() == 0:
             time = frame[_FAST_TIME].alias("time")
@@ -1093,7 +1093,7 @@ def mask_chunk(
         idx = bad.arg_true()
         idx = idx.filter(value.gather(idx).is_not_null())
         if len(idx):
-            value = value.scatter(idx, _nulls(len(idx), pl.Float64(), "value"))
+            value = value.scatter(idx, null_series(len(idx), pl.Float64(), "value"))
     signal = pre["signal"]
     if signal.dtype != pl.Categorical:
         signal = signal.cast(pl.Categorical)
@@ -1237,7 +1237,7 @@ def _build_report(
     )
 
 
-def _check_tags(available: Iterable[str], tags: Sequence[str] | None, path: str) -> None:
+def check_tags(available: Iterable[str], tags: Sequence[str] | None, path: str) -> None:
     if tags is None:
         return
     have = set(available)
@@ -1360,7 +1360,7 @@ def _read_all(
     """Every file's chunks into one sink, assembled once (no per-file tables)."""
     tag_list = None if tags is None else list(tags)
     sink = ChunkSink(sizes=[p.stat().st_size for p in paths], tick=tick)
-    metas: list[_ReaderMeta] = []
+    metas: list[ReaderMeta] = []
     unknown_warning: dict[int, str] = {}
     for i, p in enumerate(paths):
         sink.file = i

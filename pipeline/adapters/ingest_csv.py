@@ -31,12 +31,12 @@ from pipeline.adapters import ingest as _ingest
 from pipeline.adapters.ingest import (
     CsvOptions,
     FoldState,
-    _BAD_FLAGS,
-    _check_tags,
-    _GOOD_FLAGS,
-    _ReaderMeta,
-    _SUSPECT_FLAGS,
-    _fast_value,
+    BAD_FLAGS,
+    check_tags,
+    GOOD_FLAGS,
+    ReaderMeta,
+    SUSPECT_FLAGS,
+    fast_value_column,
     fast_parse_exprs,
     formats_matching,
     looks_like_time,
@@ -74,7 +74,7 @@ def _is_quality_header(name: str) -> bool:
 
 def _is_flag_text(cell: str) -> bool:
     low = cell.strip().lower()
-    return low in _GOOD_FLAGS or low in _BAD_FLAGS or low in _SUSPECT_FLAGS
+    return low in GOOD_FLAGS or low in BAD_FLAGS or low in SUSPECT_FLAGS
 
 
 # ----------------------------------------------------------------------------- encoding
@@ -253,7 +253,7 @@ def read_csv_raw(
     timezone: str,
     tags: list[str] | None,
     sink: Callable[[pl.DataFrame], None],
-) -> _ReaderMeta:
+) -> ReaderMeta:
     """Read a historian CSV chunk by chunk into ``sink``.
 
     Each pre-canonical chunk has the columns ``signal`` (str or Categorical), ``time``
@@ -262,7 +262,7 @@ def read_csv_raw(
 
     Returns
     -------
-    _ReaderMeta
+    ReaderMeta
     """
     name = str(path)
     size = path.stat().st_size
@@ -467,7 +467,7 @@ def _read_long(
     name: str,
     encoding: str,
     sink: Callable[[pl.DataFrame], None],
-) -> _ReaderMeta:
+) -> ReaderMeta:
     header = rows[0]
     named = {_key(h) for h in header} & (_TAG_KEYS | _VALUE_KEYS | _TIME_KEYS)
     has_header = (
@@ -515,7 +515,7 @@ def _read_long(
     seen_tags: set[str] = set()
     done = 0
     cols = {f"c{i}": r for r, i in by_index}
-    fast = {_fast_value(f"c{i_value}"): _fast_value("value")}
+    fast = {fast_value_column(f"c{i_value}"): fast_value_column("value")}
     if fast_fmt is not None:
         fast["__time"] = "__time"
     categorical = (i_tag,) + ((i_flag,) if i_flag is not None else ())
@@ -577,9 +577,9 @@ def _read_long(
     if done == 0:
         raise IngestError(f"{name}: the file has a header but no data rows; re-run the export")
     if tags is not None:
-        _check_tags(seen_tags, tags, name)
+        check_tags(seen_tags, tags, name)
     warnings.extend(fold.warnings(timezone))
-    return _ReaderMeta(
+    return ReaderMeta(
         path=name,
         layout="long",
         encoding=encoding,
@@ -604,7 +604,7 @@ def _read_wide(
     name: str,
     encoding: str,
     sink: Callable[[pl.DataFrame], None],
-) -> _ReaderMeta:
+) -> ReaderMeta:
     header0 = rows[0]
     i_time = _find(header0, _TIME_KEYS, options.time_column, "time", name)
     if i_time is None:
@@ -699,7 +699,7 @@ def _read_wide(
             if cell and cell != tag:
                 out[tag] = cell
     if tags is not None:
-        _check_tags(value_cols, tags, name)
+        check_tags(value_cols, tags, name)
         value_cols = {t: value_cols[t] for t in tags}
         quality_cols = {t: c for t, c in quality_cols.items() if t in value_cols}
     sample_values = [_cell(r, c) for r in data_rows for c in value_cols.values()]
@@ -710,7 +710,7 @@ def _read_wide(
     vcols = [f"c{c}" for c in value_cols.values()]
     exprs = fast_parse_exprs(time_col=f"c{i_time}", value_cols=vcols, fmt=fast_fmt,
                              timezone=timezone, decimal_comma=decimal == ",")
-    fast = [_fast_value(c) for c in vcols] + (["__time"] if fast_fmt is not None else [])
+    fast = [fast_value_column(c) for c in vcols] + (["__time"] if fast_fmt is not None else [])
     fold = FoldState()
     formats: list[str] = []
     done = 0
@@ -766,7 +766,7 @@ def _read_wide(
         raise IngestError(f"{name}: the file has {n_header} header rows but no data rows")
     warnings.extend(fold.warnings(timezone))
     dst = fold.counts
-    return _ReaderMeta(
+    return ReaderMeta(
         path=name,
         layout="wide",
         encoding=encoding,

@@ -35,9 +35,9 @@ from mcap.stream_reader import StreamReader
 
 from pipeline.adapters.ingest import (
     McapOptions,
-    _check_tags,
-    _nulls,
-    _ReaderMeta,
+    check_tags,
+    null_series,
+    ReaderMeta,
     numeric_value,
     parse_timestamps,
 )
@@ -459,7 +459,7 @@ def _to_pre(
                     path=f"{name} topic {topic!r} sample",
                 )
                 sub_us = parsed.dt.epoch("us")
-            time_us = _nulls(n, pl.Int64(), "time").scatter(idx, sub_us)
+            time_us = null_series(n, pl.Int64(), "time").scatter(idx, sub_us)
         else:
             raise IngestError(
                 f"{name}: topic {topic!r}: time field {options.time_field!r} has type "
@@ -486,7 +486,7 @@ def _to_pre(
     if "flag" in rows.columns:
         flag = rows["flag"].cast(pl.String)
     else:
-        flag = _nulls(n, pl.String(), "flag")
+        flag = null_series(n, pl.String(), "flag")
     if "tag" in rows.columns:
         signal = rows["tag"].cast(pl.String).fill_null(topic_tag)
     else:
@@ -557,7 +557,7 @@ def read_mcap_raw(
     tags: list[str] | None,
     on_truncated: str,
     sink: Callable[[pl.DataFrame], None],
-) -> _ReaderMeta:
+) -> ReaderMeta:
     """Read an MCAP file batch by batch into ``sink`` (pre-canonical chunks as in
     ``ingest_csv.read_csv_raw``)."""
     from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
@@ -656,14 +656,14 @@ def read_mcap_raw(
     )
     warnings = read_warnings + warnings
     if tags is not None:
-        _check_tags(seen_tags, tags, name)
+        check_tags(seen_tags, tags, name)
     if rows_out[0] == 0 and not truncated:
         raise IngestError(
             f"{name}: no samples found (channels: {sorted(c.topic for c in channels.values())}, "
             f"{sum(counts.values())} messages); check "
             f"source.mcap.topics and source.mcap.value_field in the job YAML"
         )
-    return _ReaderMeta(
+    return ReaderMeta(
         path=name,
         layout="mcap",
         encoding="+".join(encodings) or "none",

@@ -72,7 +72,7 @@ MANIFEST_NAME = "manifest.json"
 
 # Job names and run ids become directory names: a conservative character set, and no
 # leading dot (so `.`/`..` and the hidden `.tmp-*` directories can never be named).
-_NAME_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
+NAME_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
 _FILE_NAME_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9_.-]*$")
 _STATUS_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 _WINDOW_RE = r"^(all|w[0-9]+)$"
@@ -408,7 +408,7 @@ def _storage_faults(path: Path, doing: str) -> Iterator[None]:
         raise err from None
 
 
-def _check_name(name: str, *, what: str, pattern: re.Pattern[str] = _NAME_RE) -> str:
+def check_name(name: str, *, what: str, pattern: re.Pattern[str] = NAME_RE) -> str:
     if isinstance(name, str) and len(name) > MAX_NAME_LENGTH:
         raise ConfigError(f"{what} of {len(name)} characters is too long (at most "
                           f"{MAX_NAME_LENGTH}: it becomes a folder name); shorten it")
@@ -608,7 +608,7 @@ class RunWriter:
     def _target(self, name: str) -> Path:
         if self._closed:
             raise PipelineError(f"run {self.job}/{self.run_id}: writer is closed; write files inside the `with` block")
-        _check_name(name, what="result file name", pattern=_FILE_NAME_RE)
+        check_name(name, what="result file name", pattern=_FILE_NAME_RE)
         if name == MANIFEST_NAME:
             raise ConfigError(f"{MANIFEST_NAME} is written by the store itself when the run is committed")
         return self.path / name
@@ -816,14 +816,14 @@ class ResultStore:
         return f"{socket.gethostname()}:{os.getpid()}:{self._token}"
 
     def _job_dir(self, job: str) -> Path:
-        _check_name(job, what="job name")
+        check_name(job, what="job name")
         path = (self.root / job).resolve()
         if not path.is_relative_to(self.root) or path == self.root:
             raise ConfigError(f"job name {job!r} resolves to {path}, outside the storage root {self.root}")
         return path
 
     def _run_dir(self, job: str, run_id: str) -> Path:
-        _check_name(run_id, what="run id")
+        check_name(run_id, what="run id")
         job_dir = self._job_dir(job)
         path = (job_dir / run_id).resolve()
         if path.parent != job_dir:
@@ -975,7 +975,7 @@ class ResultStore:
         manifests: list[dict[str, Any]] = []
         skipped: list[str] = []
         for job_dir in sorted(p for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(".")):
-            if not _NAME_RE.fullmatch(job_dir.name):
+            if not NAME_RE.fullmatch(job_dir.name):
                 continue
             for run_dir in sorted(p for p in job_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
                 manifest_path = run_dir / MANIFEST_NAME

@@ -54,9 +54,9 @@ def _check_job(path: str, *, files: bool = True):
 
 def _check_run_id(run_id: str | None) -> None:
     if run_id is not None:
-        from pipeline.adapters.store import _NAME_RE, _check_name
+        from pipeline.adapters.store import NAME_RE, check_name
 
-        _check_name(run_id, what="--run-id", pattern=_NAME_RE)
+        check_name(run_id, what="--run-id", pattern=NAME_RE)
 
 
 def _cmd_run(args) -> int:
@@ -162,11 +162,11 @@ def _cmd_reindex(args) -> int:
 
 def _cmd_demo(args) -> int:
     if args.discrepancy:
-        from pipeline.demo import run_discrepancy_demo
+        from flows.demo import run_discrepancy_demo
 
         return run_discrepancy_demo(Path(args.dir), no_prefect=args.no_prefect,
                                     progress=_Progress())
-    from pipeline.demo import run_demo
+    from flows.demo import run_demo
 
     return run_demo(Path(args.dir), no_prefect=args.no_prefect, progress=_Progress())
 

@@ -1,0 +1,66 @@
+"""``plantdyn demo``: write the demo export and job (``pipeline.demo``), run them through
+the Prefect flow or directly, and print where the results are and how to view them."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from pipeline.adapters.config import load_job
+from pipeline.demo import prepare_demo, prepare_discrepancy_demo
+
+
+def rerun_command() -> str:
+    """The Rerun viewer beside this Python (works from any folder), else ``rerun``."""
+    exe = Path(sys.executable).parent / "rerun"
+    return str(exe) if exe.exists() else "rerun"
+
+
+def _quiet(stage: str, message: str) -> None:
+    """No stage lines."""
+
+
+def _print_where(report, *extra: tuple[str, Path]) -> int:
+    print(report, file=sys.stderr)
+    print(f"\nresults:   {report.run_dir}")
+    print(f"report:    {report.run_dir / 'report.md'}")
+    for label, path in extra:
+        print(f"{label + ':':<10} {path}")
+    if report.recording:
+        print(f"recording: {report.recording}")
+        print(f"view it:   {rerun_command()} {report.recording}")
+    return 0
+
+
+def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
+    """Write the export and run the demo job; print where results are and how to view."""
+    job = prepare_demo(folder, progress=progress)
+    if no_prefect:
+        from pipeline.jobs import run_job
+
+        report = run_job(load_job(job), progress=progress or _quiet)
+    else:
+        from flows.common import prefect_env_defaults
+
+        prefect_env_defaults()
+        from flows.estimate import run_estimate
+
+        report = run_estimate(job)
+    return _print_where(report)
+
+
+def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
+    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml``."""
+    job = prepare_discrepancy_demo(folder, progress=progress)
+    if no_prefect:
+        from pipeline.discrepancy_job import run_discrepancy
+
+        report = run_discrepancy(load_job(job), progress=progress or _quiet)
+    else:
+        from flows.common import prefect_env_defaults
+
+        prefect_env_defaults()
+        from flows.discrepancy import run_discrepancy_flow
+
+        report = run_discrepancy_flow(job)
+    return _print_where(report, ("model", report.run_dir / "model_augmented.yaml"))

@@ -1,0 +1,111 @@
+"""The layers of design.md, checked on the source (AST, every import at any depth):
+
+* core modules (``pipeline/*.py`` except the composition modules) import only numpy,
+  scipy, threadpoolctl, pure standard-library modules and other core modules — no files,
+  clock, network, Prefect, Rerun, YAML, polars or python-control;
+* nothing under ``pipeline/`` imports ``flows`` (the library never depends on its
+  orchestration), and adapters do not import the composition modules;
+* no module imports a private (``_name``) name of another module, from ``pipeline`` or
+  ``flows``, whether by ``from m import _x`` or ``m._x``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PIPELINE = ROOT / "pipeline"
+COMPOSITION = {"jobs", "discrepancy_job", "nightly", "demo"}
+"""``pipeline`` modules that compose adapters and core (design.md layer 3)."""
+CORE = sorted(p.stem for p in PIPELINE.glob("*.py")
+              if p.stem not in COMPOSITION and p.stem != "__init__")
+THIRD_PARTY_CORE = {"numpy", "scipy", "threadpoolctl"}
+PURE_STDLIB = {"__future__", "abc", "bisect", "collections", "contextlib", "copy",
+               "dataclasses", "difflib", "enum", "fractions", "functools", "graphlib",
+               "heapq", "itertools", "math", "numbers", "operator", "re", "statistics",
+               "types", "typing", "warnings"}
+"""Standard-library modules without I/O, clock or global state the core may use."""
+
+
+def _imports(path: Path) -> list[tuple[int, str, list[str]]]:
+    """(line, module, imported names) of every import in ``path``, at any depth."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            out.extend((node.lineno, a.name, []) for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # relative import: resolve against the package
+                base = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-node.level])
+                mod = f"{base}.{node.module}" if node.module else base
+            else:
+                mod = node.module or ""
+            out.append((node.lineno, mod, [a.name for a in node.names]))
+    return out
+
+
+def _sources(*folders: str) -> list[Path]:
+    return sorted(p for f in folders for p in (ROOT / f).rglob("*.py"))
+
+
+@pytest.mark.parametrize("name", CORE)
+def test_core_module_imports_only_numpy_scipy_and_core(name):
+    bad = []
+    for line, mod, names in _imports(PIPELINE / f"{name}.py"):
+        top = mod.split(".")[0]
+        if top in THIRD_PARTY_CORE or top in PURE_STDLIB:
+            continue
+        if mod == "pipeline":  # `from pipeline import x`: x must be a core module
+            if all(n in CORE for n in names):
+                continue
+        elif top == "pipeline" and mod.split(".")[1] in CORE and len(mod.split(".")) == 2:
+            continue
+        bad.append(f"{name}.py:{line}: {mod} {names or ''}")
+    assert not bad, "core modules import outside the core:\n" + "\n".join(bad)
+
+
+def test_the_library_never_imports_flows_and_adapters_not_composition():
+    bad = []
+    for path in _sources("pipeline"):
+        rel = path.relative_to(ROOT)
+        for line, mod, _ in _imports(path):
+            if mod.split(".")[0] == "flows":
+                bad.append(f"{rel}:{line}: imports {mod}")
+            if rel.parts[1] == "adapters" and mod.startswith("pipeline.") and \
+                    mod.split(".")[1] in COMPOSITION:
+                bad.append(f"{rel}:{line}: adapter imports composition module {mod}")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_module_imports_a_private_name_of_another():
+    bad = []
+    for path in _sources("pipeline", "flows"):
+        rel = path.relative_to(ROOT)
+        tree = ast.parse(path.read_text())
+        aliases = {}  # local name -> project module it stands for
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and \
+                    node.module.split(".")[0] in ("pipeline", "flows"):
+                for a in node.names:
+                    if a.name.startswith("_") and not a.name.startswith("__") and \
+                            a.name not in ("_threads", "_shipped"):
+                        bad.append(f"{rel}:{node.lineno}: from {node.module} import {a.name}")
+                    aliases[a.asname or a.name] = f"{node.module}.{a.name}"
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.split(".")[0] in ("pipeline", "flows"):
+                        aliases[a.asname or a.name] = a.name
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and \
+                    node.value.id in aliases and node.attr.startswith("_") and \
+                    not node.attr.startswith("__"):
+                bad.append(f"{rel}:{node.lineno}: {node.value.id}.{node.attr}")
+    assert not bad, "private names used across modules:\n" + "\n".join(bad)
+
+
+def test_the_checks_see_the_project():
+    """The lists above are not empty by accident (a moved folder would pass vacuously)."""
+    assert {"estimate", "search", "checks", "frequency", "discrepancy"} <= set(CORE)
+    assert len(_sources("pipeline")) >= 30 and len(_sources("flows")) >= 6
