@@ -267,6 +267,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``plantdyn`` command; returns the exit code (0, 2 bad input, 1 internal error).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Command-line arguments without the program name; ``None`` reads ``sys.argv``.
+    """
     args = build_parser().parse_args(argv)
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")

@@ -22,7 +22,17 @@ def prefect_env_defaults() -> None:
 
 def say(t_start: float, stage: str, message: str) -> None:
     """A stage line on stderr (written directly: a flow's ``log_prints`` would turn a print
-    into a log record, and Prefect's console logging is quiet by default)."""
+    into a log record, and Prefect's console logging is quiet by default).
+
+    Parameters
+    ----------
+    t_start : float
+        ``time.perf_counter()`` at the start; the line shows the seconds since.
+    stage : str
+        Stage name.
+    message : str
+        What to say.
+    """
     sys.stderr.write(f"[{time.perf_counter() - t_start:7.1f} s] {stage}: {message}\n")
     sys.stderr.flush()
 
@@ -38,7 +48,15 @@ def flow_started() -> None:
 @contextlib.contextmanager
 def starting(what: str, every_s: float = 5.0):
     """Say that ``what`` is starting and, until the flow's first stage line, how long it has
-    taken (Prefect's embedded server takes 10-30 s on a first run, in silence)."""
+    taken (Prefect's embedded server takes 10-30 s on a first run, in silence).
+
+    Parameters
+    ----------
+    what : str
+        What is starting (printed on stderr).
+    every_s : float
+        Seconds between the "still starting" lines.
+    """
     t0 = time.perf_counter()
     _STARTED.clear()
     print(f"starting {what}...", file=sys.stderr, flush=True)
@@ -65,6 +83,13 @@ def retry_transient_io(task, task_run, state) -> bool:
 
     Bad input (a :class:`~pipeline.errors.UserInputError`) fails at once: retrying a
     malformed file only delays the clear error message.
+
+    Parameters
+    ----------
+    task, task_run : Task, TaskRun
+        Unused (Prefect's ``retry_condition_fn`` signature).
+    state : State
+        The failed run's state; its result is the exception.
     """
     try:
         exc = state.result(raise_on_failure=False)
@@ -74,7 +99,14 @@ def retry_transient_io(task, task_run, state) -> bool:
 
 
 def task_runner_for(address: str | None):
-    """DaskTaskRunner on a Dask scheduler when an address is configured, else the default."""
+    """DaskTaskRunner on a Dask scheduler when an address is configured, else the default.
+
+    Parameters
+    ----------
+    address : str or None
+        The Dask scheduler's address (the job's ``dask.address``); empty or ``None``
+        returns ``None`` (Prefect's default runner).
+    """
     if not address:
         return None
     from prefect_dask import DaskTaskRunner

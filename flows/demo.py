@@ -33,7 +33,17 @@ def _print_where(report, *extra: tuple[str, Path]) -> int:
 
 
 def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
-    """Write the export and run the demo job; print where results are and how to view."""
+    """Write the export and run the demo job; print where results are and how to view.
+
+    Parameters
+    ----------
+    folder : Path
+        Where the export and the job are written (:func:`pipeline.demo.prepare_demo`).
+    no_prefect : bool
+        Call the pipeline directly instead of through the Prefect flow.
+    progress : callable (stage, message), optional
+        Told what the demo writes and, with ``no_prefect``, each stage of the run.
+    """
     job = prepare_demo(folder, progress=progress)
     if no_prefect:
         from pipeline.jobs import run_job
@@ -50,7 +60,18 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
 
 
 def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
-    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml``."""
+    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml``.
+
+    Parameters
+    ----------
+    folder : Path
+        Where the export, model and job are written
+        (:func:`pipeline.demo.prepare_discrepancy_demo`).
+    no_prefect : bool
+        Call the pipeline directly instead of through the Prefect flow.
+    progress : callable (stage, message), optional
+        Told what the demo writes and, with ``no_prefect``, each stage of the run.
+    """
     job = prepare_discrepancy_demo(folder, progress=progress)
     if no_prefect:
         from pipeline.discrepancy_job import run_discrepancy

@@ -32,21 +32,60 @@ _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 @task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def ingest_task(cfg, files):
+    """Ingest and grid the job's files (:func:`pipeline.jobs.load_recording`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    files : list of Path or None
+        Files to read; ``None`` resolves the job's ``source``.
+    """
     return jobs.load_recording(cfg, files)
 
 
 @task(name="model", **_T)
 def model_task(cfg):
+    """Load and check the job's model (:func:`pipeline.discrepancy_job.load_discrepancy_model`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    """
     return dj.load_discrepancy_model(cfg)
 
 
 @task(name="prepare", **_T)
 def prepare_task(cfg, rec, model):
+    """The analysed stretch (:func:`pipeline.discrepancy_job.prepare_discrepancy`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    rec : Recording
+        The gridded signals from :func:`ingest_task`.
+    model : Model
+        The job's model from :func:`model_task`.
+    """
     return dj.prepare_discrepancy(cfg, rec, model)
 
 
 @task(name="analyse", **_T)
 def analyse_task(cfg, model, data):
+    """Run the discrepancy core (:func:`pipeline.discrepancy_job.analyse`), its stages
+    reported on stderr.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    model : Model
+        The nominal model.
+    data : DiscrepancyData
+        The analysed stretch from :func:`prepare_task`.
+    """
     start = time.perf_counter()
     return dj.analyse(cfg, model, data,
                       progress=lambda stage, message: say(start, f"analyse/{stage}", message))
@@ -54,6 +93,26 @@ def analyse_task(cfg, model, data):
 
 @task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def store_task(cfg, model, source, data, result, timings, run_id):
+    """Write the run directory and build the report
+    (:func:`pipeline.discrepancy_job.finish_discrepancy`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    model : Model
+        The nominal model.
+    source : str
+        ``"model"`` or ``"external_simulator"``.
+    data : DiscrepancyData
+        The analysed stretch.
+    result : DiscrepancyResult
+        The core's outcome.
+    timings : dict
+        Seconds per stage, recorded with the run.
+    run_id : str or None
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     return dj.finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
 
 
@@ -63,7 +122,17 @@ def _key(job: str, suffix: str) -> str:
 
 @flow(name="discrepancy", log_prints=True)
 def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
-    """Compare a job's simulation model with its measured data; name the missing effect."""
+    """Compare a job's simulation model with its measured data; name the missing effect.
+
+    Parameters
+    ----------
+    job_path : str
+        The job YAML file.
+    files : list of str, optional
+        Files to read instead of the job's ``source.path``.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     flow_started()
     cfg = load_job(job_path)
     timings: dict[str, float] = {}
@@ -97,7 +166,17 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
 
 
 def run_discrepancy_flow(job_path: str | Path, *, files=None, run_id=None):
-    """Run the discrepancy flow (the CLI's ``plantdyn discrepancy``)."""
+    """Run the discrepancy flow (the CLI's ``plantdyn discrepancy``).
+
+    Parameters
+    ----------
+    job_path : str or Path
+        The job YAML file (validated before the flow starts).
+    files : iterable of path, optional
+        Files to read instead of the job's ``source.path``.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     load_job(job_path)  # validate before Prefect starts: fast, clear errors
     console_without_user_error_tracebacks()
     return discrepancy_flow(str(job_path), [str(f) for f in files] if files else None, run_id)

@@ -33,33 +33,109 @@ _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 @task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def ingest_task(cfg, files):
+    """Ingest and grid the job's files (:func:`pipeline.jobs.load_recording`), with a
+    progress bar on a terminal.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    files : list of Path or None
+        Files to read; ``None`` resolves the job's ``source``.
+    """
     with progress_bar("ingest", "MB", 1e-6) as tick:  # a bar on a terminal only
         return jobs.load_recording(cfg, files, tick=tick)
 
 
 @task(name="prepare", **_T)
 def prepare_task(cfg, rec):
+    """Sample period, decimation and conditioning (:func:`pipeline.jobs.prepare`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    rec : Recording
+        The gridded signals from :func:`ingest_task`.
+    """
     return jobs.prepare(cfg, rec)
 
 
 @task(name="search", **_T)
 def search_task(cfg, prep):
+    """N_p/N_d search (:func:`pipeline.jobs.search_orders`), with a progress bar on a
+    terminal.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    prep : Prepared
+        The conditioned record from :func:`prepare_task`.
+    """
     with progress_bar("search", "steps") as tick:
         return jobs.search_orders(cfg, prep, tick=tick)
 
 
 @task(name="estimate-window", **_T)
 def estimate_task(prep, window, n_p, n_k, noise, use_instruments):
+    """Estimate on one window (:func:`pipeline.jobs.estimate_window`); mapped over windows.
+
+    Parameters
+    ----------
+    prep : Prepared
+        The conditioned record.
+    window : (int, int) or None
+        Sample slice of ``prep``; ``None`` for every sample.
+    n_p, n_k : int array (n_y, n_x)
+        Order and known delay per pair (``SearchResult.n_p``, ``.n_k``).
+    noise : ``"white"``, ``"auto"`` or int
+        The estimator's noise setting (``SearchResult.noise``).
+    use_instruments : bool
+        Estimate with the instruments (``SearchResult.instruments``).
+    """
     return jobs.estimate_window(prep, window, n_p, n_k, noise, use_instruments)
 
 
 @task(name="summarise", **_T)
 def summarise_task(cfg, prep, sr, all_est, wins):
+    """Tables, checks and report of the run (:func:`pipeline.jobs.summarise`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    prep : Prepared
+        The conditioned record.
+    sr : SearchResult
+        The order search's outcome.
+    all_est : StepResponseEstimate
+        The estimate on every usable sample.
+    wins : list of StepResponseEstimate or WindowFailure
+        One per ``sr.windows``, in order.
+    """
     return jobs.summarise(cfg, prep, sr, all_est, wins)
 
 
 @task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def store_task(cfg, summary, prep, sr, timings, run_id):
+    """Write the run directory and build the report (:func:`pipeline.jobs.finish_run`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    summary : Summary
+        From :func:`summarise_task`.
+    prep : Prepared
+        The conditioned record.
+    sr : SearchResult
+        The order search's outcome.
+    timings : dict
+        Seconds per stage, recorded with the run.
+    run_id : str or None
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
 
 
@@ -71,7 +147,17 @@ def _artifact_key(job: str, suffix: str) -> str:
 
 @flow(name="estimate", log_prints=True)
 def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
-    """Estimate step responses for one job YAML (optionally on given files)."""
+    """Estimate step responses for one job YAML (optionally on given files).
+
+    Parameters
+    ----------
+    job_path : str
+        The job YAML file.
+    files : list of str, optional
+        Files to read instead of the job's ``source.path``.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     flow_started()
     cfg = load_job(job_path)
     timings: dict[str, float] = {}
@@ -125,7 +211,17 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
 
 
 def run_estimate(job_path: str | Path, *, files=None, run_id=None):
-    """Run the estimate flow, on a Dask cluster when ``dask.address`` is configured."""
+    """Run the estimate flow, on a Dask cluster when ``dask.address`` is configured.
+
+    Parameters
+    ----------
+    job_path : str or Path
+        The job YAML file (validated before the flow starts).
+    files : iterable of path, optional
+        Files to read instead of the job's ``source.path``.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     cfg = load_job(job_path)
     console_without_user_error_tracebacks()
     runner = task_runner_for(cfg.dask.address)

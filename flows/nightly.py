@@ -17,11 +17,28 @@ from pipeline.nightly import discover_files, process_file
 
 @task(name="discover", cache_policy=NO_CACHE, persist_result=False)
 def discover_task(cfg):
+    """``(path, sha256)`` of the job's files (:func:`pipeline.nightly.discover_files`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    """
     return discover_files(cfg)
 
 
 @task(name="process-file", cache_policy=NO_CACHE, persist_result=False)
 def process_file_task(cfg, item):
+    """Process one file (:func:`pipeline.nightly.process_file`) and print its status line
+    on stderr.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    item : (str, str)
+        ``(path, sha256)`` from :func:`discover_task`.
+    """
     row = process_file(cfg, item[0], item[1])
     # as each file finishes (stderr directly: the flow's log_prints would swallow it)
     sys.stderr.write(f"[nightly] {row['status']}: {item[0]}"
@@ -33,7 +50,13 @@ def process_file_task(cfg, item):
 
 @flow(name="nightly", log_prints=True)
 def nightly_flow(job_path: str) -> list[dict]:
-    """Discover new files of the job (``source.path`` glob) and process each once."""
+    """Discover new files of the job (``source.path`` glob) and process each once.
+
+    Parameters
+    ----------
+    job_path : str
+        The job YAML file.
+    """
     flow_started()
     cfg = load_job(job_path)
     items = discover_task(cfg)
@@ -62,6 +85,13 @@ def nightly_flow(job_path: str) -> list[dict]:
 
 
 def run_nightly(job_path: str):
+    """Run the nightly flow, on a Dask cluster when ``dask.address`` is configured.
+
+    Parameters
+    ----------
+    job_path : str
+        The job YAML file (validated before the flow starts).
+    """
     cfg = load_job(job_path)
     console_without_user_error_tracebacks()
     runner = task_runner_for(cfg.dask.address)

@@ -143,6 +143,11 @@ def build_deployments(jobs: Sequence[ScheduledJob]) -> list:
 
     The entrypoint is the module path ``flows.nightly.nightly_flow`` so the runs do not
     depend on the working directory of the serving process.
+
+    Parameters
+    ----------
+    jobs : sequence of ScheduledJob
+        The jobs to deploy (:func:`scheduled_jobs`).
     """
     from prefect.schedules import Cron
     from prefect.types.entrypoint import EntrypointType

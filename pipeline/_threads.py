@@ -27,7 +27,14 @@ __all__ = ["single_threaded_blas"]
 
 
 def single_threaded_blas(fn):
-    """Run ``fn`` with BLAS limited to one thread (module docstring: not restored)."""
+    """Run ``fn`` with BLAS limited to one thread (module docstring: not restored).
+
+    Parameters
+    ----------
+    fn : callable
+        Function to wrap; each call of the wrapper sets the BLAS limit, then calls it
+        with the same arguments.
+    """
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):

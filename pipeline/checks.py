@@ -177,6 +177,12 @@ def window_agreement(estimates: list[StepResponseEstimate]) -> list[list[Agreeme
     Returns a nested list ``[output][input]`` of :class:`AgreementResult`.  Each pair is
     compared over its own n_p lags of the step response, with each window's covariance
     across lags (``step_cov``) when the estimate carries it.
+
+    Parameters
+    ----------
+    estimates : list of StepResponseEstimate
+        Estimates of the same outputs, inputs and orders from disjoint windows (the first
+        one's ``n_p`` sets the lags compared); an empty list gives ``[]``.
     """
     if not estimates:
         return []
@@ -200,6 +206,14 @@ def ljung_box(residual, *, lags: int = 20) -> dict:
 
     ``Q = n(n+2) sum_{k=1..lags} rho_k^2 / (n-k)`` ~ chi^2(lags) under whiteness.
     NaN samples are dropped (gaps are treated as joined; fine for a diagnostic).
+
+    Parameters
+    ----------
+    residual : array (N,)
+        Residuals or prediction errors of one output (NaN where unavailable).
+    lags : int
+        Autocorrelation lags in the statistic, in samples; with no more than
+        ``lags + 1`` finite samples every result is None.
 
     Returns
     -------
@@ -232,6 +246,19 @@ def cross_correlation_check(x, residual, *, max_lag: int, confidence: float = 0.
 
     The verdict uses the portmanteau statistic ``S = n sum_{k>=0} r(k)^2``, which is
     chi^2(max_lag+1) under independence (Ljung, System Identification, §16.6).
+
+    Parameters
+    ----------
+    x : array (N,)
+        One input (NaN where unavailable).
+    residual : array (N,)
+        Residuals or prediction errors of one output on the same grid (NaN where
+        unavailable); samples where either is NaN are left out.
+    max_lag : int
+        Largest lag, in samples, in both directions.
+    confidence : float
+        Confidence level of the band and of the verdict (``ok`` when
+        ``p >= 1 - confidence``).
 
     Returns
     -------

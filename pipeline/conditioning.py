@@ -440,5 +440,15 @@ class Conditioning:
         return {k: getattr(self, k) for k in _SPEC_FIELDS if getattr(self, k) is not None}
 
     def apply(self, x, y, *, dt_s: float) -> Conditioned:
-        """``condition(x, y, method=self.method, dt_s=dt_s, **self.params)``."""
+        """``condition(x, y, method=self.method, dt_s=dt_s, **self.params)``.
+
+        Parameters
+        ----------
+        x : array (N,) or (N, n_x)
+            Inputs, uniformly sampled, gap-free.
+        y : array (N,) or (N, n_y)
+            Outputs on the same samples.
+        dt_s : float
+            Sample period (s).
+        """
         return condition(x, y, method=self.method, dt_s=dt_s, **self.params)

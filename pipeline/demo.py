@@ -32,7 +32,17 @@ STEAM0, PRESSURE0, FUEL0 = 50.0, 120.0, 8.0
 
 def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) -> dict:
     """Simulated plant signals on a 1 s grid: ``{"t_s", "steam_flow", "turbine_pressure",
-    "fuel_flow"}`` (absolute engineering values, noise included)."""
+    "fuel_flow"}`` (absolute engineering values, noise included).
+
+    Parameters
+    ----------
+    hours : float
+        Length of the record, h.
+    dt_s : float
+        Sample period of the simulation, s.
+    seed : int
+        Seeds the load and the sensor noise.
+    """
     from pipeline.adapters.config import load_yaml_file
 
     rng = np.random.default_rng(seed)
@@ -56,7 +66,18 @@ def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) 
 
 
 def write_demo_export(folder: Path, *, hours: float = 12.0, seed: int = 7) -> Path:
-    """Write the demo export CSV into ``folder`` and return its path."""
+    """Write the demo export CSV into ``folder`` and return its path.
+
+    Parameters
+    ----------
+    folder : Path
+        Destination folder (created if missing); the file is ``boiler_export.csv``.
+    hours : float
+        Length of the record, h.
+    seed : int
+        Seeds the signals (:func:`make_demo_signals`); ``seed + 1`` the irregular
+        timestamps and the digital states.
+    """
     from pipeline.adapters.historian_writer import write_long_csv
 
     sig = make_demo_signals(hours=hours, seed=seed)
@@ -91,6 +112,15 @@ def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11
     boiler model with ``controller.kp`` × 1.2, AR(1) sensor noise), moved to the demo's
     operating point and written as a PI-style long CSV at 1 s in local time with two
     isolated "Bad Input" states (bridged by the workflow).
+
+    Parameters
+    ----------
+    folder : Path
+        Destination folder (created if missing); the file is ``boiler_kp_export.csv``.
+    hours : float
+        Length of the record, h.
+    seed : int
+        Seeds the simulated signals; ``seed + 1`` places the digital states.
     """
     from pipeline.adapters.historian_writer import write_long_csv
     from pipeline.discrepancy import make_discrepancy_demo
@@ -117,7 +147,15 @@ def _say(progress, message: str) -> None:
 
 def prepare_demo(folder: Path, *, progress=None) -> Path:
     """Write the demo export into ``folder/exports`` and a copy of the shipped demo job
-    pointing at it (results go to ``../storage`` beside the folder); returns the job."""
+    pointing at it (results go to ``../storage`` beside the folder); returns the job.
+
+    Parameters
+    ----------
+    folder : Path
+        Where the job file and ``exports/`` are written (``exports/`` is replaced).
+    progress : callable (stage, message), optional
+        Told what is being written (stage ``"demo"``); ``None`` says nothing.
+    """
     folder = folder.resolve()
     exports = folder / "exports"
     text = DEMO_JOB.read_text().replace("../demo/exports/*.csv", "exports/*.csv")
@@ -134,7 +172,16 @@ def prepare_demo(folder: Path, *, progress=None) -> Path:
 
 def prepare_discrepancy_demo(folder: Path, *, progress=None) -> Path:
     """Write the discrepancy demo export, the shipped boiler model and a copy of
-    ``configs/demo_discrepancy.yaml`` into ``folder``; returns the job."""
+    ``configs/demo_discrepancy.yaml`` into ``folder``; returns the job.
+
+    Parameters
+    ----------
+    folder : Path
+        Where the job file, ``models/`` and ``discrepancy/`` are written
+        (``discrepancy/`` is replaced).
+    progress : callable (stage, message), optional
+        Told what is being written (stage ``"demo"``); ``None`` says nothing.
+    """
     folder = folder.resolve()
     exports = folder / "discrepancy"
     text = DISCREPANCY_JOB.read_text()

@@ -148,6 +148,11 @@ def load_discrepancy_model(cfg) -> tuple[Model, str]:
 
     Returns ``(model, source)`` with ``source`` = ``"model"`` or ``"external_simulator"``.
     Checks that model inputs are job signals and job outputs are model outputs.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (with its ``model:`` or ``discrepancy.simulator_outputs``).
     """
     from pipeline.adapters.config import load_model_spec
 
@@ -219,7 +224,17 @@ def _output_offsets_from_nominal(cfg, model: Model, inputs: dict, measured: dict
 
 
 def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
-    """Longest all-good stretch, optional decimation, operating point removed."""
+    """Longest all-good stretch, optional decimation, operating point removed.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``sampling.dt_s``, ``discrepancy.operating_point``).
+    rec : Recording
+        The gridded signals from :func:`pipeline.jobs.load_recording`.
+    model : Model
+        The job's model; its outputs select the measured signals.
+    """
     section = cfg.discrepancy
     factor = 1
     if cfg.sampling.dt_s is not None:
@@ -291,7 +306,13 @@ def _core_config(cfg) -> DiscrepancyConfig:
 
 def check_job(cfg) -> tuple[Model, str]:
     """Validate a discrepancy job before any data is read: the model, its names, the
-    core settings.  Returns :func:`load_discrepancy_model`'s ``(model, source)``."""
+    core settings.  Returns :func:`load_discrepancy_model`'s ``(model, source)``.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (with its ``model:`` or ``discrepancy.simulator_outputs``).
+    """
     model, source = load_discrepancy_model(cfg)
     _core_config(cfg)
     return model, source
@@ -299,7 +320,19 @@ def check_job(cfg) -> tuple[Model, str]:
 
 def analyse(cfg, model: Model, data: DiscrepancyData, *,
             progress: Progress = _quiet) -> DiscrepancyResult:
-    """Run the discrepancy core on the prepared data."""
+    """Run the discrepancy core on the prepared data.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``discrepancy`` core settings and seed).
+    model : Model
+        The nominal model.
+    data : DiscrepancyData
+        The analysed stretch from :func:`prepare_discrepancy`.
+    progress : callable (stage, message)
+        Called at the start of each stage of the core.
+    """
     seed = cfg.discrepancy.seed if cfg.discrepancy is not None else 0
     return analyse_discrepancy(model, inputs=data.inputs, measured=data.measured,
                                dt_s=data.dt_s, config=_core_config(cfg), seed=seed,
@@ -311,6 +344,11 @@ def series_table(result: DiscrepancyResult) -> pl.DataFrame:
 
     Columns ``output``, ``time_s``, ``part`` (warmup | fit | holdout), ``measured``,
     ``nominal``, ``augmented``, ``residual_before``, ``residual_after``, ``rolling_rms``.
+
+    Parameters
+    ----------
+    result : DiscrepancyResult
+        The core's outcome (its ``series``).
     """
     s = result.series
     n = s.t_s.size
@@ -334,7 +372,13 @@ def series_table(result: DiscrepancyResult) -> pl.DataFrame:
 
 
 def augmented_model_document(result: DiscrepancyResult) -> dict:
-    """``model_augmented.yaml`` content: the augmented model (+ ``measurement:``)."""
+    """``model_augmented.yaml`` content: the augmented model (+ ``measurement:``).
+
+    Parameters
+    ----------
+    result : DiscrepancyResult
+        The core's outcome (its augmented model and accepted effect).
+    """
     doc = model_to_dict(result.augmented_model)
     eff = result.effect
     if eff is not None and eff.name == "sensor_bias_drift":
@@ -351,6 +395,15 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
 
     An independent check that ``model_augmented.yaml`` reproduces the reported
     ``gap.holdout_rms_after`` (the run records both).
+
+    Parameters
+    ----------
+    doc : dict
+        An augmented-model document (:func:`augmented_model_document`).
+    data : DiscrepancyData
+        The analysed stretch (inputs, measured outputs, sample period).
+    result : DiscrepancyResult
+        The core's outcome (initial condition, hold-out start).
     """
     from pipeline.effects import predict_outputs
 
@@ -375,7 +428,21 @@ def _fmt(v: Any, digits: int = 4) -> str:
 
 def report_markdown(cfg, model: Model, source: str, data: DiscrepancyData,
                     result: DiscrepancyResult) -> str:
-    """``report.md``: verdict, effect, gap, candidates and localisation in a page."""
+    """``report.md``: verdict, effect, gap, candidates and localisation in a page.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    model : Model
+        The nominal model.
+    source : str
+        ``"model"`` or ``"external_simulator"`` (from :func:`load_discrepancy_model`).
+    data : DiscrepancyData
+        The analysed stretch.
+    result : DiscrepancyResult
+        The core's outcome.
+    """
     g = result.gap
     lines = [f"# Discrepancy run: {cfg.job}", "",
              f"Model `{model.name}` ({'external simulator outputs' if source != 'model' else 'block diagram'}), "
@@ -437,6 +504,23 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
     """Write the run directory atomically (store) with its Rerun recording.
 
     Returns ``(run_id, run_dir, recording_path, discrepancy_json)``.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    model : Model
+        The nominal model.
+    source : str
+        ``"model"`` or ``"external_simulator"`` (from :func:`load_discrepancy_model`).
+    data : DiscrepancyData
+        The analysed stretch.
+    result : DiscrepancyResult
+        The core's outcome.
+    timings : dict of str to float
+        Seconds per stage, recorded with the run.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
     """
     from pipeline.adapters.config import dump_yaml
     from pipeline.adapters.store import ResultStore
@@ -488,7 +572,25 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
 def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
                        result: DiscrepancyResult, timings: dict, *,
                        run_id: str | None = None) -> DiscrepancyReport:
-    """Write the results and build the :class:`DiscrepancyReport`."""
+    """Write the results and build the :class:`DiscrepancyReport`.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    model : Model
+        The nominal model.
+    source : str
+        ``"model"`` or ``"external_simulator"`` (from :func:`load_discrepancy_model`).
+    data : DiscrepancyData
+        The analysed stretch.
+    result : DiscrepancyResult
+        The core's outcome.
+    timings : dict of str to float
+        Seconds per stage, recorded with the run; ``store`` is added.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    """
     t0 = time.perf_counter()
     rid, run_dir, rrd, _ = write_discrepancy_run(cfg, model, source, data, result,
                                                  timings=timings, run_id=run_id)
@@ -501,7 +603,19 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
 
 def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
                     progress: Progress = _quiet) -> DiscrepancyReport:
-    """Run a discrepancy job end to end (no Prefect): the stages the flow runs."""
+    """Run a discrepancy job end to end (no Prefect): the stages the flow runs.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    files : list of Path, optional
+        Files to read; ``None`` resolves the job's ``source``.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    progress : callable (stage, message)
+        Told when each stage starts and ends, and passed to the core.
+    """
     timings: dict[str, float] = {}
 
     def stage(name, fn, *a, **k):

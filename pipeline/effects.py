@@ -517,6 +517,17 @@ def trial_inputs(model_name: str, *, n: int, dt_s: float,
     + a few load steps.  Level set point (drum, mm): a few steps.  ``aux_flow``: an
     extra measured signal (e.g. a blowdown or attemperator flow) with its own slow
     wander, turbulence and steps, independent of the load.
+
+    Parameters
+    ----------
+    model_name : str
+        Name of the shipped model; ``"drum_level"`` also gets a ``level_setpoint``.
+    n : int
+        Number of samples.
+    dt_s : float
+        Sample period (s); sets the correlation times in samples.
+    rng : numpy.random.Generator
+        Source of the random wander, turbulence and steps.
     """
     n_tau = lambda s: max(s / dt_s, 1.0)  # noqa: E731 - correlation time in samples
     load = 4.0 * _ar1(rng, n, n_tau(1200)) + 1.0 * _ar1(rng, n, n_tau(40)) + 2.0 * _steps(rng, n, 4)

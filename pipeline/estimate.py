@@ -81,7 +81,15 @@ VIF_WARN = 10.0
 
 
 def lag_times(n_p: int, dt: float) -> np.ndarray:
-    """Times ``(l - 1/2) * dt`` of lags ``l = 1..n_p`` (s); see the module docstring."""
+    """Times ``(l - 1/2) * dt`` of lags ``l = 1..n_p`` (s); see the module docstring.
+
+    Parameters
+    ----------
+    n_p : int
+        Number of lags.
+    dt : float
+        Sample period (s).
+    """
     return (np.arange(1, n_p + 1) - 0.5) * dt
 
 
@@ -323,7 +331,13 @@ def _combined_good(mask, n: int, n_cols: int) -> np.ndarray | None:
 
 
 def good_segments(good: np.ndarray) -> list[tuple[int, int]]:
-    """Maximal runs of ``True`` in a 1-D bool array as ``(start, stop)`` slices."""
+    """Maximal runs of ``True`` in a 1-D bool array as ``(start, stop)`` slices.
+
+    Parameters
+    ----------
+    good : bool array (N,)
+        ``True`` where a sample is usable.
+    """
     g = np.asarray(good, dtype=bool)
     if g.size == 0:
         return []
@@ -456,6 +470,13 @@ def singular_cause(A: np.ndarray, n_x: int) -> tuple[str, tuple[int, ...], dict]
     ``offset`` (constant but not zero in the used observations), ``collinear`` (two
     inputs move together, ``numbers["correlation"]``) or ``ill_conditioned`` (no single
     input to blame: too many lags for how the inputs move, or too few observations).
+
+    Parameters
+    ----------
+    A : ndarray (m * n_x, m * n_x)
+        Lag-major normal-equation matrix of ``m`` lags (:attr:`NormalEquations.A`).
+    n_x : int
+        Number of inputs.
     """
     d = A[:n_x, :n_x]
     s = np.sqrt(np.clip(np.diag(d), 0, None))
@@ -482,7 +503,20 @@ def singular_cause(A: np.ndarray, n_x: int) -> tuple[str, tuple[int, ...], dict]
 
 def describe_singular(kind: str, inputs: tuple[int, ...], numbers: dict,
                       labels: Sequence[str] | None = None) -> str:
-    """Words for :func:`singular_cause` (``labels`` name the inputs; default indices)."""
+    """Words for :func:`singular_cause` (``labels`` name the inputs; default indices).
+
+    Parameters
+    ----------
+    kind : str
+        ``"constant"``, ``"offset"``, ``"collinear"`` or ``"ill_conditioned"``.
+    inputs : tuple of int
+        Indices of the inputs to blame.
+    numbers : dict
+        Figures quoted: ``correlation`` for ``collinear``, ``lags`` for
+        ``ill_conditioned``.
+    labels : sequence of str, optional
+        Input names indexed like ``inputs``; default ``"input <index>"``.
+    """
     name = (lambda j: labels[j]) if labels is not None else (lambda j: f"input {j}")
     who = ", ".join(name(j) for j in inputs)
     if kind == "constant":
@@ -820,7 +854,13 @@ NOISE_AUTO = "auto"
 
 
 def noise_order(noise) -> int | None:
-    """``noise`` keyword -> fixed AR order (0 = white) or None (chosen by BIC)."""
+    """``noise`` keyword -> fixed AR order (0 = white) or None (chosen by BIC).
+
+    Parameters
+    ----------
+    noise : ``"white"``, ``"auto"`` or int
+        The estimators' ``noise`` setting; an int must be a non-negative AR order.
+    """
     if isinstance(noise, str):
         if noise == "white":
             return 0
@@ -837,7 +877,20 @@ def noise_order(noise) -> int | None:
 def lags_needed(npm: np.ndarray, iv: bool, order: int | None, leads: int = 0) -> int:
     """Lags a lag Gram must hold: the FIR (and ``leads`` future lags of a feedback test,
     or the ``2 n_p`` instrument lags of an IV fit), plus the noise filter's order (the
-    largest BIC may pick when ``order`` is None), plus one."""
+    largest BIC may pick when ``order`` is None), plus one.
+
+    Parameters
+    ----------
+    npm : int array (n_y, n_x)
+        Per-pair orders N_p.
+    iv : bool
+        Whether the fit is instrument-based (``2 max(N_p)`` instrument lags).
+    order : int or None
+        AR order of the noise model; None for the largest BIC may pick
+        (:data:`pipeline.noise_model.DEFAULT_AR_ORDER_MAX`).
+    leads : int
+        Future input lags of a feedback test.
+    """
     from pipeline.noise_model import DEFAULT_AR_ORDER_MAX
 
     p = DEFAULT_AR_ORDER_MAX if order is None else order
@@ -868,7 +921,13 @@ class GramContext:
         return range(self.n_x, self.n_x + self.n_y)
 
     def white_normal_equations(self, P: int) -> NormalEquations:
-        """The thesis' (unfiltered) normal equations at ``P`` lags, from the Gram."""
+        """The thesis' (unfiltered) normal equations at ``P`` lags, from the Gram.
+
+        Parameters
+        ----------
+        P : int
+            Number of lags (at most the Gram's ``n_lags``).
+        """
         G = self.lg.G
         n_x = self.n_x
         A = G[:P, :n_x, :P, :n_x].reshape(P * n_x, P * n_x)
@@ -880,7 +939,26 @@ class GramContext:
 
 def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
                      n_lags: int, level_form: bool = True) -> GramContext:
-    """Build the lag Gram every non-white estimate, the search and the feedback test use."""
+    """Build the lag Gram every non-white estimate, the search and the feedback test use.
+
+    Parameters
+    ----------
+    x : array (N, n_x)
+        Conditioned inputs.
+    y : array (N, n_y)
+        Conditioned outputs (not differenced: integrating outputs are differenced here).
+    integrating : bool or sequence of bool (n_y,)
+        Non-self-regulating outputs.
+    mask : bool array (N,) or (N, n_x+n_y), optional
+        ``True`` where a sample is good; samples with a non-finite instrument are bad too.
+    instruments : array (N, n_r), optional
+        Instrument signals, added as the last columns of the Gram.
+    n_lags : int
+        Lags the Gram holds (:func:`lags_needed`).
+    level_form : bool
+        With integrating outputs, also hold their levels and the cumulated inputs, with
+        the profiled Grams, so that the level form can be fitted.
+    """
     from pipeline.lag_products import build_lag_gram
 
     x = _as_2d(x, "x")
@@ -952,6 +1030,22 @@ def output_design(ctx: GramContext, i: int, n_p_row: np.ndarray, n_k_row: np.nda
     With ``leads = M`` the output enters at lag ``M`` and the inputs at lags ``0..M-1``
     are its future (the non-causal part of a feedback test); causal lags shift by ``M``.
     Returns ``(design, inp_of, lag_of, is_lead)``; ``lag_of`` is the causal lag.
+
+    Parameters
+    ----------
+    ctx : GramContext
+        Lag Gram of the record (:func:`lag_gram_context`).
+    i : int
+        Output index.
+    n_p_row : int array (n_x,)
+        The output's N_p per input.
+    n_k_row : int array (n_x,)
+        The output's known delay per input, in samples (lags fixed at zero).
+    form : str
+        ``"direct"``, ``"differenced"`` or ``"level"`` (the last needs a context built
+        with ``level_form``).
+    leads : int
+        Future input lags ``M`` added to the regression (0: a causal fit).
     """
     from pipeline.lag_products import Block
     from pipeline.prediction_error import Design
@@ -1008,6 +1102,31 @@ def fit_output(ctx: GramContext, i: int, n_p_row, n_k_row, *, noise=NOISE_AUTO,
 
     Returns ``(fit, design, inp_of, lag_of, form, selection)``.  (The instruments'
     strength is checked once per estimate by :func:`check_instruments`.)
+
+    Parameters
+    ----------
+    ctx : GramContext
+        Lag Gram of the record (:func:`lag_gram_context`).
+    i : int
+        Output index.
+    n_p_row : int array (n_x,)
+        The output's N_p per input.
+    n_k_row : int array (n_x,)
+        The output's known delay per input, in samples.
+    noise : ``"white"``, ``"auto"`` or int
+        Noise model: white, AR order chosen by BIC, or a fixed AR order.
+    form : str, optional
+        Fit only this form; default every candidate (``"direct"`` for a self-regulating
+        output; ``"differenced"``, and ``"level"`` when the context holds it and no
+        instruments are used, for an integrating one).
+    d_fixed : ndarray (p + 1,), optional
+        Noise filter ``[1, d_1..d_p]`` to use as known (generalised least squares, no
+        noise-model fit).
+    sigma2_fixed : float, optional
+        Innovation variance reported with ``d_fixed``; default the fit's own.
+    instruments : bool
+        Fit by instrumental variables on instrument lags ``0..2 max(n_p_row) - 1``
+        (ignored when ``d_fixed`` is given).
     """
     from pipeline.lag_products import Block
     from pipeline.prediction_error import (
@@ -1053,6 +1172,27 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
     ``forms``/``d_fixed``/``sigma2_fixed`` (per output) fix the output form, noise filter
     and innovation variance (the search judges candidate orders with the noise model
     found at ``n_p_max``).
+
+    Parameters
+    ----------
+    ctx : GramContext
+        Lag Gram of the record (:func:`lag_gram_context`).
+    n_p : int or int array (n_y, n_x)
+        Per-pair orders; ``ctx`` must hold the lags they need (:func:`lags_needed`).
+    n_k : int or int array (n_y, n_x)
+        Known delay in samples: ``delta_h[:n_k]`` fixed at zero.
+    dt : float
+        Sample period (s).
+    noise : ``"white"``, ``"auto"`` or int
+        Noise model of every output (as in :func:`estimate_step_responses`).
+    forms : sequence of str, optional
+        Per output, the form to fit; default the lowest-BIC candidate.
+    d_fixed : sequence of ndarray, optional
+        Per output, a noise filter ``[1, d_1..d_p]`` taken as known.
+    sigma2_fixed : sequence of float, optional
+        Per output, the innovation variance reported with ``d_fixed``.
+    use_instruments : bool, optional
+        Instrument-based fit; default whenever ``ctx`` holds instruments.
     """
     from pipeline.noise_model import NoiseModel
 
@@ -1097,6 +1237,13 @@ def check_instruments(ctx: GramContext, P: int) -> dict:
 
     Returns ``{input index: {"F", "r2", "n_instruments"}}``: the F statistic of each input
     regressed on the instruments' lags ``0..2P-1`` (the instrument set of the estimate).
+
+    Parameters
+    ----------
+    ctx : GramContext
+        Lag Gram built with instruments.
+    P : int
+        Largest N_p of the estimate (instrument lags ``0..2P-1``, capped at the Gram's).
 
     Raises
     ------
@@ -1145,6 +1292,18 @@ def estimate_merged(
 
     ``records`` holds ``(x, y)`` or ``(x, y, mask)`` tuples; their normal equations are
     summed, so no observation straddles two records.
+
+    Parameters
+    ----------
+    records : sequence of tuple
+        ``(x, y)`` or ``(x, y, mask)`` per record, as in :func:`normal_equations`; the
+        same signals in each.
+    n_p : int or int array (n_y, n_x)
+        Per-pair orders; the largest sets ``n_p_max`` of every record's equations.
+    dt : float
+        Sample period (s), the same for every record.
+    integrating : bool or sequence of bool (n_y,)
+        Non-self-regulating outputs.
     """
     if not records:
         raise DataQualityError("estimate_merged needs at least one (x, y) record; got none")
@@ -1166,6 +1325,11 @@ def residual_ss_by_order(ne: NormalEquations) -> np.ndarray:
     problem, whose Cholesky factor is the leading block of the full one; with
     ``z = L^-1 c`` the explained sum of squares of order ``m`` is ``sum(z[:m*n_x]**2)``.
     All orders share the observation set of ``n_p_max``.
+
+    Parameters
+    ----------
+    ne : NormalEquations
+        Normal equations at ``n_p_max`` lags.
 
     Returns
     -------
@@ -1201,6 +1365,11 @@ def sweep_orders(ne: NormalEquations) -> OrderSweep:
     The order-m system is the leading ``k = m*n_x`` block; its factor is ``L[:k,:k]``
     and its solution ``L[:k,:k]^-T z[:k]`` with ``z = L^-1 c`` — a triangular solve per
     order (O(k^2)) instead of a factorisation (O(k^3)).
+
+    Parameters
+    ----------
+    ne : NormalEquations
+        Normal equations at ``n_p_max`` lags.
     """
     c, scale = _cholesky(ne.A, ne.n_x, "the N_p sweep")
     L = np.tril(c[0])
@@ -1224,6 +1393,16 @@ def predict(est: StepResponseEstimate, x, *, differenced: bool = True) -> np.nda
     For integrating outputs the prediction is of the differenced output when
     ``differenced`` (the quantity the estimate was fitted to), else of the level up to an
     unknown constant (cumulative sum of the differenced prediction).
+
+    Parameters
+    ----------
+    est : StepResponseEstimate
+        The estimate whose FIR is applied.
+    x : array (N, n_x)
+        Inputs, conditioned as for the estimate.
+    differenced : bool
+        For integrating outputs, predict the differenced output (True) or its cumulated
+        level (False).
     """
     x = _as_2d(x, "x")
     n = x.shape[0]
@@ -1239,7 +1418,17 @@ def predict(est: StepResponseEstimate, x, *, differenced: bool = True) -> np.nda
 
 
 def residuals(est: StepResponseEstimate, x, y) -> np.ndarray:
-    """Residuals ``y - predict`` (differenced y for integrating outputs), NaN where undefined."""
+    """Residuals ``y - predict`` (differenced y for integrating outputs), NaN where undefined.
+
+    Parameters
+    ----------
+    est : StepResponseEstimate
+        The estimate.
+    x : array (N, n_x)
+        Inputs, conditioned as for the estimate.
+    y : array (N, n_y)
+        Outputs, conditioned as for the estimate (not differenced).
+    """
     y = _as_2d(y, "y").copy()
     for i, f in enumerate(est.integrating):
         if f:
@@ -1258,6 +1447,17 @@ def innovations(est: StepResponseEstimate, x, y, *, good=None) -> np.ndarray:
     at every gap (``good`` False, or a NaN residual) and the first ``p`` samples of each
     stretch are undefined.  White outputs return :func:`residuals`.  These are what
     whiteness tests must see: the residual of a noise-model fit is coloured by design.
+
+    Parameters
+    ----------
+    est : StepResponseEstimate
+        The estimate, with its noise models.
+    x : array (N, n_x)
+        Inputs, conditioned as for the estimate.
+    y : array (N, n_y)
+        Outputs, conditioned as for the estimate (not differenced).
+    good : bool array (N,), optional
+        ``False`` where the residual must not be used (set to NaN before filtering).
     """
     import scipy.signal
 
@@ -1295,6 +1495,19 @@ def estimate_correlation_method(
 
     Identical to least squares in the limit of infinite stationary data; with finite data
     and input drift it degrades (kept as a comparison method).
+
+    Parameters
+    ----------
+    x : array (N, n_x)
+        Conditioned inputs (no gaps: the whole record is used).
+    y : array (N, n_y)
+        Conditioned outputs.
+    n_p : int or int array (n_y, n_x)
+        Number of step-response points per pair.
+    dt : float
+        Sample period (s).
+    integrating : bool or sequence of bool (n_y,)
+        Non-self-regulating outputs (differenced first).
     """
     x = _as_2d(x, "x")
     y = _as_2d(y, "y").copy()
@@ -1357,6 +1570,21 @@ def estimate_regularized(
 
     with ``K = G G'``.  The estimate is the posterior mean and ``step_std`` the posterior
     standard deviation.
+
+    Parameters
+    ----------
+    x : array (N, n_x)
+        Conditioned inputs.
+    y : array (N, n_y)
+        Conditioned outputs.
+    n_p : int or int array (n_y, n_x)
+        Number of step-response points; one value for every pair.
+    dt : float
+        Sample period (s).
+    integrating : bool or sequence of bool (n_y,)
+        Non-self-regulating outputs.
+    mask : bool array (N,) or (N, n_x+n_y), optional
+        ``True`` where a sample is good (as in :func:`normal_equations`).
     """
     x2 = _as_2d(x, "x")
     y2 = _as_2d(y, "y")

@@ -210,7 +210,13 @@ class TransferFunctionFit:
     rank: int
 
     def evaluate(self, omega) -> np.ndarray:
-        """``G(jω)`` at ``omega`` (rad/s)."""
+        """``G(jω)`` at ``omega`` (rad/s).
+
+        Parameters
+        ----------
+        omega : float or array
+            Angular frequencies (rad/s); the result has the same shape (complex).
+        """
         s = 1j * np.asarray(omega, dtype=float)
         return np.polyval(self.num, s) / np.polyval(self.den, s)
 

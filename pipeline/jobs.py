@@ -182,7 +182,17 @@ class RunReport:
 # -------------------------------------------------------------------------- stages
 def load_recording(cfg, files: list[Path] | None = None, tick: Tick = silent) -> Recording:
     """Ingest the job's files and put its signals on one uniform grid (``tick``: bytes
-    read, :mod:`pipeline.progress`)."""
+    read, :mod:`pipeline.progress`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    files : list of Path, optional
+        Files to read; ``None`` resolves the job's ``source`` (``resolve_sources``).
+    tick : callable (done, total)
+        Progress of the bytes read.
+    """
     from pipeline.adapters.config import resolve_sources
     from pipeline.adapters.grid import to_grid
     from pipeline.adapters.ingest import read_recordings
@@ -303,6 +313,13 @@ def _fill(values: np.ndarray, good: np.ndarray) -> np.ndarray:
 
 
 def longest_common_good(good: np.ndarray) -> tuple[int, int]:
+    """The longest stretch ``(start, stop)`` where every signal is good (``(0, 0)`` if none).
+
+    Parameters
+    ----------
+    good : ndarray of bool (N, k)
+        Quality mask, one column per signal.
+    """
     segs = good_segments(good.all(axis=1))
     if not segs:
         return (0, 0)
@@ -310,7 +327,15 @@ def longest_common_good(good: np.ndarray) -> tuple[int, int]:
 
 
 def prepare(cfg, rec: Recording) -> Prepared:
-    """Choose T by α_T, average-then-decimate, condition inputs and outputs alike."""
+    """Choose T by α_T, average-then-decimate, condition inputs and outputs alike.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``sampling``, ``conditioning``, ``signals``).
+    rec : Recording
+        The gridded signals from :func:`load_recording`.
+    """
     a, b = longest_common_good(rec.good)
     if cfg.sampling.dt_s is not None:
         factor = max(1, int(round(cfg.sampling.dt_s / rec.dt_s)))
@@ -413,7 +438,17 @@ def _named(exc: PipelineError, prep: Prepared) -> PipelineError:
 
 def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
     """N_p/N_d trial-and-error search (windows are estimated by the caller; ``tick``:
-    the search's steps, :mod:`pipeline.progress`)."""
+    the search's steps, :mod:`pipeline.progress`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``search``, ``estimation``).
+    prep : Prepared
+        The conditioned record from :func:`prepare`.
+    tick : callable (done, total)
+        Progress of the search's steps.
+    """
     s, e = cfg.search, cfg.estimation
     n_p = s.n_p
     if n_p is None and s.settling_time_s is not None:
@@ -454,6 +489,21 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
     A disjoint window whose data cannot be estimated (an input that does not move in it,
     too many masked samples) returns a :class:`WindowFailure` — a bad window is a
     recorded status, never a crash of the job.  Failure of the all-data estimate raises.
+
+    Parameters
+    ----------
+    prep : Prepared
+        The conditioned record from :func:`prepare`.
+    window : (int, int) or None
+        Sample slice ``(start, stop)`` of ``prep``; ``None`` for every sample.
+    n_p : int or int array (n_y, n_x)
+        Order per pair (``SearchResult.n_p``).
+    n_k : int or int array (n_y, n_x)
+        Known delay in samples per pair (``SearchResult.n_k``).
+    noise : ``"white"``, ``"auto"`` or int
+        The estimator's noise setting (``SearchResult.noise``).
+    use_instruments : bool
+        Estimate with ``prep.r`` as instruments (``SearchResult.instruments``).
     """
     a, b = window if window is not None else (0, prep.x.shape[0])
     try:
@@ -545,7 +595,21 @@ def _pair_metrics(o: str, u: str, pair: dict) -> list[dict]:
 
 def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
               window_results: list) -> Summary:
-    """Tables, checks and the report of a run (pure: no I/O)."""
+    """Tables, checks and the report of a run (pure: no I/O).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    prep : Prepared
+        The conditioned record.
+    sr : SearchResult
+        The order search's outcome.
+    all_est : StepResponseEstimate
+        The estimate on every usable sample.
+    window_results : list of StepResponseEstimate or WindowFailure
+        One per ``sr.windows``, in order.
+    """
     from pipeline.verdicts import end_jump_z, pair_warnings
 
     ins, outs = prep.inputs, prep.outputs
@@ -796,6 +860,19 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
     """Write the run directory atomically (store) with its Rerun recording.
 
     Returns ``(run_id, run_dir, recording_path)``.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``storage_root``, ``job``, ``rerun``).
+    summary : Summary
+        Tables and documents from :func:`summarise`.
+    files : list of str
+        Input files, recorded in the run's manifest.
+    timings : dict of str to float
+        Seconds per stage, recorded with the run.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
     """
     from pipeline.adapters.store import ResultStore
 
@@ -828,7 +905,19 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
 
 def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
             progress: Progress = _quiet) -> RunReport:
-    """Run an estimation job end to end (no Prefect): the same stages the flow runs."""
+    """Run an estimation job end to end (no Prefect): the same stages the flow runs.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    files : list of Path, optional
+        Files to read; ``None`` resolves the job's ``source``.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    progress : callable (stage, message)
+        Told when each stage starts and ends; its ``bar`` (if any) shows ingest and search.
+    """
     timings: dict[str, float] = {}
 
     def stage(name, fn, *a, bar: tuple[str, float] | None = None, **k):
@@ -857,7 +946,25 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
 
 def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings: dict,
                *, run_id: str | None = None, progress: Progress = _quiet) -> RunReport:
-    """Write the results and build the :class:`RunReport`."""
+    """Write the results and build the :class:`RunReport`.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    summary : Summary
+        Tables and documents from :func:`summarise`.
+    prep : Prepared
+        The conditioned record (files, inputs, outputs, sample period).
+    sr : SearchResult
+        The order search's outcome (``n_p``, ``n_d``).
+    timings : dict
+        Seconds per stage; the ``store`` stage is added to it.
+    run_id : str, optional
+        Id of the run directory; ``None`` lets the store choose one.
+    progress : callable (stage, message)
+        Told before the run directory is written (stage ``"store"``).
+    """
     progress("store", "writing run directory")
     t0 = time.perf_counter()
     rid, run_dir, rrd = write_run(cfg, summary, files=list(prep.recording.files),

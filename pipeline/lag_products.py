@@ -66,6 +66,13 @@ class Block:
         return self.n_sig * self.n_lag
 
     def shifted(self, s: int) -> "Block":
+        """The same signals with the lag range moved by ``s``.
+
+        Parameters
+        ----------
+        s : int
+            Lags added to ``lag_lo`` and ``lag_hi`` (negative moves to earlier lags).
+        """
         return Block(self.sig_lo, self.sig_hi, self.lag_lo + s, self.lag_hi + s)
 
 
@@ -106,7 +113,14 @@ class LagGram:
 
     def gram(self, nuisance: int = 0) -> np.ndarray:
         """``G`` (``nuisance=0``), or with the first ``nuisance`` terms of ``1, t, t^2``
-        per segment profiled out."""
+        per segment profiled out.
+
+        Parameters
+        ----------
+        nuisance : int
+            Number of terms of ``1, t, t^2`` profiled out per segment, 0..3; above 0
+            needs the profiled Grams (``build_lag_gram(..., centred=True)``).
+        """
         if nuisance == 0:
             return self.G
         if nuisance > len(self.profiled):
@@ -120,6 +134,16 @@ def filtered_gram(G: np.ndarray, d: np.ndarray, b1: Block, b2: Block) -> np.ndar
     ``d = [1, d_1, ..., d_p]`` is the filter ``D(q)``; ``G`` a 4-D lag Gram.  Separable:
     first filter along the lags of ``b1`` (``p + 1`` strided slices), then along ``b2``.
     Cost ``2 (p + 1) |b1| |b2|`` — no data pass, no gather of ``G``.
+
+    Parameters
+    ----------
+    G : ndarray (n_lags, n_w, n_lags, n_w)
+        Lag Gram (:attr:`LagGram.G` or a profiled one); both blocks' lags plus ``p`` must
+        lie within ``n_lags``.
+    d : ndarray (p + 1,)
+        Filter coefficients ``[1, d_1, ..., d_p]``.
+    b1, b2 : Block
+        Row and column regressors.
 
     Returns
     -------
@@ -145,6 +169,18 @@ def shifted_products(G: np.ndarray, blocks: list[Block], coef: list[np.ndarray],
     ``e`` (a fixed linear combination of block unknowns, e.g. ``y - U'b``) at shift ``a``
     with every signal at every lag — from which residual autocovariances and the
     Jacobian products of a prediction-error fit follow by indexing.
+
+    Parameters
+    ----------
+    G : ndarray (n_lags, n_w, n_lags, n_w)
+        Lag Gram.
+    blocks : list of Block
+        Blocks whose unknowns make up ``e``; their lags plus ``shifts - 1`` must lie
+        within ``n_lags``.
+    coef : list of ndarray
+        Per block, its coefficients (``blk.size`` values, lag-major).
+    shifts : int
+        Number of shifts ``a`` of ``e``.
     """
     L, n_w = G.shape[0], G.shape[1]
     q = np.zeros((shifts, L, n_w))
@@ -156,7 +192,17 @@ def shifted_products(G: np.ndarray, blocks: list[Block], coef: list[np.ndarray],
 
 
 def take(q: np.ndarray, blk: Block, shift: int = 0) -> np.ndarray:
-    """Entries of a ``(n_lags, n_w)`` product vector at a block's unknowns (lag-major)."""
+    """Entries of a ``(n_lags, n_w)`` product vector at a block's unknowns (lag-major).
+
+    Parameters
+    ----------
+    q : ndarray (n_lags, n_w)
+        Products with every signal at every lag (one shift of :func:`shifted_products`).
+    blk : Block
+        Unknowns to pick.
+    shift : int
+        Lags added to the block's lag range.
+    """
     return q[blk.lag_lo + shift : blk.lag_hi + shift, blk.sig_lo : blk.sig_hi].reshape(-1)
 
 
@@ -169,6 +215,17 @@ def first_block_row(w: np.ndarray, x: np.ndarray, k0: int, n_lags: int) -> np.nd
     blocks and a single inverse FFT per pair returns every lag.  Hand-written because
     scipy.signal.correlate has no "sum over observation range with lag window" form and
     would need one full-length FFT per pair.
+
+    Parameters
+    ----------
+    w : ndarray (N, n_w)
+        Signals at the current sample ``k``.
+    x : ndarray (N, n_x)
+        Signals at the lagged sample ``k - p`` (the same samples as ``w``).
+    k0 : int
+        Index of the first observation; at least ``n_lags - 1``.
+    n_lags : int
+        Number of lags ``p = 0..n_lags-1``.
     """
     n, n_w = w.shape
     n_x = x.shape[1]
@@ -205,7 +262,22 @@ def first_block_row(w: np.ndarray, x: np.ndarray, k0: int, n_lags: int) -> np.nd
 
 
 def assemble_gram(r_xx: np.ndarray, x: np.ndarray, k0: int, n: int, P: int) -> np.ndarray:
-    """Full lag-major A from its first block row by the diagonal recursion (method.md §2)."""
+    """Full lag-major A from its first block row by the diagonal recursion (method.md §2).
+
+    Parameters
+    ----------
+    r_xx : ndarray (P, n_x, n_x)
+        First block row, ``r_xx[p] = sum_k x(k) x(k-p)'`` (:func:`first_block_row` of
+        ``x`` with itself).
+    x : ndarray (N, n_x)
+        The signals ``r_xx`` was computed from.
+    k0 : int
+        Index of the first observation (at least ``P - 1``).
+    n : int
+        Number of samples; observations are ``k = k0..n-1``.
+    P : int
+        Number of lags.
+    """
     n_x = x.shape[1]
     A4 = np.empty((P, P, n_x, n_x))
     A4[0] = r_xx  # A[0, p] = sum_k x(k) x(k-p)'
@@ -276,6 +348,18 @@ def build_lag_gram(segments, *, n_lags: int, k0_extra: int = 0,
     when a signal is a first difference whose first sample is undefined); shorter
     segments are skipped.  ``centred`` also builds the Grams with a constant, and with a
     constant and a linear trend, per segment profiled out.
+
+    Parameters
+    ----------
+    segments : iterable of ndarray (n_seg, n_w)
+        Contiguous good data, the same ``n_w`` signal columns in each.
+    n_lags : int
+        Lags ``L`` of the Gram.
+    k0_extra : int
+        Samples skipped at each segment's start beyond the ``L - 1`` lags need.
+    centred : bool
+        Also build the profiled Grams (the first 1, 2 and 3 terms of ``1, t, t^2`` per
+        segment profiled out; :meth:`LagGram.gram`).
 
     Returns
     -------

@@ -942,6 +942,11 @@ def model_to_dict(model: Model) -> dict[str, Any]:
     ``model_from_dict(model_to_dict(m)) == m``.  Parameters equal to their defaults
     (``delay_s: 0``, ``n_filter: 10``) are left out; ``±inf`` saturation limits are
     floats (YAML ``.inf``).
+
+    Parameters
+    ----------
+    model : Model
+        The model to write out.
     """
     blocks = []
     for block in model.blocks:

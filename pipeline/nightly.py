@@ -46,12 +46,25 @@ LEASE_ENV = "PLANTDYN_CLAIM_LEASE_S"
 
 
 def nightly_run_id(sha256: str) -> str:
+    """The run id of a file's nightly run: ``file-<sha[:16]>``.
+
+    Parameters
+    ----------
+    sha256 : str
+        Hex digest of the file's content.
+    """
     return f"file-{sha256[:16]}"
 
 
 def claim_lease_s(lease_s: float | None = None) -> float | None:
     """The claim lease in s: ``lease_s``, else ``$PLANTDYN_CLAIM_LEASE_S``, else None
-    (the store's default)."""
+    (the store's default).
+
+    Parameters
+    ----------
+    lease_s : float, optional
+        Lease in s; ``None`` reads the environment variable.
+    """
     if lease_s is None:
         text = os.environ.get(LEASE_ENV, "").strip()
         if not text:
@@ -72,6 +85,11 @@ def discover_files(cfg: JobConfig) -> list[tuple[str, str]]:
     Also opens the job's result store once, creating its catalog if needed, before the
     files are processed concurrently: the first switch of a new SQLite catalog to WAL
     cannot wait for a lock, so threads creating it at the same moment could collide.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``source.path``, ``storage_root``).
     """
     ResultStore(cfg.storage_root)
     if not any(Path(f).is_file() for f in glob.glob(str(cfg.base / cfg.source.path))):
@@ -116,7 +134,22 @@ def _adopt(store: ResultStore, cfg: JobConfig, path: str, sha256: str, rid: str)
 def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | None = None,
                  run=None) -> dict:
     """Process one file exactly once.  ``run(cfg, files, run_id)`` does the estimation
-    (default :func:`pipeline.jobs.run_job`).  Returns a status row."""
+    (default :func:`pipeline.jobs.run_job`).  Returns a status row.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    path : str
+        The file to process.
+    sha256 : str
+        Hex digest of its content (identifies the file and its run id).
+    lease_s : float, optional
+        Claim lease in s (:func:`claim_lease_s`).
+    run : callable (cfg, files, run_id), optional
+        Runs the job on ``files`` into run ``run_id`` and returns a report with ``run_id``;
+        ``None`` uses :func:`pipeline.jobs.run_job`.
+    """
     from pipeline import jobs
 
     run = run or (lambda c, files, run_id: jobs.run_job(c, files=files, run_id=run_id))

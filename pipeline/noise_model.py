@@ -83,6 +83,13 @@ def levinson(r: np.ndarray, p_max: int) -> tuple[list[np.ndarray], np.ndarray]:
     Returns ``(coefs, err)``: ``coefs[p]`` is ``[d_1..d_p]`` and ``err[p]`` the
     innovation variance (same units as ``r``), for ``p = 0..p_max`` (stops early when
     the variance reaches zero).
+
+    Parameters
+    ----------
+    r : array (>= p_max + 1,)
+        Autocovariances at lags ``0, 1, ..``; ``r[0..p_max]`` are used.
+    p_max : int
+        Largest AR order fitted.
     """
     r = np.asarray(r, dtype=float)
     a = np.zeros(0)
@@ -105,6 +112,16 @@ def ar_order_by_bic(r: np.ndarray, n: int, p_max: int) -> tuple[int, np.ndarray,
 
     ``r`` are autocovariances (sums or means: BIC differences are unchanged).
     Returns ``(p, d_1..d_p, {order: bic})``.
+
+    Parameters
+    ----------
+    r : array
+        Autocovariances at lags ``0, 1, ..``.
+    n : int
+        Number of samples behind ``r`` (the BIC's sample size); also caps the order at
+        ``n // 20``.
+    p_max : int
+        Largest order tried (also capped at ``r.size - 1``).
     """
     p_max = int(min(p_max, r.size - 1, max(n // 20, 0)))
     coefs, err = levinson(r, p_max)
@@ -115,7 +132,16 @@ def ar_order_by_bic(r: np.ndarray, n: int, p_max: int) -> tuple[int, np.ndarray,
 
 
 def is_minimum_phase(d: np.ndarray, margin: float = 1e-6) -> bool:
-    """True when every root of ``D`` lies strictly inside the unit circle."""
+    """True when every root of ``D`` lies strictly inside the unit circle.
+
+    Parameters
+    ----------
+    d : array (p + 1,)
+        Coefficients ``[1, d_1, .., d_p]`` of ``D(q)``; a length of 0 or 1 counts as
+        minimum phase.
+    margin : float
+        Every root's modulus must be below ``1 - margin``.
+    """
     d = np.asarray(d, dtype=float)
     if d.size <= 1:
         return True

@@ -117,6 +117,13 @@ class OutputFit:
                      + self.n_par * np.log(self.n_d))
 
     def cov(self, idx=None) -> np.ndarray:
+        """Covariance ``sigma2 * F' F`` of the unknowns.
+
+        Parameters
+        ----------
+        idx : array of int, optional
+            Positions in ``b`` to return (rows and columns); default all.
+        """
         F = self.cov_factor if idx is None else self.cov_factor[:, idx]
         return self.sigma2 * (F.T @ F)
 
@@ -290,6 +297,20 @@ def fit_fixed_noise(lg: LagGram, design: Design, d: np.ndarray, *, what: str,
     innovation variance (a reference fit's) instead of this fit's residual variance — a
     too-short candidate order leaves part of the response in its residual, and its own
     variance would widen the bands that are to judge it.
+
+    Parameters
+    ----------
+    lg : LagGram
+        Lag Gram of the output's signals (profiled Grams needed when
+        ``design.nuisance > 0``).
+    design : Design
+        The output's regression.
+    d : ndarray (p + 1,)
+        Noise filter ``[1, d_1, ..., d_p]``.
+    what : str
+        Name of the fit in error messages (e.g. ``"output 0"``).
+    sigma2 : float, optional
+        Innovation variance to report; default this fit's ``V / (n_d - n_par)``.
     """
     prob = _Problem(lg, design, what)
     b, V, fac, _ = _gls(prob, d)
@@ -306,6 +327,24 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
 
     ``order=None`` chooses the AR order by BIC up to ``p_max`` (``0`` = white);
     an int fixes it.
+
+    Parameters
+    ----------
+    lg : LagGram
+        Lag Gram of the output's signals (profiled Grams needed when
+        ``design.nuisance > 0``).
+    design : Design
+        The output's regression.
+    what : str
+        Name of the fit in error messages (e.g. ``"output 0"``).
+    order : int, optional
+        AR order of the noise model; None chooses it by BIC.
+    p_max : int
+        Largest AR order tried by BIC (also capped by the lags the Gram holds).
+    max_iter : int
+        Largest number of Gauss–Newton iterations on ``(b, d)``.
+    tol : float
+        Gauss–Newton stops once an iteration lowers ``V`` by less than this fraction.
     """
     prob = _Problem(lg, design, what)
     p_cap = max(0, min(p_max, prob.max_shift() - 1))
@@ -375,7 +414,21 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
 
 
 def first_stage_strength(G, blocks, zblk: Block, n_d: int, what: str) -> dict:
-    """F statistic and R^2 of each regressed signal (lag 0) on the instruments (unfiltered)."""
+    """F statistic and R^2 of each regressed signal (lag 0) on the instruments (unfiltered).
+
+    Parameters
+    ----------
+    G : ndarray (n_lags, n_w, n_lags, n_w)
+        Lag Gram.
+    blocks : list of Block
+        Regressed signals; each signal is taken at its block's first lag (``lag_lo``).
+    zblk : Block
+        The instruments (signals and lags).
+    n_d : int
+        Observations behind ``G`` (degrees of freedom of the F statistic).
+    what : str
+        Name used in error messages.
+    """
     one = np.ones(1)
     fz = _factor(filtered_gram(G, one, zblk, zblk), what + " (instruments)")
     n_z = zblk.size
@@ -399,6 +452,25 @@ def fit_instrumental(lg: LagGram, design: Design, instruments: Block, *, what: s
     """Refined instrumental-variable fit of one output (module docstring).
 
     The instruments' strength is checked by the caller (:func:`first_stage_strength`).
+
+    Parameters
+    ----------
+    lg : LagGram
+        Lag Gram of the output's signals (profiled Grams needed when
+        ``design.nuisance > 0``).
+    design : Design
+        The output's regression.
+    instruments : Block
+        Instrument signals and lags in the Gram.
+    what : str
+        Name of the fit in error messages (e.g. ``"output 0"``).
+    order : int, optional
+        AR order of the noise model refitted to the IV residual; None chooses it by BIC.
+    p_max : int
+        Largest AR order tried by BIC (also capped by the lags the Gram holds).
+    passes : int
+        Number of two-stage least-squares solves; the first is unfiltered and the noise
+        model is refitted between passes.
     """
     prob = _Problem(lg, design, what)
     G = prob.G

@@ -18,12 +18,31 @@ Tick = Callable[[float, float], None]
 
 
 def silent(done: float, total: float) -> None:  # noqa: ARG001 - the no-op Tick
-    """A :data:`Tick` that shows nothing (the default everywhere)."""
+    """A :data:`Tick` that shows nothing (the default everywhere).
+
+    Parameters
+    ----------
+    done, total : float
+        Work done so far and the total expected, in the caller's unit (ignored).
+    """
 
 
 def bar_of(progress, stage: str, unit: str, scale: float = 1.0) -> ContextManager[Tick]:
     """The bar a stage reporter offers for ``stage`` (counting ``unit``, ``done * scale``
-    shown), or a silent tick when the reporter is a plain ``(stage, message)`` callable."""
+    shown), or a silent tick when the reporter is a plain ``(stage, message)`` callable.
+
+    Parameters
+    ----------
+    progress : object
+        Stage reporter; if it has a ``bar(stage, unit, scale)`` method, its result is
+        returned, otherwise a context yielding :func:`silent`.
+    stage : str
+        Name of the stage the bar is for.
+    unit : str
+        Unit the ticks count (bytes, fits, files, trials).
+    scale : float
+        Factor applied to ``done`` for display (default 1: shown as counted).
+    """
     make = getattr(progress, "bar", None)
     if make is None:
         return contextlib.nullcontext(silent)

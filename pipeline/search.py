@@ -188,6 +188,20 @@ def choose_orders(
     """Stage 1 (thesis least squares): per-pair N_p from tail flatness (module doc).
 
     Returns ``(n_p, settled, trace, bic_order)``.
+
+    Parameters
+    ----------
+    ne : NormalEquations
+        The thesis' normal equations at ``n_p_max`` lags (the largest order tried).
+    dt : float
+        Sample period (s).
+    n_p_min : int
+        Smallest candidate order.
+    candidates : int
+        Number of candidate orders, spaced geometrically from ``n_p_min`` to
+        ``n_p_max`` (fewer when they round to the same order).
+    n_k : int or int array (n_y, n_x)
+        Known delay in samples (clipped to ``m - 1`` at each order ``m``).
     """
     P = ne.n_p_max
     rss = residual_ss_by_order(ne)  # (n_y, P)
@@ -383,6 +397,15 @@ def split_windows_by_length(n: int, length: int, count: int | None = None) -> li
 
     The first window starts at 0 and the last ends at ``n``: windows far apart in time
     are the strictest test of time invariance (a plant that changed mid-record fails).
+
+    Parameters
+    ----------
+    n : int
+        Samples in the record.
+    length : int
+        Samples per window.
+    count : int, optional
+        Number of windows; default (and at most) as many as fit, ``n // length``.
     """
     k = n // length if count is None else min(count, n // length)
     if k <= 0:
@@ -616,6 +639,13 @@ def _too_short(n: int, P: int, extra: int):
 
 
 def agreement_table(agreement: list[list[AgreementResult]]) -> list[dict]:
-    """Flatten ``[output][input]`` agreement results into JSON-ready rows."""
+    """Flatten ``[output][input]`` agreement results into JSON-ready rows.
+
+    Parameters
+    ----------
+    agreement : list of list of AgreementResult
+        Verdicts ``[output][input]`` (:attr:`SearchResult.agreement`); rows carry the
+        indices as ``output`` and ``input``.
+    """
     return [{"output": i, "input": j, **a.to_dict()}
             for i, row in enumerate(agreement) for j, a in enumerate(row)]

@@ -47,6 +47,15 @@ def find_spikes(values: np.ndarray, good: np.ndarray, *, sigmas: float = SPIKE_S
         Samples on a uniform grid (NaN where masked).
     good : bool array (N,)
         Usable samples; only those can be spikes.
+    sigmas : float
+        Deviation from the running median, in multiples of the signal's robust spread
+        (1.4826 x MAD), beyond which a sample is far (default :data:`SPIKE_SIGMAS`).
+    max_run : int
+        Longest run of consecutive far samples flagged as a spike, in samples; longer
+        runs are kept as steps or ramps (default :data:`SPIKE_MAX_RUN`).
+    window : int
+        Length of the running median, in samples (default :data:`SPIKE_WINDOW`); with
+        fewer than ``3 * window`` usable samples nothing is flagged.
 
     Returns
     -------

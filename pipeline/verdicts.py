@@ -30,7 +30,17 @@ is an end-of-window jump."""
 
 
 def end_jump_z(delta_h: np.ndarray, delta_h_std: np.ndarray) -> float | None:
-    """|Δh(N_p)| / σ when the tail before it is flat, else None (module doc)."""
+    """|Δh(N_p)| / σ when the tail before it is flat, else None (module doc).
+
+    Parameters
+    ----------
+    delta_h : array (N_p,)
+        Increments of the step response at lags ``1..N_p`` (for an integrating pair the
+        caller passes the changes of slope).
+    delta_h_std : array (N_p,)
+        Their standard deviations; None is returned for fewer than 6 lags or when the
+        last one is not positive.
+    """
     dh, s = np.asarray(delta_h, float), np.asarray(delta_h_std, float)
     n = dh.size
     if n < 6 or s[-1] <= 0:
@@ -46,6 +56,15 @@ def end_jump_z(delta_h: np.ndarray, delta_h_std: np.ndarray) -> float | None:
 
 
 def feedback_sentence(inp: str, out: str, tag_in: str, tag_out: str) -> str:
+    """The sentence that says ``inp`` is moved by a controller that sees ``out``.
+
+    Parameters
+    ----------
+    inp, out : str
+        Names of the input and the output.
+    tag_in, tag_out : str
+        Their tags (the job's ``signals``), given in parentheses after the names.
+    """
     return (f"{inp} ({tag_in}) is moved by a controller that sees {out} ({tag_out}): the "
             "output's disturbance reaches the input, so the same-sample term is not "
             "identifiable from these data")
@@ -56,7 +75,45 @@ def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str |
                   feedback_mode: str, instruments: list[str], n_k: int, n_p: int,
                   n_p_min: int, settled: bool, significant: bool, dt_s: float,
                   end_jump: float | None, agreement: dict) -> list[dict]:
-    """Warnings of one pair (module doc)."""
+    """Warnings of one pair (module doc).
+
+    Parameters
+    ----------
+    inp, out : str
+        Names of the pair's input and output.
+    tag_in, tag_out : str
+        Their tags (the job's ``signals``).
+    noise : str or int
+        The job's ``estimation.noise`` setting (``"white"``, ``"auto"`` or an AR order).
+    noise_model : dict
+        The output's :meth:`NoiseModel.to_dict` (its ``order`` is quoted).
+    whiteness_p : float or None
+        Ljung–Box p-value of the output's residuals or prediction errors; None skips the
+        whiteness warning.
+    feedback : dict or None
+        The pair's :meth:`FeedbackResult.to_dict`, or None when not tested.
+    feedback_mode : str
+        The job's ``estimation.feedback`` setting (``"auto"``, ``"report"`` or ``"off"``).
+    instruments : list of str
+        Names of the instruments the estimate used (empty: a direct estimate).
+    n_k : int
+        The pair's known delay, in samples.
+    n_p : int
+        The pair's chosen N_p, in samples.
+    n_p_min : int
+        The search's ``n_p_min``.
+    settled : bool
+        Whether the order search found a flat tail within ``n_p_max``.
+    significant : bool
+        Whether the gain (rate) is more than 2 standard deviations from zero.
+    dt_s : float
+        Sample period, in seconds.
+    end_jump : float or None
+        :func:`end_jump_z` of the pair.
+    agreement : dict
+        The pair's disjoint-window verdict (:meth:`AgreementResult.to_dict` or an
+        ``insufficient_data`` stand-in).
+    """
     w = []
     if whiteness_p is not None and whiteness_p < WHITENESS_ALPHA:
         if noise == "white":

@@ -18,14 +18,10 @@ import pytest
 import scipy.signal
 import yaml
 
-from pipeline.discrepancy import (
-    _BOILER_MODEL,
-    DiscrepancyConfig,
-    _input_relevance,
-    _Problem,
-    analyse_discrepancy,
-    make_discrepancy_demo,
-)
+from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy, make_discrepancy_demo
+from pipeline.discrepancy.demo import _BOILER_MODEL
+from pipeline.discrepancy.localise import _input_relevance
+from pipeline.discrepancy.problem import Problem
 from pipeline.effects import (
     EFFECT_NAMES,
     EFFECT_PARAMETERS,
@@ -353,7 +349,7 @@ def test_circular_shift_bootstrap_p_values_are_calibrated():
         n = 1500
         x = scipy.signal.lfilter([1], [1, -0.95], rng.normal(size=n))
         r = scipy.signal.lfilter([1], [1, -0.95], rng.normal(size=n))
-        problem = _Problem(model=None, inputs={"x": x}, outputs=("y",), y=r[:, None],  # type: ignore[arg-type]
+        problem = Problem(model=None, inputs={"x": x}, outputs=("y",), y=r[:, None],  # type: ignore[arg-type]
                            dt_s=1.0, n=n, fit_start=0, holdout_start=n, config=cfg,
                            settling_s=40.0, n_p=20, max_delay=10, nominal_signals={},
                            y_nominal=np.zeros((n, 1)))

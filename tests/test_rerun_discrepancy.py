@@ -30,7 +30,8 @@ from rerun.chunk import RrdReader
 
 from pipeline.adapters import rerun_sink
 from pipeline.adapters.rerun_sink import render_discrepancy
-from pipeline.discrepancy import _BOILER_MODEL, DiscrepancyConfig, analyse_discrepancy, make_discrepancy_demo
+from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy, make_discrepancy_demo
+from pipeline.discrepancy.demo import _BOILER_MODEL
 from pipeline.errors import ConfigError, DataQualityError
 from pipeline.model import model_from_dict
 

@@ -48,7 +48,13 @@ def empty_canonical_table() -> pl.DataFrame:
 
 
 def runs(signal: pl.Series) -> tuple[list[str], np.ndarray]:
-    """Names and start offsets of the runs of equal values of a signal column."""
+    """Names and start offsets of the runs of equal values of a signal column.
+
+    Parameters
+    ----------
+    signal : polars.Series
+        The ``signal`` column, in row order.
+    """
     r = signal.rle().struct.unnest()
     lengths = r["len"].to_numpy().astype(np.int64)
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
@@ -56,7 +62,14 @@ def runs(signal: pl.Series) -> tuple[list[str], np.ndarray]:
 
 
 def signal_slices(table: pl.DataFrame) -> dict[str, tuple[int, int]]:
-    """``{signal: (offset, length)}`` of a table sorted by signal (one run per signal)."""
+    """``{signal: (offset, length)}`` of a table sorted by signal (one run per signal).
+
+    Parameters
+    ----------
+    table : polars.DataFrame
+        Table with a ``signal`` column whose rows are grouped by signal; a signal in more
+        than one run raises ValueError.
+    """
     if len(table) == 0:
         return {}
     names, starts = runs(table["signal"])
@@ -144,7 +157,16 @@ def prepare_chunk(file: int, df: pl.DataFrame) -> Chunk:
     """Canonical column order; a chunk whose tags are interleaved row by row is sorted
     by signal (stable, so each tag keeps its file order) so its segments are few.
 
-    Called as each chunk arrives, so an unsorted chunk's original is freed at once."""
+    Called as each chunk arrives, so an unsorted chunk's original is freed at once.
+
+    Parameters
+    ----------
+    file : int
+        Index of the chunk's file among the files assembled (later files win duplicates).
+    df : polars.DataFrame
+        Masked chunk, in file order, with the canonical columns (other columns are
+        dropped).
+    """
     df = df.select(list(CANONICAL_SCHEMA))
     names, starts = runs(df["signal"]) if len(df) else ([], np.zeros(0, dtype=np.int64))
     if len(names) > _MAX_RUNS_PER_CHUNK or len(set(names)) < len(names):

@@ -411,6 +411,15 @@ class JobConfig(_Strict):
 
 
 def allowed_roots(base: Path) -> list[Path]:
+    """Folders that job paths (storage, sources, model) must lie under.
+
+    Parameters
+    ----------
+    base : Path
+        The job file's folder; it and its parent are allowed, and so is every folder in
+        the ``PLANTDYN_ALLOWED_ROOTS`` environment variable (``os.pathsep``-separated).
+        All are resolved.
+    """
     roots = [base.resolve(), base.resolve().parent]
     extra = os.environ.get("PLANTDYN_ALLOWED_ROOTS", "")
     roots += [Path(p).resolve() for p in extra.split(os.pathsep) if p]
@@ -457,7 +466,19 @@ def _format_validation_error(exc: ValidationError, where: str) -> str:
 
 
 def job_from_dict(data: Any, *, base_dir: Path | str = ".", where: str = "<dict>") -> JobConfig:
-    """Validate a parsed job mapping.  ``base_dir`` resolves relative paths."""
+    """Validate a parsed job mapping.  ``base_dir`` resolves relative paths.
+
+    Parameters
+    ----------
+    data : mapping
+        The parsed job YAML (top-level keys job, source, signals, storage, ...); it must
+        not hold ``base_dir``.
+    base_dir : Path or str
+        Folder that relative paths resolve against (the job file's folder); stored
+        resolved.
+    where : str
+        Name of the configuration's origin (e.g. the file path), for error messages.
+    """
     if not isinstance(data, dict):
         raise ConfigError(
             f"invalid job configuration in {where}: the top level must be a mapping with keys "
@@ -536,7 +557,15 @@ def _check_tree(root, where: str) -> None:
 
 
 def parse_yaml_text(text: str, where: str) -> Any:
-    """Parse YAML with the limits above and duplicate keys refused (the only parser)."""
+    """Parse YAML with the limits above and duplicate keys refused (the only parser).
+
+    Parameters
+    ----------
+    text : str
+        The YAML text.
+    where : str
+        Name of the text's origin (e.g. the file path), for error messages.
+    """
     if len(text) > MAX_YAML_BYTES:
         raise ConfigError(f"{where}: {len(text):,} bytes is not a job or model YAML (limit "
                           f"{MAX_YAML_BYTES:,}); check the path")
@@ -563,7 +592,15 @@ def parse_yaml_text(text: str, where: str) -> Any:
 
 
 def load_yaml_file(path: Path | str, *, what: str = "job file") -> Any:
-    """Parse a YAML file with a clear error for missing files and syntax errors."""
+    """Parse a YAML file with a clear error for missing files and syntax errors.
+
+    Parameters
+    ----------
+    path : Path or str
+        The YAML file (UTF-8, at most :data:`MAX_YAML_BYTES`).
+    what : str
+        What the file is (``"job file"``, ``"model file"``), for error messages.
+    """
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"{what} {str(p)!r} does not exist; give the path to a .yaml "
@@ -581,13 +618,25 @@ def load_yaml_file(path: Path | str, *, what: str = "job file") -> Any:
 
 
 def load_job(path: Path | str) -> JobConfig:
-    """Read and validate a job YAML file."""
+    """Read and validate a job YAML file.
+
+    Parameters
+    ----------
+    path : Path or str
+        The job YAML; relative paths in it resolve against its folder.
+    """
     p = Path(path)
     return job_from_dict(load_yaml_file(p), base_dir=p.resolve().parent, where=str(p))
 
 
 def resolve_sources(cfg: JobConfig) -> list[Path]:
-    """Files matched by ``source.path`` (sorted), checked against the allowed roots."""
+    """Files matched by ``source.path`` (sorted), checked against the allowed roots.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job; ``source.path`` (a path or glob) is relative to its folder.
+    """
     pattern = str(cfg.base / cfg.source.path)
     files = sorted(Path(f).resolve() for f in glob.glob(pattern))
     files = [f for f in files if f.is_file()]
@@ -606,7 +655,14 @@ def resolve_sources(cfg: JobConfig) -> list[Path]:
 
 
 def load_model_spec(cfg: JobConfig) -> dict:
-    """The ``model:`` section as a mapping (reading the YAML file when it is a path)."""
+    """The ``model:`` section as a mapping (reading the YAML file when it is a path).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job; its ``model`` is a path (relative to the job's folder) or a
+        mapping, either possibly wrapped in a top-level ``model`` key.
+    """
     if cfg.model is None:
         raise ConfigError("model: a discrepancy job needs a model (path to a model YAML or "
                           "the mapping inline)")
@@ -623,7 +679,16 @@ def load_model_spec(cfg: JobConfig) -> dict:
 
 
 def dump_yaml(data: Any, *, header: str = "") -> str:
-    """YAML text of plain data (block style, key order kept), with ``#`` header lines."""
+    """YAML text of plain data (block style, key order kept), with ``#`` header lines.
+
+    Parameters
+    ----------
+    data : object
+        Plain data (mappings, lists, strings, numbers) for :func:`yaml.safe_dump`.
+    header : str
+        Text written before the YAML, each line as a ``# `` comment (an empty line as
+        ``#``); ``""`` writes none.
+    """
     body = yaml.safe_dump(data, sort_keys=False, default_flow_style=None, allow_unicode=True,
                           width=100)
     lines = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())

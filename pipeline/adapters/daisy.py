@@ -198,7 +198,15 @@ def read_daisy(
 
 
 def tag_names(names: Sequence[str], prefix: str = DEFAULT_PREFIX) -> dict[str, str]:
-    """Column name -> historian tag ``PREFIX.NAME`` (upper case; no prefix if empty)."""
+    """Column name -> historian tag ``PREFIX.NAME`` (upper case; no prefix if empty).
+
+    Parameters
+    ----------
+    names : sequence of str
+        Column names (no commas, quotes or newlines).
+    prefix : str
+        Tag prefix (no commas, quotes or newlines); ``""`` gives the bare upper-cased name.
+    """
     for n in names:
         if any(ch in n for ch in ',"\n\r'):
             raise ConfigError(f"column name {n!r} contains a comma, quote or newline")
@@ -318,7 +326,13 @@ def convert(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry: ``python -m pipeline.adapters.daisy SRC OUT [options]``."""
+    """CLI entry: ``python -m pipeline.adapters.daisy SRC OUT [options]``.
+
+    Parameters
+    ----------
+    argv : sequence of str or None
+        Command-line arguments without the program name; None reads ``sys.argv[1:]``.
+    """
     ap = argparse.ArgumentParser(
         prog="python -m pipeline.adapters.daisy",
         description="Convert a DaISy whitespace table into a wide historian CSV "

@@ -135,6 +135,11 @@ class Grid:
     def column(self, name: str) -> int:
         """Column index of a signal.
 
+        Parameters
+        ----------
+        name : str
+            Signal name, one of :attr:`names`.
+
         Raises
         ------
         IngestError
@@ -148,7 +153,13 @@ class Grid:
             ) from None
 
     def series(self, name: str) -> np.ndarray:
-        """Values of one signal, shape (N,), NaN where masked."""
+        """Values of one signal, shape (N,), NaN where masked.
+
+        Parameters
+        ----------
+        name : str
+            Signal name, one of :attr:`names` (else IngestError).
+        """
         return self.values[:, self.column(name)]
 
     def to_frame(self) -> pl.DataFrame:
@@ -483,6 +494,12 @@ def median_spacing_s(table: pl.DataFrame) -> float | None:
     One signal at a time; a signal with more than :data:`SPACING_SAMPLE` spacings
     contributes an evenly strided subset (the median of a year of 1 Hz data does not
     need all 31 M). None when no signal has two distinct times.
+
+    Parameters
+    ----------
+    table : polars.DataFrame
+        Canonical table (columns ``time``, ``signal``, ``value``, ``quality``); other
+        tables raise DataQualityError.
     """
     table = _canonical_times(table)
     parts = []

@@ -301,6 +301,11 @@ class IngestReport:
     def signal(self, name: str) -> SignalIngestStats:
         """Statistics of one signal.
 
+        Parameters
+        ----------
+        name : str
+            The signal (tag) name.
+
         Raises
         ------
         IngestError
@@ -483,6 +488,17 @@ def _map_flags(
 
 # ----------------------------------------------------------------------------- values
 def null_series(n: int, dtype: pl.DataType, name: str) -> pl.Series:
+    """A series of ``n`` nulls.
+
+    Parameters
+    ----------
+    n : int
+        Length.
+    dtype : polars.DataType
+        Dtype of the series.
+    name : str
+        Name of the series.
+    """
     return pl.repeat(None, n, dtype=dtype, eager=True).alias(name)
 
 
@@ -534,7 +550,15 @@ def parse_value_text(
 
 
 def value_cast_expr(col: pl.Expr, *, decimal_comma: bool) -> pl.Expr:
-    """Expression: value text → Float64 (null where not a number)."""
+    """Expression: value text → Float64 (null where not a number).
+
+    Parameters
+    ----------
+    col : polars.Expr
+        The value text.
+    decimal_comma : bool
+        The text uses ``,`` as the decimal mark (replaced by ``.`` before the cast).
+    """
     text = col.str.replace(",", ".", literal=True) if decimal_comma else col
     return text.cast(pl.Float64, strict=False).alias("value")
 
@@ -558,7 +582,15 @@ def _mask_nonfinite(
 
 
 def numeric_value(values: pl.Series) -> tuple[pl.Series, pl.Series]:
-    """Like :func:`parse_value_text` for a column of any dtype (numbers, bools, text)."""
+    """Like :func:`parse_value_text` for a column of any dtype (numbers, bools, text).
+
+    Parameters
+    ----------
+    values : polars.Series
+        Values of any dtype: text is parsed as by :func:`parse_value_text`, numbers and
+        booleans are cast to Float64 (non-finite ones become null with their text as
+        state), an all-null column gives nulls; other dtypes are parsed as text.
+    """
     if values.dtype == pl.String:
         return parse_value_text(values)
     n = len(values)
@@ -687,7 +719,13 @@ def formats_matching(
 
 
 def looks_like_time(text: str) -> bool:
-    """Whether one cell parses with any known timestamp format."""
+    """Whether one cell parses with any known timestamp format.
+
+    Parameters
+    ----------
+    text : str
+        The cell; stripped first (blank is not a time).
+    """
     text = text.strip()
     if not text:
         return False
@@ -806,6 +844,16 @@ def time_expr(col: pl.Expr, fmt: str, *, timezone: str) -> pl.Expr:
     Unparseable cells, and naive local times that are ambiguous or missing in
     ``timezone`` (DST), become null: the caller then takes the careful path
     (:func:`parse_timestamps`), which resolves or reports them.
+
+    Parameters
+    ----------
+    col : polars.Expr
+        The timestamp text.
+    fmt : str
+        A strptime format (polars/chrono syntax) or ``"epoch_s"`` for Unix seconds.
+    timezone : str
+        IANA zone of naive times; unused for ``"epoch_s"``, formats with a zone and
+        formats ending in a literal ``Z``.
     """
     parsed = _parse_expr(col, fmt)
     if fmt == EPOCH_S or _format_is_aware(fmt) or _format_is_utc_literal(fmt):
@@ -823,6 +871,13 @@ _FAST_TIME = "__time"
 
 
 def fast_value_column(col: str) -> str:
+    """Name of the column :func:`fast_parse_exprs` puts the value cast of ``col`` in.
+
+    Parameters
+    ----------
+    col : str
+        Name of the value text column.
+    """
     return f"__value_{col}"
 
 
@@ -835,6 +890,20 @@ def fast_parse_exprs(*, time_col: str, value_cols: Sequence[str], fmt: str | Non
     after it; :func:`parse_time_and_values` then finds their columns in the frame (and
     takes its careful path only where the optimistic time parse left a null). ``fmt``
     None (padded or undetected timestamps) adds the value casts only.
+
+    Parameters
+    ----------
+    time_col : str
+        Name of the timestamp text column.
+    value_cols : sequence of str
+        Names of the value text columns.
+    fmt : str or None
+        Timestamp format of the optimistic time parse (see :func:`time_expr`); None
+        parses no time.
+    timezone : str
+        IANA zone of naive timestamps.
+    decimal_comma : bool
+        Values use ``,`` as the decimal mark.
     """
     exprs = [value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(fast_value_column(c))
              for c in value_cols]
@@ -866,6 +935,38 @@ def parse_time_and_values(
     is parsed again by :func:`parse_timestamps`, which resolves or reports it. A frame
     from a streaming read that evaluated :func:`fast_parse_exprs` (format
     ``fast_format``) already holds the optimistic results.
+
+    Parameters
+    ----------
+    frame : polars.DataFrame
+        Text table (one chunk) holding ``time_col`` and ``value_cols``, and, from a
+        streaming read, the columns of :func:`fast_parse_exprs`.
+    time_col : str
+        Name of the timestamp text column.
+    value_cols : sequence of str
+        Names of the value text columns.
+    timezone : str
+        IANA zone of naive timestamps.
+    time_format : str or None
+        Forced format; None detects it (from ``format_sample``, else a sample of the
+        column).
+    decimal_comma : bool
+        Values use ``,`` as the decimal mark.
+    signal : polars.Series of str or None
+        Tag of each row, for the repeated autumn hour (see :func:`parse_timestamps`);
+        None when all rows share one time axis.
+    line_of : callable
+        Maps a row index to the file line number, for error messages.
+    path : str
+        File name for error messages.
+    fold_state : FoldState or None
+        The file's repeated-hour state when it is read in chunks; None for a whole file.
+    format_sample : polars.Series of str or None
+        Timestamps the format is detected from (a chunked file's head and tail); None
+        samples the column.
+    fast_format : str or None
+        The ``fmt`` the streaming read's :func:`fast_parse_exprs` parsed times with
+        (None: it parsed none); returned as the format when that parse is used.
 
     Returns
     -------
@@ -950,7 +1051,13 @@ class FoldState:
     folds: set[str] = field(default_factory=set)
 
     def warnings(self, timezone: str) -> list[str]:
-        """Tags whose repeated-hour times showed no roll-back (all put in the first pass)."""
+        """Tags whose repeated-hour times showed no roll-back (all put in the first pass).
+
+        Parameters
+        ----------
+        timezone : str
+            IANA zone of the file's naive times, named in the messages.
+        """
         return [
             f"tag {t or '(all)'}: {n} timestamps in the repeated DST hour of {timezone} and no "
             f"clock roll-back seen among them; all assigned to the first (daylight) pass — "
@@ -1061,6 +1168,16 @@ def mask_chunk(
     Masks bad samples (value null, state kept) and drops empty cells without a bad
     flag; order is kept (sorting is :func:`pipeline.adapters.canonical.assemble`'s).
 
+    Parameters
+    ----------
+    pre : polars.DataFrame
+        Pre-chunk from a reader: ``signal`` (str or Categorical), ``time`` (Datetime us
+        UTC), ``value`` (Float64), ``state_text`` (str, null where no text state),
+        ``flag`` (raw quality flag, null where none).
+    quality_map : mapping of str to {"good", "suspect", "bad"} or None
+        Extra flags (matched stripped, case-insensitively) that take precedence over the
+        built-in ones; None uses the built-in ones only.
+
     Returns
     -------
     chunk : polars.DataFrame
@@ -1128,7 +1245,14 @@ class ChunkSink:
 
     def at(self, fraction: float) -> None:
         """The reader is ``fraction`` of the way through the current file (progress in
-        bytes over all files)."""
+        bytes over all files).
+
+        Parameters
+        ----------
+        fraction : float
+            Share of the current file (``self.file``) read, clipped to 0..1; nothing is
+            ticked when no file sizes were given.
+        """
         if self._sizes:
             before = sum(self._sizes[: self.file])
             here = self._sizes[self.file] * min(max(fraction, 0.0), 1.0)
@@ -1238,6 +1362,22 @@ def _build_report(
 
 
 def check_tags(available: Iterable[str], tags: Sequence[str] | None, path: str) -> None:
+    """Raise when a requested tag is not among the tags a file holds.
+
+    Parameters
+    ----------
+    available : iterable of str
+        Tags the file holds.
+    tags : sequence of str or None
+        Requested tags; None checks nothing.
+    path : str
+        File name for the error message.
+
+    Raises
+    ------
+    IngestError
+        Naming the missing tags and the file's tags (the first 50).
+    """
     if tags is None:
         return
     have = set(available)

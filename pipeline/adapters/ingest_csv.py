@@ -260,6 +260,23 @@ def read_csv_raw(
     (Datetime us UTC), ``value`` (Float64, null for text/empty), ``state_text`` (str),
     ``flag`` (raw quality flag or null), in file order.
 
+    Parameters
+    ----------
+    path : Path
+        The CSV file.
+    layout : {"auto", "long", "wide"}
+        ``"auto"`` detects long vs wide from the header.
+    options : CsvOptions
+        Overrides of detection.
+    timezone : str
+        IANA zone of naive timestamps.
+    tags : list of str or None
+        Keep only these tags; None keeps all. A requested tag absent from the file is an
+        IngestError.
+    sink : callable
+        Called with each pre-canonical chunk; an ``at(fraction)`` method, if present, is
+        told how far through the file the reader is.
+
     Returns
     -------
     ReaderMeta
@@ -333,7 +350,22 @@ def first_ragged_line(path: Path, sep: str, n_header: int, skip: int,
     """First data line (1-based in the file) with more fields than ``n_header`` (extra
     fields that are all empty — a trailing separator — do not count); used only after
     polars refused the file. Files without quotes are scanned with numpy (separators per
-    line, about 1 GB/s); with quotes, one pass with the csv module."""
+    line, about 1 GB/s); with quotes, one pass with the csv module.
+
+    Parameters
+    ----------
+    path : Path
+        The UTF-8 file.
+    sep : str
+        Field separator (one character).
+    n_header : int
+        Fields a line may have (the header's).
+    skip : int
+        Physical lines before the first data line (banner and header lines).
+    header_line : int
+        Line number reported for the first line after the ``skip`` ones; later lines
+        count on from it.
+    """
     import numpy as np
 
     line = 0  # physical lines before the current block

@@ -58,7 +58,15 @@ class JsonDecoderFactory(McapDecoderFactory):
     def decoder_for(
         self, message_encoding: str, schema: Schema | None
     ) -> Callable[[bytes], Any] | None:
-        """``json.loads`` for JSON channels, None (not handled) for others."""
+        """``json.loads`` for JSON channels, None (not handled) for others.
+
+        Parameters
+        ----------
+        message_encoding : str
+            The channel's message encoding.
+        schema : mcap.records.Schema or None
+            The channel's schema; unused (JSON needs none).
+        """
         if message_encoding != "json":
             return None
         return json.loads
@@ -559,7 +567,26 @@ def read_mcap_raw(
     sink: Callable[[pl.DataFrame], None],
 ) -> ReaderMeta:
     """Read an MCAP file batch by batch into ``sink`` (pre-canonical chunks as in
-    ``ingest_csv.read_csv_raw``)."""
+    ``ingest_csv.read_csv_raw``).
+
+    Parameters
+    ----------
+    path : Path
+        The MCAP file.
+    options : McapOptions
+        Topics and message fields to read.
+    timezone : str
+        IANA zone of naive ISO 8601 time strings in messages.
+    tags : list of str or None
+        Keep only these tags; None keeps all. A requested tag absent from the file is an
+        IngestError.
+    on_truncated : {"error", "warn"}
+        A truncated or corrupt file raises IngestError, or (``"warn"``) gives its
+        readable part with a warning (``truncated`` set in the result).
+    sink : callable
+        Called with each non-empty pre-canonical chunk; an ``at(fraction)`` method, if
+        present, is told how far through the file the reader is.
+    """
     from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
     from mcap_ros2.decoder import DecoderFactory as Ros2Factory
 

@@ -51,7 +51,18 @@ def _eta(seconds: float | None) -> str:
 
 @contextlib.contextmanager
 def bar(stage: str, unit: str, scale: float = 1.0) -> Iterator[Tick]:
-    """A :data:`Tick` that draws ``stage``'s progress; shows ``done * scale`` ``unit``."""
+    """A :data:`Tick` that draws ``stage``'s progress; shows ``done * scale`` ``unit``.
+
+    Parameters
+    ----------
+    stage : str
+        Name of the stage, shown at the start of the bar or line.
+    unit : str
+        Unit of the shown amounts and rate (``"MB"``, ``"files"``).
+    scale : float
+        Factor from the ticked ``done`` / ``total`` to ``unit`` (``1e-6`` shows bytes as
+        MB); 1 shows whole counts.
+    """
     how = mode()
     if how == "off":
         yield silent

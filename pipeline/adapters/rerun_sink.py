@@ -76,7 +76,14 @@ _TREND_COLUMNS = ("created_utc", "output", "input", "metric", "value")
 
 
 def recording_id_for(ident: str) -> str:
-    """The recording id of run ``"<job>/<run_id>"`` (a uuid5, deterministic)."""
+    """The recording id of run ``"<job>/<run_id>"`` (a uuid5, deterministic).
+
+    Parameters
+    ----------
+    ident : str
+        Run identity, normally ``"<job>/<run_id>"``; the same text always gives the same
+        id.
+    """
     return str(uuid.uuid5(_NAMESPACE, f"plantdyn:{ident}"))
 
 

@@ -252,7 +252,13 @@ class ReindexResult:
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Return the hex sha256 of a file, read in 1 MiB blocks (constant memory)."""
+    """Return the hex sha256 of a file, read in 1 MiB blocks (constant memory).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file.
+    """
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         while block := fh.read(1 << 20):
@@ -309,7 +315,14 @@ def _json_ready(obj: Any, where: str = "$") -> Any:
 
 
 def to_json_text(obj: Any) -> str:
-    """Serialise ``obj`` as the store does: NaN/inf -> null, numpy -> python, sorted keys, indented."""
+    """Serialise ``obj`` as the store does: NaN/inf -> null, numpy -> python, sorted keys, indented.
+
+    Parameters
+    ----------
+    obj : object
+        JSON-like data; numpy scalars and arrays, sets, datetimes, paths and dataclasses
+        are converted, other types raise TypeError.
+    """
     return json.dumps(_json_ready(obj), sort_keys=True, indent=2, ensure_ascii=False, allow_nan=False) + "\n"
 
 
@@ -409,6 +422,24 @@ def _storage_faults(path: Path, doing: str) -> Iterator[None]:
 
 
 def check_name(name: str, *, what: str, pattern: re.Pattern[str] = NAME_RE) -> str:
+    """Return ``name`` if it can be a folder or file name under the storage root.
+
+    Parameters
+    ----------
+    name : str
+        The name; at most :data:`MAX_NAME_LENGTH` characters, not starting with
+        :data:`CATALOG_NAME`.
+    what : str
+        What the name is (``"job name"``, ``"run id"``), for error messages.
+    pattern : re.Pattern
+        Pattern the whole name must match (default :data:`NAME_RE`: letters, digits,
+        ``_``, ``-`` and ``.``, not starting with ``.``).
+
+    Raises
+    ------
+    ConfigError
+        When the name is not a str, too long, does not match or collides with the catalog.
+    """
     if isinstance(name, str) and len(name) > MAX_NAME_LENGTH:
         raise ConfigError(f"{what} of {len(name)} characters is too long (at most "
                           f"{MAX_NAME_LENGTH}: it becomes a folder name); shorten it")
@@ -614,23 +645,58 @@ class RunWriter:
         return self.path / name
 
     def write_bytes(self, name: str, data: bytes) -> Path:
-        """Write raw bytes to ``name`` (atomic)."""
+        """Write raw bytes to ``name`` (atomic).
+
+        Parameters
+        ----------
+        name : str
+            File name inside the run directory (letters, digits, ``_``, ``-``, ``.``; not
+            the manifest).
+        data : bytes
+            The content.
+        """
         target = self._target(name)
         _atomic_write_bytes(target, data)
         return target
 
     def write_text(self, name: str, text: str) -> Path:
-        """Write UTF-8 text to ``name`` (atomic)."""
+        """Write UTF-8 text to ``name`` (atomic).
+
+        Parameters
+        ----------
+        name : str
+            File name inside the run directory (as in :meth:`write_bytes`).
+        text : str
+            The content.
+        """
         if not isinstance(text, str):
             raise TypeError(f"{name}: text must be str, got {type(text).__name__}")
         return self.write_bytes(name, text.encode("utf-8"))
 
     def write_json(self, name: str, obj: Any) -> Path:
-        """Write ``obj`` as JSON (NaN/inf -> null, numpy -> python, sorted keys, indented)."""
+        """Write ``obj`` as JSON (NaN/inf -> null, numpy -> python, sorted keys, indented).
+
+        Parameters
+        ----------
+        name : str
+            File name inside the run directory (as in :meth:`write_bytes`).
+        obj : object
+            JSON-like data, converted by :func:`to_json_text`.
+        """
         return self.write_text(name, to_json_text(obj))
 
     def write_parquet(self, name: str, df: pl.DataFrame) -> Path:
-        """Write a polars DataFrame as parquet; known result files are schema-checked first."""
+        """Write a polars DataFrame as parquet; known result files are schema-checked first.
+
+        Parameters
+        ----------
+        name : str
+            File name inside the run directory (as in :meth:`write_bytes`); the names of
+            known result files (e.g. ``step_responses.parquet``) are checked with
+            :func:`validate_frame`.
+        df : polars.DataFrame
+            The table, written with zstd compression and statistics.
+        """
         if name in _FRAME_SPECS:
             df = validate_frame(df, name=name)
         elif not isinstance(df, pl.DataFrame):
@@ -640,27 +706,64 @@ class RunWriter:
         return self.write_bytes(name, buffer.getvalue())
 
     def write_step_responses(self, df: pl.DataFrame) -> Path:
-        """Write ``step_responses.parquet`` (schema :data:`STEP_RESPONSES_SCHEMA`)."""
+        """Write ``step_responses.parquet`` (schema :data:`STEP_RESPONSES_SCHEMA`).
+
+        Parameters
+        ----------
+        df : polars.DataFrame
+            The step-response table.
+        """
         return self.write_parquet("step_responses.parquet", df)
 
     def write_signals(self, df: pl.DataFrame) -> Path:
-        """Write ``signals.parquet`` (schema :data:`SIGNALS_SCHEMA`)."""
+        """Write ``signals.parquet`` (schema :data:`SIGNALS_SCHEMA`).
+
+        Parameters
+        ----------
+        df : polars.DataFrame
+            The signals table.
+        """
         return self.write_parquet("signals.parquet", df)
 
     def write_residuals(self, df: pl.DataFrame) -> Path:
-        """Write ``residuals.parquet`` (schema :data:`RESIDUALS_SCHEMA`)."""
+        """Write ``residuals.parquet`` (schema :data:`RESIDUALS_SCHEMA`).
+
+        Parameters
+        ----------
+        df : polars.DataFrame
+            The residuals table.
+        """
         return self.write_parquet("residuals.parquet", df)
 
     def write_checks(self, checks: Mapping[str, Any]) -> Path:
-        """Write ``checks.json``."""
+        """Write ``checks.json``.
+
+        Parameters
+        ----------
+        checks : mapping
+            The checks, JSON-like (converted as in :meth:`write_json`).
+        """
         return self.write_json("checks.json", checks)
 
     def write_report(self, text: str) -> Path:
-        """Write ``report.md``."""
+        """Write ``report.md``.
+
+        Parameters
+        ----------
+        text : str
+            The report, Markdown.
+        """
         return self.write_text("report.md", text)
 
     def set_status(self, status: str) -> None:
-        """Set the run status recorded in the manifest and catalog (default ``"ok"``)."""
+        """Set the run status recorded in the manifest and catalog (default ``"ok"``).
+
+        Parameters
+        ----------
+        status : str
+            Lowercase letters, digits and underscores, starting with a letter (e.g.
+            ``"ok"``, ``"failed_windows"``).
+        """
         if not isinstance(status, str) or not _STATUS_RE.fullmatch(status):
             raise ConfigError(f"run status {status!r} must be lowercase letters/digits/underscores, e.g. 'ok', 'failed_windows'")
         self.status = status
@@ -687,12 +790,27 @@ class RunWriter:
         self.metrics.extend(new)
 
     def record_timing(self, stage: str, seconds: float) -> None:
-        """Add ``seconds`` to the wall time of ``stage`` (manifest ``timings_s``)."""
+        """Add ``seconds`` to the wall time of ``stage`` (manifest ``timings_s``).
+
+        Parameters
+        ----------
+        stage : str
+            Stage name (key in ``timings_s``).
+        seconds : float
+            Wall time to add, s.
+        """
         self.timings_s[stage] = self.timings_s.get(stage, 0.0) + float(seconds)
 
     @contextlib.contextmanager
     def timed(self, stage: str) -> Iterator[None]:
-        """Context manager that records the wall time of its body under ``stage``."""
+        """Context manager that records the wall time of its body under ``stage``.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name (key in ``timings_s``); the time is added with
+            :meth:`record_timing`, also when the body raises.
+        """
         start = time.perf_counter()
         try:
             yield
@@ -1001,6 +1119,12 @@ class ResultStore:
     def clean_stale(self, older_than_s: float) -> list[Path]:
         """Remove temporary run directories not modified for ``older_than_s`` seconds.
 
+        Parameters
+        ----------
+        older_than_s : float
+            Minimum age, s, of the newest modification time in a directory (the directory
+            or any file in it), by the store's clock.
+
         Returns
         -------
         list of Path
@@ -1021,6 +1145,11 @@ class ResultStore:
 
     def list_runs(self, job: str) -> pl.DataFrame:
         """Catalogued runs of ``job``, oldest first.
+
+        Parameters
+        ----------
+        job : str
+            Job name (checked as by :func:`check_name`).
 
         Returns
         -------
@@ -1197,7 +1326,15 @@ class ResultStore:
             return True
 
     def heartbeat_file(self, job: str, sha256: str) -> bool:
-        """Refresh this store's claim on a file; ``False`` if the claim is no longer ours."""
+        """Refresh this store's claim on a file; ``False`` if the claim is no longer ours.
+
+        Parameters
+        ----------
+        job : str
+            Job name.
+        sha256 : str
+            Content hash of the file, as given to :meth:`claim_file`.
+        """
         with self._transaction() as con:
             cursor = con.execute(
                 "UPDATE processed_files SET heartbeat_s = ? WHERE job = ? AND sha256 = ? AND status = 'running' AND owner = ?",
@@ -1232,6 +1369,11 @@ class ResultStore:
 
     def processed(self, job: str) -> pl.DataFrame:
         """The ``processed_files`` rows of ``job``.
+
+        Parameters
+        ----------
+        job : str
+            Job name (checked as by :func:`check_name`).
 
         Returns
         -------

@@ -1,0 +1,99 @@
+"""Settings of the discrepancy analysis (:class:`DiscrepancyConfig`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from pipeline.effects import EFFECT_NAMES
+from pipeline.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class DiscrepancyConfig:
+    """Settings of :func:`analyse_discrepancy` (the job YAML's ``discrepancy:``).
+
+    Parameters
+    ----------
+    effects : tuple of str
+        Catalogue effects to consider (default: all of :data:`pipeline.effects.EFFECT_NAMES`).
+    holdout_fraction : float
+        Last fraction of the record held out for selection and the gap, in (0.1, 0.6).
+    warmup_s : float or None
+        Samples at the start ignored by every criterion (the simulation starts at rest
+        while the plant may not).  None: three times the model's 2 % settling time (an
+        initial-state mismatch decays to ~1e-5 of itself for a first-order lag; 2 % would
+        leave a transient that real records, which never start at rest, show as a
+        spurious bias or drift), at most 10 % of the
+        record.
+    initial : {"rest", "steady"}
+        Initial state of every simulation (:func:`pipeline.simulate.simulate`).
+    ar_order_max : int
+        Highest AR order of the noise model (chosen by BIC, 0 = white).
+    bic_margin : float
+        Whitened BIC improvement over the nominal model an effect needs (>= 10 is
+        "very strong" evidence on the Kass-Raftery scale).
+    holdout_z_min : float
+        Minimum held-out z statistic (whitened SSE drop over its null std).
+    lookalike_margin : float
+        BIC distance under which two accepted candidates of different classes are
+        indistinguishable (verdict ``inconclusive``).
+    n_fit_candidates : int
+        Candidate classes fitted exactly after screening.
+    max_delay_s : float or None
+        Largest dead time searched (dead_time, unmodelled_input).  None: a quarter of
+        the model's settling time, between 10 and 60 samples.
+    n_bootstrap : int
+        Circular-shift bootstrap replicates for the localisation p-values.
+    load_signal : str or None
+        Measured signal used to bin the residual by operating range (default: the first
+        model input).
+    n_load_bins : int
+        Quantile bins of the load signal.
+    max_nfev : int
+        Function evaluations per least-squares start.
+    """
+
+    effects: tuple[str, ...] = EFFECT_NAMES
+    holdout_fraction: float = 1.0 / 3.0
+    warmup_s: float | None = None
+    initial: str = "rest"
+    ar_order_max: int = 4
+    bic_margin: float = 10.0
+    holdout_z_min: float = 2.0
+    lookalike_margin: float = 3.0
+    n_fit_candidates: int = 5
+    max_delay_s: float | None = None
+    n_bootstrap: int = 99
+    load_signal: str | None = None
+    n_load_bins: int = 5
+    max_nfev: int = 40
+
+    def __post_init__(self) -> None:
+        effects = tuple(self.effects)
+        object.__setattr__(self, "effects", effects)
+        unknown = [e for e in effects if e not in EFFECT_NAMES]
+        if unknown or not effects:
+            raise ConfigError(
+                f"discrepancy.effects: {list(effects)} contains unknown {unknown} or is "
+                f"empty; allowed: {', '.join(EFFECT_NAMES)}"
+            )
+        checks = [
+            ("holdout_fraction", 0.1 <= self.holdout_fraction <= 0.6, "between 0.1 and 0.6"),
+            ("ar_order_max", 0 <= self.ar_order_max <= 20, "an integer 0..20"),
+            ("bic_margin", self.bic_margin >= 0, ">= 0"),
+            ("holdout_z_min", math.isfinite(self.holdout_z_min), "finite"),
+            ("lookalike_margin", self.lookalike_margin >= 0, ">= 0"),
+            ("n_fit_candidates", self.n_fit_candidates >= 1, ">= 1"),
+            ("n_bootstrap", self.n_bootstrap >= 9, ">= 9"),
+            ("n_load_bins", self.n_load_bins >= 2, ">= 2"),
+            ("max_nfev", self.max_nfev >= 5, ">= 5"),
+            ("initial", self.initial in ("rest", "steady"), "'rest' or 'steady'"),
+            ("warmup_s", self.warmup_s is None or self.warmup_s >= 0, "None or >= 0"),
+            ("max_delay_s", self.max_delay_s is None or self.max_delay_s > 0, "None or > 0"),
+        ]
+        for key, ok, allowed in checks:
+            if not ok:
+                raise ConfigError(
+                    f"discrepancy.{key}={getattr(self, key)!r} is invalid; it must be {allowed}"
+                )

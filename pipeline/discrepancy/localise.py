@@ -1,0 +1,332 @@
+"""Localisation: which signal, which lags, which frequency band, which period explains the residual."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+import scipy.signal
+
+from pipeline.discrepancy.problem import Problem
+from pipeline.errors import ConfigError, DataQualityError, PipelineError, SingularSystemError
+from pipeline.estimate import estimate_step_responses
+from pipeline.estimate import residuals as fir_residuals
+from pipeline.simulate import simulate
+
+
+def lag_filter(x: np.ndarray, tau_samples: float) -> np.ndarray:
+    """ZOH first-order lag (unit gain, strictly proper) of x along axis 0.
+
+    Parameters
+    ----------
+    x : ndarray
+        Signal(s), time along axis 0: (N,) or (N, m).
+    tau_samples : float
+        Time constant, in samples (pole ``exp(-1 / tau_samples)``).
+    """
+    a = math.exp(-1.0 / tau_samples)
+    return scipy.signal.lfilter([0.0, 1.0 - a], [1.0, -a], x, axis=0)
+
+
+def _bank(x: np.ndarray, taus: Sequence[float]) -> np.ndarray:
+    """Columns: x and its unit-gain lags with time constants `taus` (samples)."""
+    return np.column_stack([x] + [lag_filter(x, t) for t in taus])
+
+
+def _input_relevance(P: Problem, resid: np.ndarray, signals: list[str], start: int,
+                     rng: np.random.Generator) -> dict[str, dict[str, float]]:
+    """Partial statistic per signal and circular-shift bootstrap p-value.
+
+    The residual (after removing mean and trend) is regressed on a bank of each
+    signal's filtered versions (the signal and 4 unit-gain lags, time constants from 2
+    samples to half the settling time).  The statistic of signal j is the relative
+    drop of the residual sum of squares when j's columns join the others (a partial
+    R², scaled by N).  Its null distribution comes from shifting j's columns circularly
+    by a random offset (10-90 % of the record): this is a block bootstrap with one cut
+    that keeps the autocorrelation of both the residual and the signal but breaks their
+    alignment, which a naive F test on autocorrelated data would not.
+    """
+    n_s = P.settling_s / P.dt_s
+    taus = np.geomspace(2.0, max(3.0, n_s / 2), 4)
+    r = resid[start:]
+    n = r.size
+    t = np.linspace(-1, 1, n)
+    trend = np.column_stack([np.ones(n), t])
+    blocks = []
+    for name in signals:
+        x = P.inputs[name]
+        blocks.append(_bank(x - x.mean(), taus)[start:])
+    x_all = np.column_stack([trend] + blocks)
+    m = blocks[0].shape[1]
+    gram = x_all.T @ x_all
+    cross = x_all.T @ r
+    rr = float(r @ r)
+
+    def rss(g: np.ndarray, c: np.ndarray) -> float:
+        try:
+            sol = np.linalg.solve(g + 1e-12 * np.trace(g) / len(g) * np.eye(len(g)), c)
+        except np.linalg.LinAlgError:
+            return rr
+        return max(rr - float(c @ sol), 1e-300)
+
+    rss_full = rss(gram, cross)
+    out: dict[str, dict[str, float]] = {}
+    for j, name in enumerate(signals):
+        cols = np.arange(2 + j * m, 2 + (j + 1) * m)
+        keep = np.setdiff1d(np.arange(x_all.shape[1]), cols)
+        rss_without = rss(gram[np.ix_(keep, keep)], cross[keep])
+        stat = n * (rss_without - rss_full) / rss_full
+        exceed = 0
+        for _ in range(P.config.n_bootstrap):
+            shift = int(rng.integers(n // 10, 9 * n // 10))
+            xs = np.roll(blocks[j], shift, axis=0)
+            g = gram.copy()
+            c = cross.copy()
+            g_cross = x_all.T @ xs
+            g[:, cols] = g_cross
+            g[cols, :] = g_cross.T
+            g[np.ix_(cols, cols)] = xs.T @ xs
+            c[cols] = xs.T @ r
+            s_b = n * (rss_without - rss(g, c)) / rss(g, c)
+            exceed += s_b >= stat
+        out[name] = {
+            "partial_r2": float((rss_without - rss_full) / max(rss_without, 1e-300)),
+            "statistic": float(stat),
+            "p_value": float((1 + exceed) / (1 + P.config.n_bootstrap)),
+        }
+    return out
+
+
+def _change_points(series: np.ndarray, max_points: int = 3, min_seg: int = 3,
+                   threshold: float = 4.0) -> list[int]:
+    """Binary segmentation for level shifts in a short series (block statistics).
+
+    The noise scale is the median absolute difference of neighbours (robust to the
+    shifts themselves); a split is kept when the two-sample t statistic exceeds
+    `threshold`.  Hand-written: scipy has no change-point detection.
+    """
+    s = np.asarray(series, dtype=float)
+    scale = 1.4826 * float(np.median(np.abs(np.diff(s)))) / math.sqrt(2) if s.size > 2 else 0.0
+    if not scale > 0:
+        return []
+    found: list[int] = []
+
+    def split(lo: int, hi: int) -> None:
+        if len(found) >= max_points or hi - lo < 2 * min_seg:
+            return
+        best, best_k = 0.0, -1
+        for k in range(lo + min_seg, hi - min_seg + 1):
+            a, b = s[lo:k], s[k:hi]
+            t = abs(a.mean() - b.mean()) / (scale * math.sqrt(1 / a.size + 1 / b.size))
+            if t > best:
+                best, best_k = t, k
+        if best > threshold:
+            found.append(best_k)
+            split(lo, best_k)
+            split(best_k, hi)
+
+    split(0, s.size)
+    return sorted(found)
+
+
+def _fir_signals(P: Problem, signals: list[str], x: np.ndarray, r: np.ndarray
+                 ) -> tuple[list[str], dict[str, list[str]]]:
+    """Signals the residual FIR regression can use jointly, and those left out.
+
+    All signals when their lagged normal equations are regular (the usual case).
+    Otherwise (e.g. an external simulator's recorded output is a linear filter of a
+    recorded plant input) signals join greedily, model inputs first, and a signal that
+    makes the system singular is left out and reported as collinear with those kept.
+    """
+    try:
+        estimate_step_responses(x, r, n_p=P.n_p, dt=P.dt_s)
+        return list(signals), {}
+    except SingularSystemError:
+        pass
+    order = [s for s in signals if s in P.model.inputs] + \
+        [s for s in signals if s not in P.model.inputs]
+    kept: list[str] = []
+    left: dict[str, list[str]] = {}
+    for name in order:
+        trial = kept + [name]
+        try:
+            estimate_step_responses(x[:, [signals.index(s) for s in trial]], r, n_p=P.n_p,
+                                    dt=P.dt_s)
+            kept = trial
+        except SingularSystemError:
+            left[name] = list(kept)
+    return [s for s in signals if s in kept], left
+
+
+def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
+              ) -> tuple[dict[str, Any], list[np.ndarray], dict[str, np.ndarray]]:
+    """Localisation per output; returns (dict, FIR residual per output, rolling RMS).
+
+    Parameters
+    ----------
+    P : Problem
+        Validated signals, nominal simulation and split; only samples from
+        ``P.fit_start`` on are analysed (the noise model is not used).
+    resid : ndarray (N, n_y)
+        Residual: measured minus nominal simulated outputs, full record.
+    rng : numpy.random.Generator
+        Random offsets of the circular-shift bootstrap.
+    """
+    start = P.fit_start
+    signals = list(P.inputs)
+    x = np.column_stack([P.inputs[s] for s in signals])[start:]
+    n = x.shape[0]
+    t = np.linspace(-1.0, 1.0, n)
+    trend = np.column_stack([np.ones(n), t])
+    # Remove mean and trend from every series (Frisch-Waugh: the FIR coefficients are
+    # then those of a regression that includes the trend terms).
+    proj = lambda z: z - trend @ np.linalg.lstsq(trend, z, rcond=None)[0]  # noqa: E731
+    x_d = proj(x)
+    r_all = resid[start:]
+    r_d = proj(r_all)
+    fir_signals, collinear = _fir_signals(P, signals, x_d, r_d)
+    cols = [signals.index(s) for s in fir_signals]
+    try:
+        est = estimate_step_responses(x_d[:, cols], r_d, n_p=P.n_p, dt=P.dt_s)
+        fir_res = fir_residuals(est, x_d[:, cols], r_d)
+    except PipelineError as exc:
+        raise DataQualityError(
+            f"discrepancy localisation: the residual FIR regression failed ({exc}); the "
+            "inputs do not excite the model enough or are collinear"
+        ) from None
+    # Model step responses (per model input) for the frequency comparison.
+    model_step = {}
+    for name in P.model.inputs:
+        u = {k: (np.ones(P.n_p) if k == name else np.zeros(P.n_p)) for k in P.model.inputs}
+        sim = simulate(P.model, u, dt_s=P.dt_s)
+        model_step[name] = {o: sim.signals[o] for o in P.outputs}
+    nfft = int(scipy.fft.next_fast_len(8 * P.n_p))
+    freqs = np.fft.rfftfreq(nfft, d=P.dt_s)
+    f_lo, f_hi = 1.0 / (P.n_p * P.dt_s), 0.5 / P.dt_s
+    edges = np.geomspace(f_lo, f_hi, 5)
+    window = max(P.n_p, n // 40)
+    rolling: dict[str, np.ndarray] = {}
+    loc: dict[str, Any] = {}
+    fir_out = []
+    relevance_all = {}
+    for i, out in enumerate(P.outputs):
+        rel = _input_relevance(P, resid[:, i], signals, start, rng)
+        relevance_all[out] = rel
+        fir_out.append(np.nan_to_num(fir_res[:, i]))
+        per_signal = {}
+        for name in signals:
+            if name not in fir_signals:  # left out of the FIR regression (collinear)
+                entry = dict(rel[name])
+                entry.update(significant=bool(rel[name]["p_value"] < 0.05),
+                             first_significant_lag_s=None, peak_lag_s=None,
+                             significant_lags=0, discrepancy_step_final=None,
+                             discrepancy_step_final_std=None,
+                             fir_left_out=f"collinear with {collinear[name]}")
+                per_signal[name] = entry
+                continue
+            j = fir_signals.index(name)
+            dh = est.delta_h[i, j]
+            sd = est.delta_h_std[i, j]
+            z = np.abs(dh) / np.where(sd > 0, sd, np.inf)
+            sig_lags = np.flatnonzero(z > 3.0)
+            entry = dict(rel[name])
+            entry.update(
+                significant=bool(rel[name]["p_value"] < 0.05),
+                first_significant_lag_s=(float(sig_lags[0] * P.dt_s) if sig_lags.size else None),
+                peak_lag_s=float(np.argmax(np.abs(dh)) * P.dt_s),
+                significant_lags=int(sig_lags.size),
+                discrepancy_step_final=float(est.step[i, j, -1]),
+                discrepancy_step_final_std=float(est.step_std[i, j, -1]),
+            )
+            if name in model_step:
+                h_model = np.diff(model_step[name][out], prepend=0.0)
+                hm = np.abs(np.fft.rfft(h_model, nfft))
+                hd = np.abs(np.fft.rfft(h_model + dh, nfft))
+                hr = np.abs(np.fft.rfft(dh, nfft))
+                bands = []
+                for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+                    sel = (freqs >= lo) & (freqs < hi)
+                    m_mean = float(hm[sel].mean()) if sel.any() else float("nan")
+                    bands.append({
+                        "f_lo_hz": float(lo), "f_hi_hz": float(hi),
+                        "model_gain": m_mean,
+                        "data_gain": float(hd[sel].mean()) if sel.any() else float("nan"),
+                        "relative_difference": (float(hr[sel].mean()) / m_mean
+                                                if sel.any() and m_mean > 0 else float("nan")),
+                    })
+                worst = max(bands, key=lambda b: -1 if math.isnan(b["relative_difference"])
+                            else b["relative_difference"])
+                entry["frequency_bands"] = bands
+                entry["band_of_largest_discrepancy_hz"] = [worst["f_lo_hz"], worst["f_hi_hz"]]
+                entry["model_step_final"] = float(model_step[name][out][-1])
+                entry["data_step_final"] = float(model_step[name][out][-1] + est.step[i, j, -1])
+            per_signal[name] = entry
+        # trend terms of the residual (mean and drift over the record)
+        coef = np.linalg.lstsq(trend, r_all[:, i], rcond=None)[0]
+        duration_h = n * P.dt_s / 3600.0
+        # time windows: block RMS and change points of block mean / block RMS
+        e = resid[:, i]
+        kernel = np.ones(window) / window
+        rolling[out] = np.sqrt(np.convolve(e**2, kernel, mode="same"))
+        nb = n // window
+        blocks = r_all[: nb * window, i].reshape(nb, window)
+        b_mean = blocks.mean(axis=1)
+        b_rms = np.sqrt((blocks**2).mean(axis=1))
+        cp_mean = _change_points(b_mean)
+        cp_level = _change_points(np.log(b_rms + 1e-300))
+        med = float(np.median(b_rms))
+        # operating range
+        load_name = P.config.load_signal or (P.model.inputs[0] if P.model.inputs else signals[0])
+        if load_name not in P.inputs:
+            raise ConfigError(
+                f"discrepancy.load_signal={load_name!r} is not a measured signal; choose one "
+                f"of {signals}"
+            )
+        load = P.inputs[load_name][start:]
+        q = np.quantile(load, np.linspace(0, 1, P.config.n_load_bins + 1))
+        idx = np.clip(np.searchsorted(q, load, side="right") - 1, 0, P.config.n_load_bins - 1)
+        bins = []
+        for b in range(P.config.n_load_bins):
+            sel = idx == b
+            if not sel.any():
+                continue
+            eb = r_all[sel, i]
+            bins.append({"load_lo": float(q[b]), "load_hi": float(q[b + 1]), "n": int(sel.sum()),
+                         "mean": float(eb.mean()), "rms": float(np.sqrt(np.mean(eb**2)))})
+        rms_bins = [b["rms"] for b in bins]
+        total_rms = float(np.sqrt(np.mean(r_all[:, i] ** 2)))
+        loc[out] = {
+            "residual_rms": total_rms,
+            "residual_mean": float(r_all[:, i].mean()),
+            "measured_std": float(np.std(P.y[start:, i])),
+            "relative_residual": total_rms / max(float(np.std(P.y[start:, i])), 1e-300),
+            "fir_residual_rms": float(np.sqrt(np.mean(np.nan_to_num(fir_res[:, i]) ** 2))),
+            "signals": per_signal,
+            "explained_by": [s for s, v in sorted(rel.items(), key=lambda kv: kv[1]["p_value"])
+                             if v["p_value"] < 0.05],
+            "lags_n_p": P.n_p,
+            "trend": {"mean": float(coef[0]),
+                      "drift_per_h": float(2 * coef[1] / duration_h) if duration_h > 0 else 0.0},
+            "time_windows": {
+                "window_s": float(window * P.dt_s),
+                "block_rms": [float(v) for v in b_rms],
+                "block_mean": [float(v) for v in b_mean],
+                "high_rms_windows_s": [
+                    [float((start + k * window) * P.dt_s), float((start + (k + 1) * window) * P.dt_s)]
+                    for k in np.flatnonzero(b_rms > 1.5 * med)
+                ],
+                "mean_change_points_s": [float((start + k * window) * P.dt_s) for k in cp_mean],
+                "level_change_points_s": [float((start + k * window) * P.dt_s) for k in cp_level],
+            },
+            "operating_range": {
+                "load_signal": load_name,
+                "bins": bins,
+                "rms_spread": (max(rms_bins) - min(rms_bins)) / max(total_rms, 1e-300)
+                if rms_bins else 0.0,
+            },
+        }
+    return loc, fir_out, rolling

@@ -1,0 +1,217 @@
+"""The analysis problem: validated signals, the nominal simulation, the data split and the whitening."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+import scipy.signal
+
+from pipeline.discrepancy.config import DiscrepancyConfig
+from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
+from pipeline.model import Model
+from pipeline.simulate import simulate
+
+
+#: Innovation stds are floored at this fraction of the output's std (:func:`sigma_floor`).
+_SIGMA_FLOOR_RTOL = 1e-6
+
+
+@dataclass
+class Problem:
+    """Everything the stages share (internal, mutable while the analysis runs)."""
+
+    model: Model
+    inputs: dict[str, np.ndarray]
+    outputs: tuple[str, ...]
+    y: np.ndarray  # (N, n_y) measured
+    dt_s: float
+    n: int
+    fit_start: int
+    holdout_start: int
+    config: DiscrepancyConfig
+    settling_s: float
+    n_p: int
+    max_delay: int
+    nominal_signals: dict[str, np.ndarray]
+    y_nominal: np.ndarray  # (N, n_y)
+    ar: list[np.ndarray] = field(default_factory=list)  # per output [1, -phi_1, ...]
+    sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def n_y(self) -> int:
+        return len(self.outputs)
+
+    @property
+    def extra_signals(self) -> list[str]:
+        return [s for s in self.inputs if s not in self.model.inputs]
+
+    def whiten(self, z: np.ndarray, start: int, stop: int) -> np.ndarray:
+        """Whitened, noise-normalised ``z`` (N', n_y) on samples ``[start+p, stop)``.
+
+        Returns the per-output vectors concatenated (length ~ n_y (stop-start)).
+
+        Parameters
+        ----------
+        z : ndarray (N', n_y)
+            Output errors or changes from sample 0 on (N' >= `stop`); filtered from
+            sample 0 so that the first whitened samples have their past.
+        start, stop : int
+            Sample indices of the span (``stop`` exclusive), e.g. ``fit_start`` and
+            ``holdout_start`` for the fit part; the first ``p`` (the highest AR order
+            over the outputs) samples after ``start`` are dropped.
+        """
+        return np.concatenate(self.whiten_split(z, start, stop))
+
+    def whiten_split(self, z: np.ndarray, start: int, stop: int) -> list[np.ndarray]:
+        """Per-output whitened vectors, all on samples ``[start + p_max, stop)``.
+
+        Parameters
+        ----------
+        z : ndarray (N', n_y)
+            Output errors or changes from sample 0 on (N' >= `stop`).
+        start, stop : int
+            Sample indices of the span (``stop`` exclusive); ``p_max`` is the highest
+            AR order over the outputs.
+        """
+        first = start + max(len(a) for a in self.ar) - 1
+        out = []
+        for i in range(self.n_y):
+            w = scipy.signal.lfilter(self.ar[i], [1.0], z[:stop, i])
+            out.append(w[first:stop] / self.sigma[i])
+        return out
+
+
+def sigma_floor(y: np.ndarray) -> float:
+    """Smallest innovation std used for whitening: :data:`_SIGMA_FLOOR_RTOL` of the
+    output's spread.
+
+    Noise-free records (simulations) have a zero FIR residual, and the right candidate
+    reproduces them up to the optimiser's tolerance (relative ``_LSQ_TOL`` in the
+    parameters); dividing by such a "noise" std would turn every statistic into
+    rounding noise.  No sensor resolves a millionth of its signal's spread, so on real
+    data the floor never binds.
+
+    Parameters
+    ----------
+    y : ndarray (N,)
+        One measured output.
+    """
+    return _SIGMA_FLOOR_RTOL * float(np.std(y)) + 1e-300
+
+
+def validate_signals(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
+              dt_s: float) -> tuple[dict[str, np.ndarray], tuple[str, ...], np.ndarray]:
+    """Check the model and the signals; return (inputs, output names, y (N, n_y)).
+
+    The output names are the measured outputs in the model's order, the columns of y.
+
+    Parameters
+    ----------
+    model : Model
+        Nominal model.
+    inputs : mapping of str -> array_like (N,)
+        Measured signals: every model input, plus any other signals (candidate
+        unmodelled inputs); none may have a model block's name.
+    measured : mapping of str -> array_like (N,)
+        Measured outputs: a non-empty subset of the model's outputs.
+    dt_s : float
+        Sample period, s.
+
+    Raises
+    ------
+    ConfigError
+        Wrong types, missing model inputs, unknown outputs or name clashes.
+    DataQualityError
+        Signals not 1-D, with non-finite values or of different lengths.
+    InsufficientDataError
+        Fewer than 500 samples.
+    """
+    if not isinstance(model, Model):
+        raise ConfigError(f"model: expected a pipeline.model.Model, got {type(model).__name__}")
+    if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
+        raise ConfigError(f"dt_s={dt_s!r} must be a positive number of seconds")
+    if not isinstance(inputs, Mapping) or not isinstance(measured, Mapping):
+        raise ConfigError("inputs and measured must be mappings of signal name -> array")
+    missing = [name for name in model.inputs if name not in inputs]
+    if missing:
+        raise ConfigError(
+            f"model {model.name!r} needs inputs {list(model.inputs)} but {missing} are not "
+            f"among the measured signals {sorted(inputs)}; add them to the job's signals"
+        )
+    unknown = [name for name in measured if name not in model.outputs]
+    if unknown or not measured:
+        raise ConfigError(
+            f"measured outputs {sorted(measured)} must be a non-empty subset of the model "
+            f"outputs {list(model.outputs)} (unknown: {unknown})"
+        )
+    clash = [name for name in inputs if name in model.block_names]
+    if clash:
+        raise ConfigError(
+            f"measured signals {clash} have the names of model blocks; rename the signals"
+        )
+    arrays: dict[str, np.ndarray] = {}
+    for kind, source in (("input", inputs), ("output", measured)):
+        for name, values in source.items():
+            arr = np.asarray(values, dtype=float)
+            if arr.ndim != 1:
+                raise DataQualityError(f"{kind} {name!r}: shape {arr.shape}; expected (N,)")
+            bad = np.flatnonzero(~np.isfinite(arr))
+            if bad.size:
+                raise DataQualityError(
+                    f"{kind} {name!r}: {bad.size} non-finite values (first at sample "
+                    f"{bad[0]}); fill or cut the gaps before the discrepancy analysis"
+                )
+            arrays[(kind, name)] = arr  # type: ignore[index]
+    lengths = {len(a) for a in arrays.values()}
+    if len(lengths) != 1:
+        raise DataQualityError(
+            f"signals have different lengths { {k[1]: len(a) for k, a in arrays.items()} }; "
+            "resample them to one grid first"
+        )
+    n = lengths.pop()
+    if n < 500:
+        raise InsufficientDataError(
+            f"{n} samples is too few for a discrepancy analysis (fit, hold-out, noise model); "
+            "give at least 500 samples, better 20 settling times"
+        )
+    ins = {name: arrays[("input", name)] for name in inputs}  # type: ignore[index]
+    outputs = tuple(name for name in model.outputs if name in measured)
+    y = np.column_stack([arrays[("output", name)] for name in outputs])  # type: ignore[index]
+    return ins, outputs, y
+
+
+def settling_time(model: Model, dt_s: float, n_max: int) -> float:
+    """Longest 2 % settling time of the model's outputs after a unit step on any input, s.
+
+    An output still moving at the end of the horizon (integrating) gets the horizon.
+
+    Parameters
+    ----------
+    model : Model
+        Nominal model (simulated from rest).
+    dt_s : float
+        Sample period, s.
+    n_max : int
+        Longest step simulation, samples (the record length); the horizon is
+        ``min(n_max, max(200, 4 h / dt_s))`` samples.
+    """
+    horizon = int(min(n_max, max(200, 4 * 3600 / dt_s)))
+    longest = 0.0
+    for name in model.inputs:
+        step = {k: (np.ones(horizon) if k == name else np.zeros(horizon)) for k in model.inputs}
+        with np.errstate(all="ignore"):
+            sim = simulate(model, step, dt_s=dt_s)
+        for out in sim.outputs.T:
+            scale = float(np.max(np.abs(out)))
+            if not math.isfinite(scale) or scale == 0.0:
+                continue
+            outside = np.flatnonzero(np.abs(out - out[-1]) > 0.02 * scale)
+            k = 0 if outside.size == 0 else int(outside[-1]) + 1
+            longest = max(longest, k * dt_s)
+    return max(longest, 10 * dt_s)

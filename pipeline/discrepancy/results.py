@@ -1,0 +1,217 @@
+"""What the discrepancy analysis returns: candidates, series and the result."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.discrepancy.config import DiscrepancyConfig
+from pipeline.effects import Effect, output_offsets
+from pipeline.model import Model
+
+
+VERDICTS = ("effect_found", "inconclusive", "no_significant_effect")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One fitted candidate effect (ranked in :attr:`DiscrepancyResult.candidates`).
+
+    Attributes
+    ----------
+    effect : Effect
+        Name, location, fitted parameters, equivalent locations.
+    criterion : float
+        Whitened BIC on the fit part (lower is better; the nominal model's is
+        ``DiscrepancyResult.noise["bic_nominal"]``).
+    delta_bic : float
+        Nominal BIC minus this BIC (> ``bic_margin`` needed).
+    n_parameters : int
+    holdout_rms : dict of str -> float
+        Held-out output-error RMS per output (engineering units).
+    holdout_z : float
+        Held-out z statistic: whitened SSE drop against the nominal model over its
+        null standard deviation.
+    holdout_gap : float
+        Held-out output-error RMS in the units of ``DiscrepancyResult.gap`` (one
+        output: its units; several: each divided by its held-out std, pooled); must be
+        below the nominal model's (``gap["holdout_rms_before"]``).
+    screening_score : float
+        Approximate whitened sum of squares explained at screening, minus the BIC penalty.
+    passed : bool
+        Every acceptance test passed.
+    """
+
+    effect: Effect
+    criterion: float
+    delta_bic: float
+    n_parameters: int
+    holdout_rms: dict[str, float]
+    holdout_z: float
+    holdout_gap: float
+    screening_score: float
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
+        out = self.effect.to_dict()
+        out.update(
+            criterion=json_float(self.criterion),
+            delta_bic=json_float(self.delta_bic),
+            n_parameters=self.n_parameters,
+            holdout_rms={k: json_float(v) for k, v in self.holdout_rms.items()},
+            holdout_z=json_float(self.holdout_z),
+            holdout_gap=json_float(self.holdout_gap),
+            screening_score=json_float(self.screening_score),
+            passed=self.passed,
+        )
+        return out
+
+
+@dataclass(frozen=True)
+class DiscrepancySeries:
+    """Signals for plots (full record; arrays of shape (N,)).
+
+    Attributes
+    ----------
+    t_s : ndarray
+        Time since the first sample, s.
+    measured, nominal, augmented : dict of str -> ndarray
+        Measured outputs, nominal simulation, augmented simulation (with measurement
+        offsets of a sensor_bias_drift effect) per measured output.
+    residual_before, residual_after : dict of str -> ndarray
+        ``measured - nominal`` and ``measured - augmented``.
+    rolling_rms : dict of str -> ndarray
+        Residual RMS in centred windows (``localization[out]["time_windows"]["window_s"]``).
+    fit_start, holdout_start : int
+        Sample indices: criteria use ``[fit_start, holdout_start)`` for fitting and
+        ``[holdout_start, N)`` for judging.
+    """
+
+    t_s: np.ndarray
+    measured: dict[str, np.ndarray]
+    nominal: dict[str, np.ndarray]
+    augmented: dict[str, np.ndarray]
+    residual_before: dict[str, np.ndarray]
+    residual_after: dict[str, np.ndarray]
+    rolling_rms: dict[str, np.ndarray]
+    fit_start: int
+    holdout_start: int
+
+
+@dataclass(frozen=True)
+class DiscrepancyResult:
+    """What :func:`analyse_discrepancy` found.
+
+    Attributes
+    ----------
+    verdict : str
+        ``"effect_found"``, ``"inconclusive"`` or ``"no_significant_effect"``.
+    effect : Effect or None
+        The accepted effect (None unless ``effect_found``).
+    candidates : tuple of Candidate
+        Every exactly fitted candidate, best (lowest criterion) first.
+    lookalikes : tuple of Candidate
+        For ``inconclusive``: the accepted candidates too close to tell apart.
+    localization : dict
+        Per measured output (JSON-ready): see the module docstring, step 1.
+    gap : dict
+        ``holdout_rms_before``, ``holdout_rms_after``, ``reduction`` (= 1 - after/before)
+        and ``per_output``; for one measured output in its units, for several the RMS
+        over outputs of each output's RMS divided by its measured std (``units``).
+    augmented_model : Model
+        The nominal model with the accepted effect (the nominal model otherwise).  With
+        a ``sensor_bias_drift`` effect the blocks are unchanged and the measured-side
+        offsets are in :attr:`output_offsets`.
+    output_offsets : dict of str -> ndarray
+        Added to the augmented model's simulated outputs (zeros unless
+        sensor_bias_drift).  :func:`pipeline.effects.predict_outputs` with the nominal
+        model and :attr:`effect` reproduces :attr:`series` ``.augmented``.
+    noise : dict
+        Noise model per output (AR coefficients, innovation std) and the nominal BIC.
+    screening : tuple of dict
+        Screening score per candidate class (best first), also in ``localization``.
+    series : DiscrepancySeries
+    dt_s : float
+    config : DiscrepancyConfig
+    timings_s : dict of str -> float
+        Wall time per stage.
+    n_fit_simulations : int
+        Exact simulations run by the fits (a cost measure).
+    """
+
+    verdict: str
+    effect: Effect | None
+    candidates: tuple[Candidate, ...]
+    lookalikes: tuple[Candidate, ...]
+    localization: dict[str, Any]
+    gap: dict[str, Any]
+    augmented_model: Model
+    output_offsets: dict[str, np.ndarray]
+    noise: dict[str, Any]
+    screening: tuple[dict[str, Any], ...]
+    series: DiscrepancySeries
+    dt_s: float
+    config: DiscrepancyConfig
+    timings_s: dict[str, float] = field(default_factory=dict)
+    n_fit_simulations: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (no long arrays): what ``discrepancy.json`` holds."""
+        return {
+            "verdict": self.verdict,
+            "effect": None if self.effect is None else self.effect.to_dict(),
+            "candidates": [c.to_dict() for c in self.candidates],
+            "lookalikes": [c.to_dict() for c in self.lookalikes],
+            "localization": self.localization,
+            "gap": self.gap,
+            "noise": self.noise,
+            "screening": list(self.screening),
+            "dt_s": self.dt_s,
+            "n_samples": int(self.series.t_s.size),
+            "fit_samples": [self.series.fit_start, self.series.holdout_start],
+            "holdout_samples": [self.series.holdout_start, int(self.series.t_s.size)],
+            "config": {
+                k: (list(v) if isinstance(v, tuple) else v)
+                for k, v in dataclasses.asdict(self.config).items()
+            },
+            "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
+            "n_fit_simulations": self.n_fit_simulations,
+        }
+
+    def __str__(self) -> str:
+        lines = [f"discrepancy verdict: {self.verdict}"]
+        if self.effect is not None:
+            lines.append(f"  effect: {self.effect.describe()}")
+        for c in self.lookalikes:
+            lines.append(f"  look-alike: {c.effect.describe()} (criterion {c.criterion:.1f})")
+        g = self.gap
+        lines.append(
+            f"  held-out RMS {g['holdout_rms_before']:.4g} -> {g['holdout_rms_after']:.4g} "
+            f"({100 * g['reduction']:.1f} % smaller)"
+        )
+        for c in self.candidates[:5]:
+            lines.append(
+                f"  candidate {c.effect.describe()}: dBIC {c.delta_bic:.1f}, held-out z "
+                f"{c.holdout_z:.1f}{' (passed)' if c.passed else ''}"
+            )
+        return "\n".join(lines)
+
+
+def json_float(value: Any) -> Any:
+    """Float for JSON (non-finite as string).
+
+    Parameters
+    ----------
+    value : float or numpy scalar
+        Number to convert (``float(value)``); inf, -inf and nan become
+        ``"inf"``, ``"-inf"`` and ``"nan"``.
+    """
+    value = float(value)
+    if math.isfinite(value):
+        return value
+    return "inf" if value > 0 else ("-inf" if value < 0 else "nan")

@@ -1,0 +1,694 @@
+"""Screening: every catalogue effect at every location by its exact (linearised) sensitivity; the saturation static-map path."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+import scipy.signal
+
+from pipeline.discrepancy.localise import lag_filter
+from pipeline.discrepancy.problem import Problem
+from pipeline.effects import Effect, applicable_locations, predict_outputs
+from pipeline.errors import PipelineError
+from pipeline.model import Model, Sum, Term, insert_after, insert_before
+from pipeline.simulate import discrete_state_space, simulate
+
+
+#: Relative tolerance under which two candidates' sensitivities count as identical
+#: (equivalent locations): rounding of an FFT convolution is ~1e-13 relative.
+_EQUIVALENT_RTOL = 1e-7
+
+
+@dataclass(eq=False)  # identity comparison: the direction arrays make == ambiguous
+class Screen:
+    """Screening outcome of one candidate (internal)."""
+
+    name: str
+    location: str
+    score: float  # explained whitened SS minus penalty
+    n_parameters: int
+    starts: list[dict[str, Any]]  # best grid points first (parameters)
+    direction: np.ndarray  # whitened direction at the best point (equivalence test)
+    members: list[str] = field(default_factory=list)
+
+
+def _inject_model(model: Model, block: str, *, side: str) -> Model:
+    """`model` plus an input ``__inject`` added at the output (or input) of `block`."""
+    base = dataclasses.replace(model, inputs=(*model.inputs, "__inject"))
+    if side == "output":
+        upstream = f"{block}__inject_upstream"
+        return insert_after(base, block, upstream_name=upstream,
+                            block=Sum(name=block, inputs=(Term(upstream), Term("__inject"))))
+    name = f"{block}__inject_sum"
+    with_sum = insert_before(base, block, block=Sum(name=name))
+    summed = with_sum.block(name)
+    return with_sum.with_block(dataclasses.replace(summed, inputs=(*summed.inputs, Term("__inject"))))
+
+
+class Screener:
+    """First-order (Born) screening of every candidate on the fit part.
+
+    Parameters
+    ----------
+    P : Problem
+        Validated signals, nominal simulation, split and whitening (noise model set).
+    resid : ndarray (N, n_y)
+        Residual: measured minus nominal simulated outputs; whitened on the fit part.
+    h_cache : dict or None
+        Cache of impulse responses, exact simulations and saturation paths, shared
+        across screenings (None: a new one).
+    """
+
+    def __init__(self, P: Problem, resid: np.ndarray,
+                 h_cache: dict[tuple[str, str], np.ndarray] | None = None) -> None:
+        self.P = P
+        self.stop = P.holdout_start
+        self.nfft = int(scipy.fft.next_fast_len(2 * self.stop))
+        self.r_w = P.whiten(resid, P.fit_start, self.stop)
+        self.penalty = math.log(self.r_w.size)
+        self._h: dict[tuple[str, str], Any] = {} if h_cache is None else h_cache
+        sig = P.nominal_signals
+        self.v = {b: sig[b][: self.stop] for b in P.model.block_names}
+        self.ins = {k: v[: self.stop] for k, v in P.inputs.items()}
+
+    # impulse responses --------------------------------------------------------------
+    def H(self, block: str, side: str) -> np.ndarray:
+        """rfft of the impulse responses injection -> measured outputs, (nfft//2+1, n_y).
+
+        Parameters
+        ----------
+        block : str
+            Model block where the unit impulse is injected.
+        side : {"output", "input"}
+            Add the impulse to the block's output, or to its input (through a sum
+            inserted before it).
+        """
+        key = (block, side)
+        if key not in self._h:
+            m = _inject_model(self.P.model, block, side=side)
+            u = {k: np.zeros(self.stop) for k in m.inputs}
+            u["__inject"][0] = 1.0
+            with np.errstate(all="ignore"):
+                sim = simulate(m, u, dt_s=self.P.dt_s)
+            h = np.column_stack([sim.signals[o] for o in self.P.outputs])
+            self._h[key] = scipy.fft.rfft(np.nan_to_num(h), self.nfft, axis=0)
+        return self._h[key]
+
+    def conv(self, H: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Response of the outputs to injecting x (stop,): (stop, n_y).
+
+        Parameters
+        ----------
+        H : ndarray (nfft//2+1, n_y)
+            Impulse-response spectra from :meth:`H`.
+        x : ndarray (stop,)
+            Injected signal on samples ``[0, stop)``.
+        """
+        X = scipy.fft.rfft(x, self.nfft)
+        return scipy.fft.irfft(H * X[:, None], self.nfft, axis=0)[: self.stop]
+
+    def w(self, d: np.ndarray) -> np.ndarray:
+        """Whitened `d` on the fit part (:meth:`Problem.whiten` on ``[fit_start, stop)``).
+
+        Parameters
+        ----------
+        d : ndarray (stop, n_y)
+            Output change or error from sample 0 on.
+        """
+        return self.P.whiten(d, self.P.fit_start, self.stop)
+
+    def exact(self, effect: Effect) -> np.ndarray | None:
+        """Exact outputs with `effect` on the fit part (cached across screenings).
+
+        Parameters
+        ----------
+        effect : Effect
+            Candidate effect, simulated on samples ``[0, stop)``; None is returned when
+            the simulation fails or blows up.
+        """
+        key = ("exact", effect.describe())
+        if key not in self._h:
+            try:
+                with np.errstate(all="ignore"):
+                    out = predict_outputs(self.P.model, effect, self.ins, dt_s=self.P.dt_s,
+                                          outputs=self.P.outputs, initial=self.P.config.initial)
+                y = np.column_stack([out[o] for o in self.P.outputs])
+                self._h[key] = y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
+            except PipelineError:
+                self._h[key] = None
+        return self._h[key]
+
+    # scoring helpers -------------------------------------------------------------
+    def fixed(self, d_w: np.ndarray) -> float:
+        """Whitened SS removed when the direction enters with coefficient 1.
+
+        Parameters
+        ----------
+        d_w : ndarray
+            Whitened change of the outputs (a direction), same length as ``r_w``.
+        """
+        return float(2.0 * d_w @ self.r_w - d_w @ d_w)
+
+    def project(self, d_w: np.ndarray) -> tuple[float, float]:
+        """(SS removed, coefficient) for the best multiple of one direction.
+
+        Parameters
+        ----------
+        d_w : ndarray
+            Whitened change of the outputs (a direction), same length as ``r_w``.
+        """
+        dd = float(d_w @ d_w)
+        if dd <= 0:
+            return 0.0, 0.0
+        beta = float(d_w @ self.r_w) / dd
+        return beta * float(d_w @ self.r_w), beta
+
+    def block_input(self, block: str) -> np.ndarray:
+        """Nominal input of `block` on samples ``[0, stop)``: the weighted sum of its terms.
+
+        Parameters
+        ----------
+        block : str
+            Model block name.
+        """
+        b = self.P.model.block(block)
+        total = np.zeros(self.stop)
+        for term in b.inputs:
+            total = total + term.k * (self.v[term.signal] if term.signal in self.v
+                                      else self.ins[term.signal])
+        return total
+
+    # candidates -----------------------------------------------------------------
+    def screen(self, name: str, loc: str, signal: str | None = None) -> Screen | None:
+        """Screen effect `name` at `loc` (``signal``: operating_point_gain's schedule).
+
+        Parameters
+        ----------
+        name : str
+            Catalogue effect name.
+        loc : str
+            Location: a block name, a measured output (sensor_bias_drift) or
+            ``"signal->output"`` (unmodelled_input).
+        signal : str or None
+            Measured signal scheduling operating_point_gain; unused by other effects.
+        """
+        P, dt = self.P, self.P.dt_s
+        grid: list[tuple[float, dict[str, Any], np.ndarray]] = []
+        n_par = 1
+        taus = np.geomspace(0.5, max(2.0, P.settling_s / dt), 12)
+        if name == "sensor_bias_drift":
+            i = P.outputs.index(loc)
+            t_h = np.arange(self.stop) * dt / 3600.0
+            cols = []
+            for c in (np.ones(self.stop), t_h):
+                d = np.zeros((self.stop, P.n_y))
+                d[:, i] = c
+                cols.append(self.w(d))
+            d_w = np.column_stack(cols)
+            beta, *_ = np.linalg.lstsq(d_w, self.r_w, rcond=None)
+            gain = float(self.r_w @ d_w @ beta)
+            grid.append((gain, {"bias": float(beta[0]), "drift_per_h": float(beta[1])}, d_w @ beta))
+            n_par = 2
+        elif name == "unmodelled_input":
+            signal, _, out = loc.partition("->")
+            hs = self.conv(self.H(out, "output"), self.ins[signal] - 0.0)
+            n_par = 3
+            for d in range(0, P.max_delay + 1):
+                shifted = np.zeros_like(hs)
+                shifted[d:] = hs[: self.stop - d]
+                for tau in taus:
+                    dw = self.w(lag_filter(shifted, tau))
+                    g, k = self.project(dw)
+                    grid.append((g, {"k": k, "tau_s": float(tau * dt), "delay_s": float(d * dt)}, k * dw))
+        elif name in ("gain", "dead_time", "extra_lag", "inverse_response", "operating_point_gain",
+                      "saturation"):
+            v = self.v[loc]
+            H = self.H(loc, "output")
+            if name == "gain":
+                dw = self.w(self.conv(H, v))
+                g, beta = self.project(dw)
+                grid.append((g, {"factor": 1.0 + beta}, beta * dw))
+            elif name == "dead_time":
+                hv = self.conv(H, v)
+                for d in range(1, P.max_delay + 1):
+                    shifted = np.zeros_like(hv)
+                    shifted[d:] = hv[: self.stop - d]
+                    dw = self.w(shifted - hv)
+                    grid.append((self.fixed(dw), {"delay_s": float(d * dt)}, dw))
+            elif name == "extra_lag":
+                hv = self.conv(H, v)
+                for tau in taus:
+                    dw = self.w(lag_filter(hv, tau) - hv)
+                    grid.append((self.fixed(dw), {"tau_s": float(tau * dt)}, dw))
+            elif name == "inverse_response":
+                hv = self.conv(H, v)
+                n_par = 2
+                for tau in taus:
+                    dw = self.w(lag_filter(hv, tau) - hv)  # times (1 + magnitude)
+                    dd, dr = float(dw @ dw), float(dw @ self.r_w)
+                    c = max(dr / dd, 1.0) if dd > 0 else 1.0
+                    grid.append((2 * c * dr - c * c * dd,
+                                 {"tau_s": float(tau * dt), "magnitude": c - 1.0}, c * dw))
+            elif name == "operating_point_gain":
+                dw = self.w(self.conv(H, self.ins[signal] * v))
+                g, beta = self.project(dw)
+                grid.append((g, {"slope": beta, "signal": signal}, beta * dw))
+            else:  # saturation: limits as fractions of the signal's extremes (covariant)
+                n_par = 2
+                hi_v, lo_v = float(v.max()), float(v.min())
+                fractions = (0.35, 0.5, 0.65, 0.8, 0.92, None)
+                for fl in fractions:
+                    for fh in fractions:
+                        if fl is None and fh is None:
+                            continue
+                        low = -math.inf if fl is None else fl * lo_v
+                        high = math.inf if fh is None else fh * hi_v
+                        if not low < high:
+                            continue
+                        dv = np.clip(v, low, high) - v
+                        dw = self.w(self.conv(H, dv))
+                        grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
+                # A saturation inside a loop with integral action winds up: the first-
+                # order picture underestimates it badly, so the one-sided limit profiles
+                # are simulated exactly (:func:`saturation_profile`, cached) -- or, for
+                # a nonlinear nominal model, five limit pairs (quantiles of the signal).
+                profile = saturation_profile(P, self._h, loc, self.stop)
+                if profile is not None:
+                    p_lows, p_highs, y_corr = profile
+                    p_sse = batch_sse(P, y_corr, self.stop)
+                    rr = float(self.r_w @ self.r_w)
+                    for j in np.argsort(p_sse)[:3]:
+                        dw = self.w(y_corr[:, :, j])
+                        grid.append((rr - float(p_sse[j]),
+                                     {"low": float(p_lows[j]), "high": float(p_highs[j])}, dw))
+                pairs = () if profile is not None else (
+                    (0.05, 0.95), (0.12, 0.88), (0.25, 0.75), (0.0, 0.9), (0.1, 1.0))
+                for ql, qh in pairs:
+                    low, high = (float(x) for x in np.quantile(v, [ql, qh]))
+                    low = -math.inf if ql == 0.0 else low
+                    high = math.inf if qh == 1.0 else high
+                    if not low < high:
+                        continue
+                    y_exact = self.exact(Effect("saturation", loc, {"low": low, "high": high}))
+                    if y_exact is not None:
+                        dw = self.w(y_exact - self.P.y_nominal[: self.stop])
+                        grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
+        elif name == "deadband":
+            u = self.block_input(loc)
+            H = self.H(loc, "input")
+            scale = float(np.max(np.abs(u)))
+            if scale > 0:
+                for frac in (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7):
+                    width = frac * scale
+                    du = -np.clip(u, -width / 2, width / 2)
+                    dw = self.w(self.conv(H, du))
+                    grid.append((self.fixed(dw), {"width": width}, dw))
+        if not grid:
+            return None
+        grid.sort(key=lambda g: -g[0])
+        best = grid[0]
+        starts = [g[1] for g in grid[:3]]
+        return Screen(name=name, location=loc, score=best[0] - n_par * self.penalty,
+                       n_parameters=n_par, starts=starts, direction=best[2], members=[loc])
+
+
+class StaticMapPath:
+    """The nominal model with a static map on one block's output, exact for many
+    parameter values at once.
+
+    A ``saturation`` of block B is a static map ``s -> phi(s, t)`` of B's output ``s``
+    (a clip).  The augmented model is then the nominal (linear) model plus an injection
+    ``d = phi(s) - s`` at ``s`` (Lur'e form), and superposition is exact: the outputs are
+    the nominal outputs plus the injection's response, and ``s`` is its nominal value plus
+    the response to *earlier* injections (strictly causal: the nominal model has no
+    algebraic loop).  One pass over time with a state matrix of K columns therefore
+    simulates K parameter values of the map exactly (equal to
+    :func:`pipeline.effects.predict_outputs` to rounding) for about the cost of one
+    per-sample simulation -- which is what makes dense searches over saturation limits,
+    whose error valleys are narrow when a loop winds up, affordable.
+
+    Raises ModelError when the nominal model is not linear (the caller then simulates
+    each parameter value exactly).
+
+    Parameters
+    ----------
+    P : Problem
+        The analysis problem (model, measured outputs, sample period).
+    block : str
+        Block whose output the map acts on.
+    s_nominal : ndarray (N,)
+        Nominal simulated output of `block`; the first `stop` samples are used.
+    stop : int
+        Number of samples simulated, ``[0, stop)`` (the end of the fit part).
+    """
+
+    #: Above this many states the K-column state update costs more than simulating.
+    MAX_STATES = 200
+
+    def __init__(self, P: Problem, block: str, s_nominal: np.ndarray, stop: int) -> None:
+        model = _inject_model(P.model, block, side="output")
+        system = discrete_state_space(model, dt_s=P.dt_s)
+        if system.a.shape[0] > self.MAX_STATES:
+            raise ModelError(f"{system.a.shape[0]} states: simulate candidates one by one")
+        j = system.input_names.index("__inject")
+        name = f"{block}__inject_upstream"
+        row = system.signal_names.index(name)
+        # the map's own signal must not depend on the current injection
+        if abs(system.d[row, j]) > 1e-12:  # pragma: no cover - algebraic loop
+            raise ModelError(f"signal {name!r} depends algebraically on the injection")
+        rows = [row] + [system.signal_names.index(o) for o in P.outputs]
+        self.a = system.a
+        self.b = system.b[:, j].copy()
+        self.c = system.c[rows]
+        self.d_out = system.d[rows[1:], j].copy()
+        self.s_nominal = np.asarray(s_nominal[:stop], dtype=float)
+        self.stop = stop
+
+    def corrections(self, phi: Callable[[np.ndarray, int], np.ndarray], k: int,
+                    first: int = 0) -> np.ndarray:
+        """Output changes (stop, n_y, k) caused by the map ``phi(s, t)`` (k columns).
+
+        Parameters
+        ----------
+        phi : callable (s, t) -> ndarray
+            The map: ``s`` (k,) is the block's output of every column at sample ``t``;
+            returns the mapped values (k,).
+        k : int
+            Number of columns (parameter values of the map).
+        first : int
+            No column's injection is nonzero before this sample.
+        """
+        a, b, c = self.a, self.b[:, None], self.c
+        d_out = self.d_out[:, None]
+        s_nom = self.s_nominal
+        y = np.zeros((self.stop, len(self.d_out), k))
+        x = np.zeros((a.shape[0], k))
+        for t in range(first, self.stop):
+            m = c @ x
+            s = s_nom[t] + m[0]
+            d = phi(s, t) - s
+            y[t] = m[1:] + d_out * d
+            x = a @ x + b * d
+        return y
+
+
+def batch_sse(P: Problem, y_corr: np.ndarray, stop: int) -> np.ndarray:
+    """Whitened SSE on the fit part of ``y - y_nominal - y_corr[:, :, j]`` per column j
+    (the same numbers as ``Fitter.sse`` of each candidate).
+
+    Parameters
+    ----------
+    P : Problem
+        Measured and nominal outputs, ``fit_start`` and noise model.
+    y_corr : ndarray (stop, n_y, K)
+        Output changes per candidate column (:meth:`StaticMapPath.corrections`).
+    stop : int
+        End of the fit part (exclusive), a sample index.
+    """
+    first = P.fit_start + max(len(a) for a in P.ar) - 1
+    total = np.zeros(y_corr.shape[2])
+    for i in range(P.n_y):
+        e = (P.y[:stop, i] - P.y_nominal[:stop, i])[:, None] - y_corr[:, i, :]
+        w = scipy.signal.lfilter(P.ar[i], [1.0], e, axis=0)[first:stop] / P.sigma[i]
+        total += np.einsum("ij,ij->j", w, w)
+    return np.where(np.isfinite(total), total, np.inf)
+
+
+def clip_map(lows: np.ndarray, highs: np.ndarray) -> Callable[[np.ndarray, int], np.ndarray]:
+    """The saturation map ``phi(s, t) = min(max(s, lows), highs)`` (per column).
+
+    Parameters
+    ----------
+    lows, highs : ndarray (K,)
+        Lower and upper limit of each column (-inf / inf: no limit).
+    """
+    return lambda s, t: np.minimum(np.maximum(s, lows), highs)
+
+
+def saturation_grids(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate low and high limits for the one-sided profiles of a signal `v`.
+
+    Quantiles 0.5 %-50 % (low) and 50 %-99.5 % (high) in steps of 0.5 %, joined with
+    values every 1 % of the range: dense where the signal spends its time and in its
+    tails.  (A limit outside the range is never met by the nominal signal, and before a
+    saturation has acted the plant's signal IS the nominal one, so the limit met first
+    lies inside the range.)
+
+    Parameters
+    ----------
+    v : ndarray
+        Nominal signal at the location, samples ``[0, stop)``.
+    """
+    lo, hi = float(v.min()), float(v.max())
+    med = float(np.median(v))
+    q = np.arange(0.005, 0.5001, 0.005)
+    lows = np.concatenate([np.quantile(v, q), np.linspace(lo, med, 51)[1:]])
+    highs = np.concatenate([np.quantile(v, 1.0 - q), np.linspace(med, hi, 51)[:-1]])
+    spacing = 1e-6 * max(hi - lo, 1e-300)
+    lows = np.unique(np.round(lows / spacing)) * spacing
+    highs = np.unique(np.round(highs / spacing)) * spacing
+    return lows[(lows > lo) & (lows <= med)], highs[(highs < hi) & (highs >= med)]
+
+
+def one_sided(grid_lo: np.ndarray, grid_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lows, highs) of the one-sided limit pairs: each low with no high, then each high
+    with no low.
+
+    Parameters
+    ----------
+    grid_lo, grid_hi : ndarray
+        Candidate low and high limits (:func:`saturation_grids`).
+    """
+    return (np.concatenate([grid_lo, np.full(grid_hi.size, -np.inf)]),
+            np.concatenate([np.full(grid_lo.size, np.inf), grid_hi]))
+
+
+def saturation_profile(P: Problem, cache: dict, loc: str, stop: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """One-sided limit profiles at `loc`: (lows, highs, output changes (stop, n_y, K)).
+
+    Column j has limits ``(lows[j], highs[j])`` with one of them infinite.  Computed
+    once per location and cached (the changes do not depend on the noise model).  None
+    when the nominal model is not linear.
+
+    Parameters
+    ----------
+    P : Problem
+        Nominal signals and model.
+    cache : dict
+        The screening cache (:class:`Screener`'s ``h_cache``), shared across passes.
+    loc : str
+        Block whose output is saturated.
+    stop : int
+        End of the fit part (exclusive), a sample index.
+    """
+    key = ("saturation_profile", loc, stop)
+    if key not in cache:
+        v = P.nominal_signals[loc][:stop]
+        lows, highs = one_sided(*saturation_grids(v))
+        path = static_path(P, cache, loc, stop)
+        if path is None or lows.size == 0:
+            cache[key] = None
+        else:
+            with np.errstate(all="ignore"):
+                y = path.corrections(clip_map(lows, highs), lows.size,
+                                     first=first_crossing(v, lows, highs))
+            cache[key] = (lows, highs, y)
+    return cache[key]
+
+
+def static_path(P: Problem, cache: dict, loc: str, stop: int) -> StaticMapPath | None:
+    """The cached :class:`StaticMapPath` at the output of `loc` (None: not available).
+
+    Parameters
+    ----------
+    P : Problem
+        Nominal signals and model.
+    cache : dict
+        The screening cache (:class:`Screener`'s ``h_cache``), shared across passes.
+    loc : str
+        Block whose output the map acts on.
+    stop : int
+        End of the fit part (exclusive), a sample index.
+    """
+    key = ("static_path", loc, stop)
+    if key not in cache:
+        try:
+            cache[key] = StaticMapPath(P, loc, P.nominal_signals[loc], stop)
+        except PipelineError:
+            cache[key] = None
+    return cache[key]
+
+
+def near(a: float, b: float, tol: float) -> bool:
+    """a and b equal (also both the same infinity) or within tol.
+
+    Parameters
+    ----------
+    a, b : float
+        Values compared (may be infinite).
+    tol : float
+        Absolute tolerance.
+    """
+    return a == b or abs(a - b) <= tol
+
+
+def first_crossing(v: np.ndarray, lows: np.ndarray, highs: np.ndarray) -> int:
+    """First sample where the nominal `v` leaves any of the intervals [low, high] (before
+    it, no clip acts, so every simulated signal is still the nominal one).
+
+    Parameters
+    ----------
+    v : ndarray (stop,)
+        Nominal signal at the location, samples ``[0, stop)``.
+    lows, highs : ndarray (K,)
+        Limits of each column; ``v.size`` is returned when there are none.
+    """
+    if not lows.size:
+        return v.size
+    out = np.flatnonzero((v < np.max(lows)) | (v > np.min(highs)))
+    return int(out[0]) if out.size else v.size
+
+
+def screen_all(P: Problem, resid: np.ndarray,
+                h_cache: dict[tuple[str, str], np.ndarray] | None = None
+                ) -> tuple[list[Screen], Screener]:
+    """Screen every candidate; merge identical sensitivities into classes (best first).
+
+    Parameters
+    ----------
+    P : Problem
+        Validated signals, nominal simulation, split and whitening; ``P.config.effects``
+        are screened.
+    resid : ndarray (N, n_y)
+        Residual: measured minus nominal simulated outputs.
+    h_cache : dict or None
+        Cache shared across screenings (:class:`Screener`; None: a new one).
+    """
+    scr = Screener(P, resid, h_cache)
+    results: list[Screen] = []
+    for name in P.config.effects:
+        locations = applicable_locations(P.model, name, measured_outputs=P.outputs,
+                                         signals=P.extra_signals)
+        # operating_point_gain: one candidate per scheduling signal (part of its identity)
+        signals = list(P.inputs) if name == "operating_point_gain" else [None]
+        for loc in locations:
+            for signal in signals:
+                with np.errstate(all="ignore"):
+                    s = scr.screen(name, loc, signal)
+                if s is not None and np.all(np.isfinite(s.direction)):
+                    results.append(s)
+    # Equivalence classes: same effect, same whitened change of the outputs.
+    classes: list[Screen] = []
+    block_order = {b.name: i for i, b in enumerate(P.model.blocks)}
+    for s in results:
+        norm = float(np.linalg.norm(s.direction))
+        for c in classes:
+            if c.name != s.name or norm == 0.0:
+                continue
+            if np.linalg.norm(c.direction - s.direction) <= _EQUIVALENT_RTOL * max(norm, 1e-300):
+                c.members.append(s.location)
+                # canonical location: a non-sum block if there is one, else model order
+                def rank(loc: str) -> tuple[int, int]:
+                    is_sum = loc in block_order and isinstance(P.model.block(loc), Sum)
+                    return (int(is_sum), block_order.get(loc, 0))
+                if rank(s.location) < rank(c.location):
+                    c.location = s.location
+                    c.starts = s.starts
+                break
+        else:
+            classes.append(s)
+    classes = _merge_saturation_chains(P.model, classes)
+    classes.sort(key=lambda c: -c.score)
+    return classes, scr
+
+
+def _merge_saturation_chains(model: Model, classes: list[Screen]) -> list[Screen]:
+    """Merge saturation classes at B1 and B2 when B2 = k * B1 (delayed) is B1's only reader.
+
+    A saturation commutes with a static gain and a dead time once its limits are
+    scaled by k (swapped when k < 0), so the two locations are indistinguishable; the
+    sensitivity test cannot see it because the limits differ.  The class keeps the
+    downstream block (the physical actuator signal) and the better screening score.
+    """
+    readers: dict[str, list[str]] = {}
+    for block in model.blocks:
+        for ref in block.references():
+            readers.setdefault(ref, []).append(block.name)
+    by_loc = {c.location: c for c in classes if c.name == "saturation"}
+    for block in model.blocks:
+        if not isinstance(block, (Sum,)) and block.TYPE != "gain":
+            continue
+        if len(block.inputs) != 1:
+            continue
+        up = block.inputs[0].signal
+        if up not in by_loc or block.name not in by_loc or up in model.outputs:
+            continue
+        if readers.get(up, []) != [block.name]:
+            continue
+        down_cls, up_cls = by_loc[block.name], by_loc[up]
+        if down_cls is up_cls:
+            continue
+        keep, drop = (down_cls, up_cls)
+        keep.members = list(dict.fromkeys(keep.members + drop.members))
+        if drop.score > keep.score:
+            keep.score = drop.score
+        classes = [c for c in classes if c is not drop]
+        for loc in drop.members:
+            by_loc[loc] = keep
+    return classes
+
+
+def class_key(c: Screen) -> tuple[str, str, Any]:
+    """Identity of a screened class across passes: effect, location, schedule signal.
+
+    Parameters
+    ----------
+    c : Screen
+        Screened class.
+    """
+    return (c.name, c.location, c.starts[0].get("signal") if c.starts else None)
+
+
+def kept_classes(classes: list[Screen], k: int) -> list[Screen]:
+    """The `k` best classes.
+
+    Parameters
+    ----------
+    classes : list of Screen
+        Screened classes, best first (:func:`screen_all`).
+    k : int
+        Number kept (``n_fit_candidates``).
+    """
+    return list(classes[:k])
+
+
+def nested_partners(classes: list[Screen], chosen: list[Screen]) -> list[Screen]:
+    """The extra_lag class at the location of each chosen inverse_response.
+
+    inverse_response with magnitude 0 is an extra lag: fitting both at a location lets
+    the BIC penalty pick the simpler one when the wrong-way part is not needed.
+
+    Parameters
+    ----------
+    classes : list of Screen
+        Every screened class.
+    chosen : list of Screen
+        Classes already selected for fitting (partners among them are not repeated).
+    """
+    out: list[Screen] = []
+    for c in chosen:
+        if c.name != "inverse_response":
+            continue
+        for other in classes:
+            if (other.name == "extra_lag" and other not in chosen and other not in out
+                    and set(other.members) & set(c.members)):
+                out.append(other)
+    return out
