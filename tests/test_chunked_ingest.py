@@ -1,6 +1,6 @@
 """Chunked ingestion gives the same table and report as reading a file whole.
 
-Long exports are read in chunks (``pipeline.adapters.ingest.CHUNK_CELLS``) so memory
+Long exports are read in chunks (``pipeline.adapters.ingest.options.CHUNK_CELLS``) so memory
 follows the parsed data, not the text. Chunking must be invisible: every file here is
 read whole (one chunk, the reference) and again in chunks of a few rows — hundreds of
 chunk boundaries, landing inside the repeated DST hour, between duplicates, next to
@@ -19,7 +19,7 @@ import numpy as np
 import polars as pl
 import pytest
 
-from pipeline.adapters import ingest
+from pipeline.adapters.ingest import options as ingest_options
 from pipeline.adapters.ingest import read_recording, read_recordings
 from pipeline.errors import IngestError
 from tests.helpers_steamgen import STEAMGEN_ZONE, steamgen_to_long_csv
@@ -30,9 +30,9 @@ BERLIN = zoneinfo.ZoneInfo("Europe/Berlin")
 def _both(monkeypatch, read, cells: int = 30):
     """(whole, chunked) results of ``read()``; ``cells`` per chunk (4 fields: cells/4 rows)."""
     whole = read()
-    monkeypatch.setattr(ingest, "CHUNK_CELLS", cells)
+    monkeypatch.setattr(ingest_options, "CHUNK_CELLS", cells)
     chunked = read()
-    monkeypatch.setattr(ingest, "CHUNK_CELLS", 4_000_000)
+    monkeypatch.setattr(ingest_options, "CHUNK_CELLS", 4_000_000)
     return whole, chunked
 
 
@@ -184,7 +184,7 @@ def test_error_lines_are_file_lines_in_any_chunk(tmp_path, monkeypatch):
     q = tmp_path / "r.csv"
     q.write_text("\n".join(ragged) + "\n")
     for size in (4_000_000, 20):
-        monkeypatch.setattr(ingest, "CHUNK_CELLS", size)
+        monkeypatch.setattr(ingest_options, "CHUNK_CELLS", size)
         with pytest.raises(IngestError, match=r"line 402: timestamp '2024-01-01 xx:06:40'"):
             read_recording(p)
         with pytest.raises(IngestError, match=r"line 378: 4 fields but the header has 3"):

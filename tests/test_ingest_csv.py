@@ -1,4 +1,4 @@
-"""Tests of historian-CSV ingestion (pipeline.adapters.ingest / ingest_csv).
+"""Tests of historian-CSV ingestion (pipeline.adapters.ingest, csv_reader).
 
 Known answers come from independent computations: the csv module and datetime/zoneinfo
 for the real wide export, the writer's own record (and its documented error bound) for

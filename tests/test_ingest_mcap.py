@@ -1,4 +1,4 @@
-"""Tests of MCAP ingestion (pipeline.adapters.ingest_mcap) for JSON, protobuf and ROS 2.
+"""Tests of MCAP ingestion (pipeline.adapters.ingest.mcap_reader) for JSON, protobuf and ROS 2.
 
 Files are written with the mcap writers (our JSON writer, mcap_protobuf.writer.Writer,
 mcap_ros2.writer.Writer); the known answer is what was written.
@@ -25,7 +25,7 @@ from mcap_ros2.writer import Writer as Ros2Writer
 from pipeline.adapters.grid import to_grid
 from pipeline.adapters.historian_writer import write_json_mcap
 from pipeline.adapters.ingest import McapOptions, read_recording, read_recordings
-from pipeline.adapters.ingest_mcap import JsonDecoderFactory
+from pipeline.adapters.ingest.mcap_reader import JsonDecoderFactory
 from pipeline.errors import IngestError
 from tests.helpers_steamgen import STEAMGEN_DT_S, load_steamgen, steamgen_to_mcap
 

@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-from pipeline.adapters import ingest
+from pipeline.adapters.ingest import options as ingest_options
 from pipeline.adapters import progress as progress_mod
 from tests.conftest import write_job, write_plant_csv
 from tests.test_hardening import cli
@@ -42,7 +42,7 @@ def test_asked_for_progress_off_a_terminal_prints_ingest_and_search_lines(
     monkeypatch.setenv(progress_mod.ENV, "")
     monkeypatch.setenv(progress_mod.ENV + "_EVERY_S", "0")
     # ~25 chunks: the byte count must advance chunk by chunk, not jump at the end
-    monkeypatch.setattr(ingest, "CHUNK_CELLS", 2_000)
+    monkeypatch.setattr(ingest_options, "CHUNK_CELLS", 2_000)
     rc, out, err = cli("run", "--progress", "always", "--no-prefect", str(plant_job))
     assert rc == 0, err[-3000:]
     size_mb = (tmp_path / "drop" / "a.csv").stat().st_size / 1e6

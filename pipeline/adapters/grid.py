@@ -47,7 +47,7 @@ from typing import Any, Literal
 import numpy as np
 import polars as pl
 
-from pipeline.adapters.canonical import signal_slices
+from pipeline.adapters.ingest.canonical import signal_slices
 from pipeline.errors import ConfigError, DataQualityError, IngestError
 
 __all__ = ["Grid", "SignalGridSpec", "grid_from_regular", "median_spacing_s", "to_grid",

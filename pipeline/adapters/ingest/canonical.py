@@ -1,7 +1,7 @@
 """The canonical table: its schema, and its assembly from chunks in bounded memory.
 
 Readers hand over their rows in *chunks* (a few million rows each, in file order); each
-chunk is masked on its own (:func:`pipeline.adapters.ingest.mask_chunk`) and the table
+chunk is masked on its own (:func:`pipeline.adapters.ingest.sink.mask_chunk`) and the table
 is then assembled here: sorted by (signal, time), the last of equal (signal, time)
 rows kept. Assembly works on *segments* — the stretch of one signal inside one chunk —
 and stitches them as zero-copy slices whenever the segments of a signal already follow

@@ -2,7 +2,7 @@
 
 Records are read with :class:`mcap.stream_reader.StreamReader` (so a truncated file can
 still give its readable part and the byte offset where reading stopped). Messages are
-decoded per channel, in batches of :data:`~pipeline.adapters.ingest.CHUNK_MESSAGES` as
+decoded per channel, in batches of :data:`~pipeline.adapters.ingest.options.CHUNK_MESSAGES` as
 they stream past (memory holds one batch per channel, never the file):
 
 * ``json`` — the core mcap library has no JSON decoder; :class:`JsonDecoderFactory`
@@ -33,14 +33,11 @@ from mcap.exceptions import InvalidMagic
 from mcap.records import Channel, DataEnd, Message, Schema
 from mcap.stream_reader import StreamReader
 
-from pipeline.adapters.ingest import (
-    McapOptions,
-    check_tags,
-    null_series,
-    ReaderMeta,
-    numeric_value,
-    parse_timestamps,
-)
+from pipeline.adapters.ingest.options import McapOptions
+from pipeline.adapters.ingest.report import ReaderMeta
+from pipeline.adapters.ingest.sink import check_tags
+from pipeline.adapters.ingest.timestamps import parse_timestamps
+from pipeline.adapters.ingest.values import null_series, numeric_value
 from pipeline.errors import IngestError
 
 __all__ = ["JsonDecoderFactory", "read_mcap_raw"]
@@ -567,7 +564,7 @@ def read_mcap_raw(
     sink: Callable[[pl.DataFrame], None],
 ) -> ReaderMeta:
     """Read an MCAP file batch by batch into ``sink`` (pre-canonical chunks as in
-    ``ingest_csv.read_csv_raw``).
+    ``csv_reader.read_csv_raw``).
 
     Parameters
     ----------
@@ -590,7 +587,7 @@ def read_mcap_raw(
     from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
     from mcap_ros2.decoder import DecoderFactory as Ros2Factory
 
-    from pipeline.adapters import ingest as _ingest
+    from pipeline.adapters.ingest import options as _options
 
     name = str(path)
     factories = {"protobuf": ProtobufFactory(), "cdr": Ros2Factory()}
@@ -679,7 +676,7 @@ def read_mcap_raw(
 
     channels, counts, read_warnings, truncated = _read_records(
         path, options=options, on_truncated=on_truncated, flush=convert,
-        batch=_ingest.CHUNK_MESSAGES, at=getattr(sink, "at", lambda fraction: None),
+        batch=_options.CHUNK_MESSAGES, at=getattr(sink, "at", lambda fraction: None),
     )
     warnings = read_warnings + warnings
     if tags is not None:

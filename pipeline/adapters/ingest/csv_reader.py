@@ -3,7 +3,7 @@
 Detection works on the first 64 KiB (decoded): encoding (byte-order mark, else UTF-8),
 separator, decimal mark, layout, header rows, column roles; the timestamp format is
 detected from rows at the head and the tail of the file. The data is then read by
-polars' streaming CSV reader in chunks of :data:`~pipeline.adapters.ingest.CHUNK_CELLS`
+polars' streaming CSV reader in chunks of :data:`~pipeline.adapters.ingest.options.CHUNK_CELLS`
 cells with every field as text (so a row with more fields than the header is an error
 wherever it is), and parsed with polars expressions (timestamps, numbers, text states) —
 no Python loop over rows. Each parsed chunk goes to the caller's sink at once, so the
@@ -15,29 +15,31 @@ Use :func:`pipeline.adapters.ingest.read_recording`; this module is its CSV back
 
 from __future__ import annotations
 
-import codecs
 import csv as _csv
 import re
-import tempfile
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import polars as pl
 
-from pipeline.adapters import ingest as _ingest
-from pipeline.adapters.ingest import (
-    CsvOptions,
+from pipeline.adapters.ingest import options as _options
+from pipeline.adapters.ingest.options import CsvOptions
+from pipeline.adapters.ingest.quality import BAD_FLAGS, GOOD_FLAGS, SUSPECT_FLAGS
+from pipeline.adapters.ingest.report import ReaderMeta
+from pipeline.adapters.ingest.sink import check_tags
+from pipeline.adapters.ingest.text import (
+    SAMPLE_ROWS,
+    as_utf8,
+    decode_head,
+    detect_encoding,
+    tail_rows,
+)
+from pipeline.adapters.ingest.timestamps import (
     FoldState,
-    BAD_FLAGS,
-    check_tags,
-    GOOD_FLAGS,
-    ReaderMeta,
-    SUSPECT_FLAGS,
-    fast_value_column,
     fast_parse_exprs,
+    fast_value_column,
     formats_matching,
     looks_like_time,
     parse_time_and_values,
@@ -45,7 +47,6 @@ from pipeline.adapters.ingest import (
 from pipeline.errors import ConfigError, IngestError
 
 _HEAD_BYTES = 65536
-_SAMPLE_ROWS = 200
 
 _TAG_KEYS = {"tag", "tagname", "name", "pointname", "point", "signal", "item", "itemid", "tagid"}
 _TIME_KEYS = {
@@ -77,123 +78,10 @@ def _is_flag_text(cell: str) -> bool:
     return low in GOOD_FLAGS or low in BAD_FLAGS or low in SUSPECT_FLAGS
 
 
-# ----------------------------------------------------------------------------- encoding
-def _detect_encoding(head: bytes, options: CsvOptions, path: str, complete: bool) -> str:
-    """Python codec of the file: forced, from the byte-order mark, or UTF-8.
-
-    Raises IngestError when there is no BOM and the bytes are not UTF-8.
-    """
-    if options.encoding is not None:
-        try:
-            return codecs.lookup(options.encoding).name
-        except LookupError as exc:
-            raise ConfigError(
-                f"source.csv.encoding: {options.encoding!r} is not a known codec; use e.g. "
-                f"'utf-8', 'utf-16', 'cp1252', 'latin-1'"
-            ) from exc
-    if head.startswith(codecs.BOM_UTF8):
-        return "utf-8-sig"
-    if head.startswith((codecs.BOM_UTF32_LE, codecs.BOM_UTF32_BE)):
-        return "utf-32"
-    if head.startswith(codecs.BOM_UTF16_LE):
-        return "utf-16-le"
-    if head.startswith(codecs.BOM_UTF16_BE):
-        return "utf-16-be"
-    if head.startswith(b"PK\x03\x04"):
-        raise IngestError(
-            f"{path}: this is a zip archive (an Excel .xlsx workbook?), not a CSV text "
-            f"export; save it as CSV from the historian or spreadsheet"
-        )
-    window = head[:4096]
-    if b"\x00" in window:
-        # UTF-16 without a BOM: ASCII text has a NUL in every other byte.
-        even, odd = window[0::2], window[1::2]
-        if odd.count(0) > 0.3 * len(odd) and even.count(0) < 0.05 * len(even):
-            return "utf-16-le"
-        if even.count(0) > 0.3 * len(even) and odd.count(0) < 0.05 * len(odd):
-            return "utf-16-be"
-        raise IngestError(
-            f"{path}: unknown encoding — the file holds NUL bytes but no byte-order mark "
-            f"and no UTF-16 pattern (a binary file?); export as UTF-8 or UTF-16 text, or "
-            f"set source.csv.encoding in the job YAML"
-        )
-    try:
-        codecs.getincrementaldecoder("utf-8")().decode(head, final=complete)
-    except UnicodeDecodeError as exc:
-        raise IngestError(
-            f"{path}: unknown encoding — no byte-order mark and byte 0x{head[exc.start]:02X} "
-            f"at offset {exc.start} is not valid UTF-8; set the export's code page in the "
-            f"job YAML, e.g. source.csv.encoding: cp1252 (or latin-1)"
-        ) from exc
-    return "utf-8"
-
-
-def _decode_head(head: bytes, codec: str, complete: bool, path: str) -> str:
-    try:
-        text = codecs.getincrementaldecoder(codec)().decode(head, final=complete)
-    except UnicodeDecodeError as exc:
-        raise IngestError(
-            f"{path}: cannot decode the first bytes as {codec} (offset {exc.start}); set "
-            f"the right source.csv.encoding in the job YAML"
-        ) from exc
-    return text.lstrip("\ufeff")
-
-
-@contextmanager
-def _as_utf8(path: Path, codec: str, name: str) -> Iterator[Path]:
-    """The file itself when it is UTF-8, else a temporary UTF-8 copy (transcoded in
-    blocks, so memory stays small; removed afterwards) — polars reads UTF-8 only."""
-    if codec in ("utf-8", "utf-8-sig"):
-        yield path
-        return
-    decoder = codecs.getincrementaldecoder(codec)()
-    fd, tmp_name = tempfile.mkstemp(prefix="plantdyn-", suffix=".csv")
-    tmp = Path(tmp_name)
-    try:
-        with path.open("rb") as src, open(fd, "wb") as dst:
-            consumed, first = 0, True
-            while True:
-                raw = src.read(16 * 2**20)
-                try:
-                    text = decoder.decode(raw, final=not raw)
-                except UnicodeDecodeError as exc:
-                    raise IngestError(
-                        f"{name}: bytes near offset {consumed + exc.start} are not valid "
-                        f"{codec}; the file is corrupt or in another encoding (set "
-                        "source.csv.encoding in the job YAML)") from exc
-                if first and text:
-                    text, first = text.lstrip("\ufeff"), False
-                dst.write(text.encode("utf-8", "surrogatepass"))
-                consumed += len(raw)
-                if not raw:
-                    break
-        yield tmp
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def _tail_rows(path: Path, codec: str, sep: str, n_bytes: int = 65536) -> list[list[str]]:
-    """Whole rows from the last ``n_bytes`` of the file (for the format sample)."""
-    size = path.stat().st_size
-    if size <= n_bytes:
-        return []
-    width = {"utf-16-le": 2, "utf-16-be": 2, "utf-16": 2, "utf-32": 4}.get(codec, 1)
-    start = (size - n_bytes) // width * width
-    with path.open("rb") as f:
-        f.seek(start)
-        tail = f.read()
-    text = tail.decode(codec.replace("-sig", "") if codec != "utf-16" else "utf-16-le",
-                       errors="replace")
-    lines = text.splitlines()[1:]  # the first line is cut
-    if '"' in text:
-        return []  # a cut inside a quoted field would misalign the fields
-    return [r for r in _csv.reader(lines[-_SAMPLE_ROWS:], delimiter=sep) if r]
-
-
 # ----------------------------------------------------------------------------- layout
 def _detect_separator(lines: list[str]) -> str:
     """The candidate with the largest count that is the same on >= 80 % of lines."""
-    lines = [ln for ln in lines if ln.strip()][:_SAMPLE_ROWS]
+    lines = [ln for ln in lines if ln.strip()][:SAMPLE_ROWS]
     best, best_count = ",", 0
     for cand in (";", "\t", ",", "|"):  # ties go to the earlier (rarer in data) one
         counts = Counter(ln.count(cand) for ln in lines)
@@ -286,8 +174,8 @@ def read_csv_raw(
     with path.open("rb") as f:
         head = f.read(_HEAD_BYTES)
     complete = size <= _HEAD_BYTES
-    codec = _detect_encoding(head, options, name, complete)
-    text = _decode_head(head, codec, complete, name)
+    codec = detect_encoding(head, options, name, complete)
+    text = decode_head(head, codec, complete, name)
     lines = text.splitlines()
     if not complete and lines:
         lines = lines[:-1]  # the last line of the head may be cut
@@ -301,11 +189,11 @@ def read_csv_raw(
             f"{name}: no text lines (only blanks / a byte-order mark); re-run the export"
         )
     sep = options.separator or _detect_separator(lines)
-    rows = [r for r in _csv.reader(lines[:_SAMPLE_ROWS], delimiter=sep)]
+    rows = [r for r in _csv.reader(lines[:SAMPLE_ROWS], delimiter=sep)]
     if layout == "auto":
         layout = _detect_layout(rows, options)
     encoding = {"utf-8-sig": "utf-8-bom"}.get(codec, codec)
-    tail = _tail_rows(path, codec, sep)
+    tail = tail_rows(path, codec, sep)
     if layout == "long":
         return _read_long(path, codec, rows, tail, sep, options, timezone, tags, name,
                           encoding, sink)
@@ -428,7 +316,7 @@ def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
     the file each chunk ends (lines read x the mean line length of the first 64 KiB).
     """
     at = at or _nowhere
-    rows = max(1, _ingest.CHUNK_CELLS // max(n_fields, 1))
+    rows = max(1, _options.CHUNK_CELLS // max(n_fields, 1))
     size = max(path.stat().st_size, 1)
     with path.open("rb") as f:
         head = f.read(65536)
@@ -551,7 +439,7 @@ def _read_long(
     if fast_fmt is not None:
         fast["__time"] = "__time"
     categorical = (i_tag,) + ((i_flag,) if i_flag is not None else ())
-    with _as_utf8(path, codec, name) as src:
+    with as_utf8(path, codec, name) as src:
         for base, df in _batches(src, name, sep=sep,
                                  skip=options.skip_lines + (1 if has_header else 0),
                                  n_fields=n_fields, first_line=first_line,
@@ -746,7 +634,7 @@ def _read_wide(
     fold = FoldState()
     formats: list[str] = []
     done = 0
-    with _as_utf8(path, codec, name) as src:
+    with as_utf8(path, codec, name) as src:
         for base, df in _batches(src, name, sep=sep, skip=options.skip_lines + n_header,
                                  n_fields=n_cols, first_line=first_line, exprs=exprs,
                                  at=getattr(sink, "at", _nowhere)):

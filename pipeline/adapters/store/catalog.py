@@ -1,0 +1,625 @@
+"""The results root (:class:`ResultStore`): new runs, the SQLite catalog, trends, claims, reindex."""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import json
+import os
+import secrets
+import shutil
+import socket
+import sqlite3
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import polars as pl
+
+import pipeline
+from pipeline.adapters.store.files import (
+    STALE_TMP_S,
+    atomic_write_bytes,
+    check_name,
+    file_sha256,
+    fsync_dir,
+    iso_utc,
+    json_ready,
+    parse_iso_utc,
+    storage_error,
+    storage_faults,
+    to_json_text,
+)
+from pipeline.adapters.store.run_writer import RunWriter, normalise_inputs
+from pipeline.adapters.store.schemas import (
+    MANIFEST_KEYS,
+    CATALOG_DDL,
+    CATALOG_NAME,
+    FORMAT_VERSION,
+    MANIFEST_NAME,
+    NAME_RE,
+    RUN_ID_TIME_FORMAT,
+    ReindexResult,
+    STATUS_RE,
+    StoredRun,
+    TIME_UTC,
+    TMP_PREFIX,
+)
+from pipeline.errors import ConfigError, DataQualityError, StorageError
+
+
+class ResultStore:
+    """The only writer under the storage root (run directories and the SQLite catalog).
+
+    Parameters
+    ----------
+    root : path
+        Storage root; created if missing.
+    claim_lease_s : float
+        A ``running`` claim whose heartbeat is older than this expires (the file is then
+        retried).  Call :meth:`heartbeat_file` more often than this during long runs.
+    busy_timeout_s : float
+        How long a writer waits for the catalog lock held by another process.
+    clock : callable
+        Returns the current time as Unix seconds; injectable for tests.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike[str],
+        *,
+        claim_lease_s: float = 3600.0,
+        busy_timeout_s: float = 30.0,
+        clock: Callable[[], float] = time.time,
+        readonly: bool = False,
+    ) -> None:
+        if claim_lease_s <= 0:
+            raise ConfigError(f"claim_lease_s={claim_lease_s} must be > 0 s")
+        self.root = Path(root).expanduser().resolve()
+        self.readonly = bool(readonly)
+        self.claim_lease_s = float(claim_lease_s)
+        self.busy_timeout_s = float(busy_timeout_s)
+        self._clock = clock
+        self._token = secrets.token_hex(4)
+        self.catalog_path = self.root / CATALOG_NAME
+        if self.catalog_path.is_symlink():
+            raise StorageError(f"storage {self.catalog_path}: the catalog is a symbolic link "
+                               f"(to {os.readlink(self.catalog_path)}); it must be a file of the "
+                               "storage root — replace the link by the file")
+        if self.readonly:
+            if not self.catalog_path.is_file():
+                raise StorageError(
+                    f"storage {self.root}: no catalog ({CATALOG_NAME}) — not a plantdyn "
+                    "results folder, or a typo in --storage / storage:")
+            return
+        with storage_faults(self.root, "creating the results folder"):
+            if self.root.exists() and not self.root.is_dir():
+                raise StorageError(f"storage {self.root}: is a file, not a folder; point "
+                                   "storage: at a folder")
+            self.root.mkdir(parents=True, exist_ok=True)
+        with storage_faults(self.catalog_path, "opening the catalog"):
+            with self._transaction() as con:
+                for statement in CATALOG_DDL:
+                    con.execute(statement)
+        with contextlib.suppress(OSError):
+            self.clean_stale(STALE_TMP_S)
+
+    # ----------------------------------------------------------------- catalog plumbing
+
+    def _connect(self) -> sqlite3.Connection:
+        if self.readonly:  # never creates or changes anything (an archive on a read-only disk)
+            con = sqlite3.connect(f"{self.catalog_path.as_uri()}?mode=ro&immutable=1", uri=True,
+                                  timeout=self.busy_timeout_s, isolation_level=None)
+            return con
+        # isolation_level=None: we issue BEGIN IMMEDIATE / COMMIT ourselves, so a writer takes
+        # the write lock before reading (no read-then-upgrade deadlocks between processes).
+        con = sqlite3.connect(self.catalog_path, timeout=self.busy_timeout_s, isolation_level=None)
+        con.execute(f"PRAGMA busy_timeout = {int(self.busy_timeout_s * 1000)}")
+        # Switching the journal mode needs an exclusive lock and returns SQLITE_BUSY without
+        # waiting; the mode is persistent, so only the first connection ever switches it.
+        if con.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+            con.execute("PRAGMA journal_mode = WAL")
+        con.execute("PRAGMA synchronous = FULL")
+        return con
+
+    @contextlib.contextmanager
+    def _transaction(self) -> Iterator[sqlite3.Connection]:
+        if self.readonly:
+            raise StorageError(f"storage {self.root} was opened read-only; the catalog cannot "
+                               "be changed")
+        with storage_faults(self.catalog_path, "writing the catalog"):
+            with self._write_transaction() as con:
+                yield con
+
+    @contextlib.contextmanager
+    def _write_transaction(self) -> Iterator[sqlite3.Connection]:
+        con = self._connect()
+        try:
+            # IMMEDIATE: take the write lock up front.  A DEFERRED transaction that reads
+            # and then writes cannot be upgraded in WAL mode once another process has
+            # committed: SQLite answers "database is locked" at once, ignoring busy_timeout.
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                yield con
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+            con.execute("COMMIT")
+        finally:
+            con.close()
+
+    def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
+        with storage_faults(self.catalog_path, "reading the catalog"):
+            con = self._connect()
+            try:
+                return con.execute(sql, params).fetchall()
+            finally:
+                con.close()
+
+    def _owner(self) -> str:
+        # pid read at call time: a forked child of this process gets its own token.
+        return f"{socket.gethostname()}:{os.getpid()}:{self._token}"
+
+    def _job_dir(self, job: str) -> Path:
+        check_name(job, what="job name")
+        path = (self.root / job).resolve()
+        if not path.is_relative_to(self.root) or path == self.root:
+            raise ConfigError(f"job name {job!r} resolves to {path}, outside the storage root {self.root}")
+        return path
+
+    def _run_dir(self, job: str, run_id: str) -> Path:
+        check_name(run_id, what="run id")
+        job_dir = self._job_dir(job)
+        path = (job_dir / run_id).resolve()
+        if path.parent != job_dir:
+            raise ConfigError(f"run id {run_id!r} resolves to {path}, outside {job_dir}")
+        return path
+
+    def new_run_id(self) -> str:
+        """A sortable UTC timestamp plus a random suffix, e.g. ``20261122T031500Z-a1b2c3``."""
+        moment = dt.datetime.fromtimestamp(self._clock(), dt.UTC)
+        return f"{moment.strftime(RUN_ID_TIME_FORMAT)}-{secrets.token_hex(3)}"
+
+    # ----------------------------------------------------------------- writing runs
+
+    @contextlib.contextmanager
+    def new_run(
+        self,
+        job: str,
+        *,
+        run_id: str | None = None,
+        config: Mapping[str, Any],
+        inputs: Iterable[str | os.PathLike[str] | Mapping[str, Any]],
+    ) -> Iterator[RunWriter]:
+        """Write a run atomically: yields a :class:`RunWriter`; commits on clean exit.
+
+        Parameters
+        ----------
+        job : str
+            Job name (``[A-Za-z0-9_.-]+``, not starting with ``.``).
+        run_id : str, optional
+            Defaults to :meth:`new_run_id`.
+        config : mapping
+            The job configuration as resolved (stored in the manifest).
+        inputs : iterable
+            Input files: paths (hashed here) or mappings ``{path, sha256, bytes}``.
+
+        Yields
+        ------
+        RunWriter
+            Writes into ``<root>/<job>/.tmp-<run_id>-<random>``.  On clean exit the
+            manifest is written last, the directory is renamed to ``<root>/<job>/<run_id>``
+            and the catalog row inserted.  On an exception the directory is removed and the
+            exception re-raised: a run appears complete or not at all.
+        """
+        moment = dt.datetime.fromtimestamp(self._clock(), dt.UTC)
+        if run_id is None:
+            run_id = f"{moment.strftime(RUN_ID_TIME_FORMAT)}-{secrets.token_hex(3)}"
+        final = self._run_dir(job, run_id)
+        if final.exists():
+            raise ConfigError(f"run {job}/{run_id} already exists at {final}; run ids must be unique")
+        if self.readonly:
+            raise StorageError(f"storage {self.root} was opened read-only; cannot write a run")
+        resolved_inputs = normalise_inputs(inputs)
+        config_json = json_ready(dict(config), "config")
+        with storage_faults(final.parent, "creating the run folder"):
+            final.parent.mkdir(parents=True, exist_ok=True)
+            tmp = final.parent / f"{TMP_PREFIX}{run_id}-{secrets.token_hex(4)}"
+            tmp.mkdir()
+        writer = RunWriter(job=job, run_id=run_id, created_utc=moment, path=tmp)
+        try:
+            with storage_faults(tmp, f"writing run {job}/{run_id}"):
+                yield writer
+                writer._closed = True
+                manifest = self._manifest(writer, config_json, resolved_inputs)
+                atomic_write_bytes(tmp / MANIFEST_NAME, to_json_text(manifest).encode("utf-8"))
+                if final.exists():  # os.rename would silently replace an *empty* directory
+                    raise ConfigError(f"run {job}/{run_id} appeared at {final} while writing; "
+                                      "run ids must be unique")
+                os.rename(tmp, final)
+        except BaseException:
+            writer._closed = True
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        fsync_dir(final.parent)
+        writer.path = final
+        try:
+            self._insert_run(manifest)
+        except (sqlite3.Error, StorageError) as exc:
+            note = (f"the run folder {final} is complete but missing from the catalog; "
+                    f"`plantdyn reindex {self.root}` adds it once the catalog is writable")
+            if isinstance(exc, sqlite3.Error):
+                err = storage_error(exc, self.catalog_path, f"cataloguing run {job}/{run_id}")
+                if err is None:
+                    exc.add_note(note)
+                    raise
+                exc = err
+            raise StorageError(f"{exc}; {note}") from None
+
+    def _manifest(self, writer: RunWriter, config: Any, inputs: list[dict[str, Any]]) -> dict[str, Any]:
+        files = []
+        for path in sorted(p for p in writer.path.rglob("*") if p.is_file()):
+            rel = path.relative_to(writer.path).as_posix()
+            if rel == MANIFEST_NAME:
+                continue
+            files.append({"name": rel, "sha256": file_sha256(path), "bytes": path.stat().st_size})
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            "job": writer.job,
+            "run_id": writer.run_id,
+            "status": writer.status,
+            "created_utc": iso_utc(writer.created_utc),
+            "package_version": pipeline.__version__,
+            "config": config,
+            "inputs": inputs,
+            "timings_s": dict(sorted(writer.timings_s.items())),
+            "metrics": writer.metrics,
+            "files": files,
+        }
+        assert set(manifest) == MANIFEST_KEYS
+        return manifest
+
+    @staticmethod
+    def _insert_rows(con: sqlite3.Connection, manifest: Mapping[str, Any]) -> None:
+        job, run_id = manifest["job"], manifest["run_id"]
+        con.execute(
+            "INSERT INTO runs (job, run_id, status, created_utc, path, n_inputs, input_sha256s) VALUES (?,?,?,?,?,?,?)",
+            (
+                job,
+                run_id,
+                manifest["status"],
+                manifest["created_utc"],
+                f"{job}/{run_id}",
+                len(manifest["inputs"]),
+                json.dumps([item["sha256"] for item in manifest["inputs"]]),
+            ),
+        )
+        con.executemany(
+            "INSERT INTO pair_metrics (job, run_id, window, output, input, metric, value, label) VALUES (?,?,?,?,?,?,?,?)",
+            [
+                (job, run_id, m["window"], m["output"], m["input"], m["metric"], m["value"], m["label"])
+                for m in manifest["metrics"]
+            ],
+        )
+
+    def _insert_run(self, manifest: Mapping[str, Any]) -> None:
+        with self._transaction() as con:
+            self._insert_rows(con, manifest)
+
+    def reindex(self) -> ReindexResult:
+        """Rebuild the ``runs`` and ``pair_metrics`` tables from the run directories' manifests.
+
+        ``processed_files`` is kept (it is not derivable from run directories).  Hidden
+        directories (``.tmp-*`` runs in progress or left by killed processes) are ignored.
+
+        Returns
+        -------
+        ReindexResult
+            Number of runs indexed and the directories skipped, with reasons.
+        """
+        manifests: list[dict[str, Any]] = []
+        skipped: list[str] = []
+        for job_dir in sorted(p for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+            if not NAME_RE.fullmatch(job_dir.name):
+                continue
+            for run_dir in sorted(p for p in job_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
+                manifest_path = run_dir / MANIFEST_NAME
+                try:
+                    manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+                    missing = sorted(MANIFEST_KEYS - set(manifest))
+                    if missing:
+                        raise ValueError(f"manifest lacks keys {missing}")
+                    if (manifest["job"], manifest["run_id"]) != (job_dir.name, run_dir.name):
+                        raise ValueError(f"manifest names {manifest['job']}/{manifest['run_id']}")
+                except (OSError, ValueError) as exc:
+                    skipped.append(f"{run_dir}: {exc}")
+                    continue
+                manifests.append(manifest)
+        with storage_faults(self.catalog_path, "rebuilding the catalog"):
+            with self._transaction() as con:
+                con.execute("DELETE FROM runs")
+                con.execute("DELETE FROM pair_metrics")
+                for manifest in manifests:
+                    self._insert_rows(con, manifest)
+        return ReindexResult(n_runs=len(manifests), skipped=tuple(skipped))
+
+    def clean_stale(self, older_than_s: float) -> list[Path]:
+        """Remove temporary run directories not modified for ``older_than_s`` seconds.
+
+        Parameters
+        ----------
+        older_than_s : float
+            Minimum age, s, of the newest modification time in a directory (the directory
+            or any file in it), by the store's clock.
+
+        Returns
+        -------
+        list of Path
+            The directories removed.
+        """
+        now = self._clock()
+        removed = []
+        for tmp in sorted(self.root.glob(f"*/{TMP_PREFIX}*")):
+            if not tmp.is_dir():
+                continue
+            mtimes = [tmp.stat().st_mtime] + [p.stat().st_mtime for p in tmp.rglob("*")]
+            if now - max(mtimes) >= older_than_s:
+                shutil.rmtree(tmp)
+                removed.append(tmp)
+        return removed
+
+    # ----------------------------------------------------------------- reading
+
+    def list_runs(self, job: str) -> pl.DataFrame:
+        """Catalogued runs of ``job``, oldest first.
+
+        Parameters
+        ----------
+        job : str
+            Job name (checked as by :func:`check_name`).
+
+        Returns
+        -------
+        polars.DataFrame
+            Columns ``job``, ``run_id``, ``status``, ``created_utc`` (Datetime µs UTC),
+            ``path`` (absolute), ``n_inputs``, ``input_sha256s`` (list of str).
+        """
+        self._job_dir(job)
+        rows = self._query(
+            "SELECT job, run_id, status, created_utc, path, n_inputs, input_sha256s FROM runs "
+            "WHERE job = ? ORDER BY created_utc, run_id",
+            (job,),
+        )
+        return pl.DataFrame(
+            {
+                "job": [r[0] for r in rows],
+                "run_id": [r[1] for r in rows],
+                "status": [r[2] for r in rows],
+                "created_utc": [parse_iso_utc(r[3]) for r in rows],
+                "path": [str(self.root / r[4]) for r in rows],
+                "n_inputs": [r[5] for r in rows],
+                "input_sha256s": [json.loads(r[6]) for r in rows],
+            },
+            schema={
+                "job": pl.String,
+                "run_id": pl.String,
+                "status": pl.String,
+                "created_utc": TIME_UTC,
+                "path": pl.String,
+                "n_inputs": pl.Int64,
+                "input_sha256s": pl.List(pl.String),
+            },
+        )
+
+    def trend(
+        self,
+        job: str,
+        *,
+        output: str | None = None,
+        input: str | None = None,  # noqa: A002 - the pair's input signal, as in the catalog
+        metric: str | None = None,
+        window: str | None = "all",
+    ) -> pl.DataFrame:
+        """Metric values across the runs of ``job``, in run order.
+
+        With ``output``, ``input`` and ``metric`` given there is one row per run.
+
+        Parameters
+        ----------
+        job : str
+        output, input, metric : str, optional
+            Filters; ``None`` keeps all.
+        window : str or None
+            ``"all"`` (default: the estimate over every usable sample), a window such as
+            ``"w0"``, or ``None`` for every window.
+
+        Returns
+        -------
+        polars.DataFrame
+            Columns ``run_id``, ``created_utc`` (Datetime µs UTC), ``status``, ``window``,
+            ``output``, ``input``, ``metric``, ``value`` (Float64, null when not finite or a
+            label), ``label`` (str verdicts), sorted by ``created_utc``, ``run_id``.
+        """
+        self._job_dir(job)
+        clauses, params = ["m.job = ?"], [job]
+        for column, value in (("output", output), ("input", input), ("metric", metric), ("window", window)):
+            if value is not None:
+                clauses.append(f"m.{column} = ?")
+                params.append(value)
+        rows = self._query(
+            "SELECT m.run_id, r.created_utc, r.status, m.window, m.output, m.input, m.metric, m.value, m.label "
+            "FROM pair_metrics m JOIN runs r ON r.job = m.job AND r.run_id = m.run_id "
+            f"WHERE {' AND '.join(clauses)} "
+            "ORDER BY r.created_utc, m.run_id, m.output, m.input, m.metric, m.window",
+            params,
+        )
+        names = ["run_id", "created_utc", "status", "window", "output", "input", "metric", "value", "label"]
+        columns: dict[str, list[Any]] = {name: [r[i] for r in rows] for i, name in enumerate(names)}
+        columns["created_utc"] = [parse_iso_utc(t) for t in columns["created_utc"]]
+        schema = dict.fromkeys(names, pl.String) | {"created_utc": TIME_UTC, "value": pl.Float64}
+        return pl.DataFrame(columns, schema=schema)
+
+    def read_run(self, job: str, run_id: str, *, verify: bool = True) -> StoredRun:
+        """Parse the files of a stored run.
+
+        Parameters
+        ----------
+        job, run_id : str
+        verify : bool
+            Check every file's sha256 against the manifest first.
+
+        Raises
+        ------
+        ConfigError
+            No such run.
+        DataQualityError
+            ``verify`` and a file is missing or its sha256 differs from the manifest.
+        """
+        path = self._run_dir(job, run_id)
+        manifest_path = path / MANIFEST_NAME
+        if not manifest_path.is_file():
+            raise ConfigError(f"no run {job}/{run_id} under {self.root}; list_runs({job!r}) shows the stored runs")
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        if verify:
+            for entry in manifest["files"]:
+                file = path / entry["name"]
+                if not file.is_file():
+                    raise DataQualityError(f"run {job}/{run_id}: {entry['name']} listed in the manifest is missing")
+                digest = file_sha256(file)
+                if digest != entry["sha256"]:
+                    raise DataQualityError(
+                        f"run {job}/{run_id}: {entry['name']} has sha256 {digest[:12]}…, manifest says "
+                        f"{entry['sha256'][:12]}…; the file was modified after the run was written"
+                    )
+
+        def parquet(name: str) -> pl.DataFrame | None:
+            return pl.read_parquet(path / name) if (path / name).is_file() else None
+
+        checks_path = path / "checks.json"
+        report_path = path / "report.md"
+        return StoredRun(
+            path=path,
+            manifest=manifest,
+            step_responses=parquet("step_responses.parquet"),
+            checks=json.loads(checks_path.read_text(encoding="utf-8")) if checks_path.is_file() else None,
+            signals=parquet("signals.parquet"),
+            residuals=parquet("residuals.parquet"),
+            report=report_path.read_text(encoding="utf-8") if report_path.is_file() else None,
+        )
+
+    # ----------------------------------------------------------------- processed files
+
+    def claim_file(self, job: str, sha256: str, path: str | os.PathLike[str], *, lease_s: float | None = None) -> bool:
+        """Atomically claim an input file for processing by ``job``.
+
+        Parameters
+        ----------
+        job : str
+        sha256 : str
+            Content hash of the file (the identity: a renamed copy is not processed twice).
+        path : path
+            Where the file is (recorded for people).
+        lease_s : float, optional
+            Overrides ``claim_lease_s`` when judging whether another claim is still live.
+
+        Returns
+        -------
+        bool
+            ``False`` if the file was processed with status ``"ok"`` or is claimed by a live
+            ``running`` row (heartbeat younger than the lease); otherwise the claim is
+            recorded (owner token, heartbeat now, attempts + 1) and ``True`` returned.
+        """
+        self._job_dir(job)
+        lease = self.claim_lease_s if lease_s is None else float(lease_s)
+        with self._transaction() as con:
+            now = self._clock()
+            row = con.execute(
+                "SELECT status, heartbeat_s FROM processed_files WHERE job = ? AND sha256 = ?", (job, sha256)
+            ).fetchone()
+            if row is not None:
+                status, heartbeat = row
+                if status == "ok":
+                    return False
+                if status == "running" and heartbeat is not None and now - heartbeat < lease:
+                    return False
+            con.execute(
+                "INSERT INTO processed_files (job, sha256, path, run_id, status, error, processed_utc, owner, heartbeat_s, attempts) "
+                "VALUES (?, ?, ?, NULL, 'running', NULL, NULL, ?, ?, 1) "
+                "ON CONFLICT (job, sha256) DO UPDATE SET path = excluded.path, run_id = NULL, status = 'running', "
+                "error = NULL, processed_utc = NULL, owner = excluded.owner, heartbeat_s = excluded.heartbeat_s, "
+                "attempts = processed_files.attempts + 1",
+                (job, sha256, os.fspath(path), self._owner(), now),
+            )
+            return True
+
+    def heartbeat_file(self, job: str, sha256: str) -> bool:
+        """Refresh this store's claim on a file; ``False`` if the claim is no longer ours.
+
+        Parameters
+        ----------
+        job : str
+            Job name.
+        sha256 : str
+            Content hash of the file, as given to :meth:`claim_file`.
+        """
+        with self._transaction() as con:
+            cursor = con.execute(
+                "UPDATE processed_files SET heartbeat_s = ? WHERE job = ? AND sha256 = ? AND status = 'running' AND owner = ?",
+                (self._clock(), job, sha256, self._owner()),
+            )
+            return cursor.rowcount == 1
+
+    def finish_file(self, job: str, sha256: str, run_id: str | None, status: str, error: str | None = None) -> None:
+        """Record the outcome of processing a claimed file.
+
+        Parameters
+        ----------
+        job, sha256 : str
+        run_id : str or None
+            The run that processed it.
+        status : str
+            ``"ok"`` marks the file done for good; anything else (e.g. ``"failed"``) lets a
+            later :meth:`claim_file` retry it.
+        error : str, optional
+            What went wrong, for people.
+        """
+        if not isinstance(status, str) or not STATUS_RE.fullmatch(status) or status == "running":
+            raise ConfigError(f"file status {status!r} must be e.g. 'ok' or 'failed' (lowercase, not 'running')")
+        with self._transaction() as con:
+            cursor = con.execute(
+                "UPDATE processed_files SET run_id = ?, status = ?, error = ?, processed_utc = ?, owner = NULL, "
+                "heartbeat_s = NULL WHERE job = ? AND sha256 = ?",
+                (run_id, status, error, iso_utc(dt.datetime.fromtimestamp(self._clock(), dt.UTC)), job, sha256),
+            )
+            if cursor.rowcount != 1:
+                raise ConfigError(f"file {sha256[:12]}… of job {job!r} was never claimed; call claim_file first")
+
+    def processed(self, job: str) -> pl.DataFrame:
+        """The ``processed_files`` rows of ``job``.
+
+        Parameters
+        ----------
+        job : str
+            Job name (checked as by :func:`check_name`).
+
+        Returns
+        -------
+        polars.DataFrame
+            Columns ``job``, ``sha256``, ``path``, ``run_id``, ``status``, ``error``,
+            ``processed_utc`` (Datetime µs UTC, null while running), ``owner``,
+            ``heartbeat_s`` (Unix s), ``attempts``; sorted by ``path``, ``sha256``.
+        """
+        self._job_dir(job)
+        names = ["job", "sha256", "path", "run_id", "status", "error", "processed_utc", "owner", "heartbeat_s", "attempts"]
+        rows = self._query(
+            f"SELECT {', '.join(names)} FROM processed_files WHERE job = ? ORDER BY path, sha256", (job,)
+        )
+        columns: dict[str, list[Any]] = {name: [r[i] for r in rows] for i, name in enumerate(names)}
+        columns["processed_utc"] = [None if t is None else parse_iso_utc(t) for t in columns["processed_utc"]]
+        schema = dict.fromkeys(names, pl.String) | {
+            "processed_utc": TIME_UTC,
+            "heartbeat_s": pl.Float64,
+            "attempts": pl.Int64,
+        }
+        return pl.DataFrame(columns, schema=schema)
