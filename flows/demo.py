@@ -32,6 +32,24 @@ def _print_where(report, *extra: tuple[str, Path]) -> int:
     return 0
 
 
+def _run(job: Path, *, no_prefect: bool, progress, discrepancy: bool):
+    """Run ``job`` directly (the composition function) or through its Prefect flow."""
+    if no_prefect:
+        if discrepancy:
+            from pipeline.discrepancy_job import run_discrepancy as direct
+        else:
+            from pipeline.jobs import run_job as direct
+        return direct(load_job(job), progress=progress or _quiet)
+    from flows.common import prefect_env_defaults
+
+    prefect_env_defaults()
+    if discrepancy:
+        from flows.discrepancy import run_discrepancy_flow as through_flow
+    else:
+        from flows.estimate import run_estimate as through_flow
+    return through_flow(job)
+
+
 def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
     """Write the export and run the demo job; print where results are and how to view.
 
@@ -45,18 +63,7 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
         Told what the demo writes and, with ``no_prefect``, each stage of the run.
     """
     job = prepare_demo(folder, progress=progress)
-    if no_prefect:
-        from pipeline.jobs import run_job
-
-        report = run_job(load_job(job), progress=progress or _quiet)
-    else:
-        from flows.common import prefect_env_defaults
-
-        prefect_env_defaults()
-        from flows.estimate import run_estimate
-
-        report = run_estimate(job)
-    return _print_where(report)
+    return _print_where(_run(job, no_prefect=no_prefect, progress=progress, discrepancy=False))
 
 
 def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
@@ -73,15 +80,5 @@ def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=Non
         Told what the demo writes and, with ``no_prefect``, each stage of the run.
     """
     job = prepare_discrepancy_demo(folder, progress=progress)
-    if no_prefect:
-        from pipeline.discrepancy_job import run_discrepancy
-
-        report = run_discrepancy(load_job(job), progress=progress or _quiet)
-    else:
-        from flows.common import prefect_env_defaults
-
-        prefect_env_defaults()
-        from flows.discrepancy import run_discrepancy_flow
-
-        report = run_discrepancy_flow(job)
+    report = _run(job, no_prefect=no_prefect, progress=progress, discrepancy=True)
     return _print_where(report, ("model", report.run_dir / "model_augmented.yaml"))

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import scipy.stats
 
-from pipeline.estimate import StepResponseEstimate
+from pipeline.step_result import StepResponseEstimate
 
 __all__ = [
     "AgreementResult",

@@ -97,7 +97,7 @@ def feedback_test(ctx, *, n_p, n_k, noise_models, leads: int = FEEDBACK_LEADS,
     ``[output][input]`` of :class:`FeedbackResult` (None when the output's regression
     is singular with the leads added, e.g. a record too short for them).
     """
-    from pipeline.estimate import output_design
+    from pipeline.gram_estimate import output_design
     from pipeline.prediction_error import fit_fixed_noise
 
     n_p = np.asarray(n_p)

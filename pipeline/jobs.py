@@ -41,14 +41,10 @@ from pipeline.errors import (
     PipelineError,
     SingularSystemError,
 )
-from pipeline.estimate import (
-    StepResponseEstimate,
-    estimate_step_responses,
-    good_segments,
-    innovations,
-    lag_times,
-    residuals,
-)
+from pipeline.estimate import estimate_step_responses
+from pipeline.normal_equations import good_segments
+from pipeline.prediction import innovations, residuals
+from pipeline.step_result import StepResponseEstimate, lag_times
 from pipeline.sampling import choose_sample_period, resample_average_masked
 from pipeline.progress import Tick, bar_of, silent
 from pipeline.search import SearchResult, search
@@ -424,7 +420,7 @@ def _named(exc: PipelineError, prep: Prepared) -> PipelineError:
         return exc
     import re
 
-    from pipeline.estimate import describe_singular
+    from pipeline.solve import describe_singular
 
     tags = dict(zip(prep.recording.names, prep.recording.tags))
     labels = [f"{n} (tag {tags[n]})" for n in prep.inputs]

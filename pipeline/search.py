@@ -53,20 +53,18 @@ import numpy as np
 
 from pipeline.checks import AgreementResult, window_agreement
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
-from pipeline.estimate import (
+from pipeline.estimate import estimate_from_normal_equations, estimate_step_responses
+from pipeline.gram_estimate import (
     NOISE_AUTO,
-    NormalEquations,
-    StepResponseEstimate,
     lags_needed,
     check_instruments,
     estimate_from_context,
-    estimate_from_normal_equations,
-    estimate_step_responses,
     lag_gram_context,
     noise_order,
-    normal_equations,
-    residual_ss_by_order,
 )
+from pipeline.normal_equations import NormalEquations, normal_equations
+from pipeline.orders import residual_ss_by_order
+from pipeline.step_result import StepResponseEstimate
 from pipeline._threads import single_threaded_blas
 from pipeline.feedback import FEEDBACK_LEADS, feedback_test
 from pipeline.progress import Tick, silent

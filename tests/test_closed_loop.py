@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.estimate import estimate_from_context, estimate_step_responses, lag_gram_context
+from pipeline.estimate import estimate_step_responses
+from pipeline.gram_estimate import estimate_from_context, lag_gram_context
 from pipeline.feedback import FEEDBACK_ALPHA, FEEDBACK_LEADS, feedback_test
 from pipeline.search import search
 from tests.plants import open_loop_record, pi_loop_record, pi_loop_truth

@@ -17,16 +17,12 @@ from pipeline.errors import (
     InsufficientDataError,
     SingularSystemError,
 )
-from pipeline.estimate import (
-    estimate_correlation_method,
-    estimate_merged,
-    estimate_regularized,
-    estimate_step_responses,
-    lag_times,
-    normal_equations,
-    residual_ss_by_order,
-    residuals,
-)
+from pipeline.alt_estimates import estimate_correlation_method, estimate_regularized
+from pipeline.estimate import estimate_merged, estimate_step_responses
+from pipeline.normal_equations import normal_equations
+from pipeline.orders import residual_ss_by_order
+from pipeline.prediction import residuals
+from pipeline.step_result import lag_times
 
 
 def ar1(n: int, r: float, rng) -> np.ndarray:
@@ -371,7 +367,7 @@ def test_errors_are_specific():
 
 
 def test_sweep_orders_equals_separate_fits():
-    from pipeline.estimate import sweep_orders
+    from pipeline.orders import sweep_orders
 
     rng = np.random.default_rng(26)
     n, P = 2000, 12

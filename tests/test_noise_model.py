@@ -13,12 +13,9 @@ import scipy.signal as ss
 
 from pipeline.checks import ljung_box
 from pipeline.errors import ConfigError, DataQualityError
-from pipeline.estimate import (
-    estimate_from_context,
-    estimate_step_responses,
-    innovations,
-    lag_gram_context,
-)
+from pipeline.estimate import estimate_step_responses
+from pipeline.gram_estimate import estimate_from_context, lag_gram_context
+from pipeline.prediction import innovations
 from pipeline.noise_model import ar_order_by_bic, levinson
 
 

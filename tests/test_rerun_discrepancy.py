@@ -28,7 +28,7 @@ import polars as pl
 import pytest
 from rerun.chunk import RrdReader
 
-from pipeline.adapters import rerun_sink
+from pipeline.adapters.rerun_sink import discrepancy as rerun_discrepancy_mod
 from pipeline.adapters.rerun_sink import render_discrepancy
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy, make_discrepancy_demo
 from pipeline.discrepancy.demo import _BOILER_MODEL
@@ -453,7 +453,7 @@ def test_failure_while_writing_leaves_no_file(run, tmp_path, monkeypatch):
     def boom(*args, **kwargs):
         raise RuntimeError("injected failure")
 
-    monkeypatch.setattr(rerun_sink, "_send_candidates", boom)
+    monkeypatch.setattr(rerun_discrepancy_mod, "_send_candidates", boom)
     with pytest.raises(RuntimeError, match="injected failure"):
         render_discrepancy(run_dir)
     assert not [p for p in run_dir.iterdir() if p.name.endswith(".part")]

@@ -58,7 +58,8 @@ def test_defaults_use_noise_models_that_whiten_every_output(run):
 
     from pipeline.checks import ljung_box
     from pipeline.conditioning import condition
-    from pipeline.estimate import estimate_step_responses, residuals
+    from pipeline.estimate import estimate_step_responses
+    from pipeline.prediction import residuals
 
     checks, report = run
     assert checks["estimation"]["method"] == "prediction_error"

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
-from pipeline.estimate import normal_equations
+from pipeline.normal_equations import normal_equations
 from pipeline.windows import (
     Window,
     n_d_for,

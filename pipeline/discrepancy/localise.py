@@ -14,7 +14,7 @@ import scipy.signal
 from pipeline.discrepancy.problem import Problem
 from pipeline.errors import ConfigError, DataQualityError, PipelineError, SingularSystemError
 from pipeline.estimate import estimate_step_responses
-from pipeline.estimate import residuals as fir_residuals
+from pipeline.prediction import residuals as fir_residuals
 from pipeline.simulate import simulate
 
 

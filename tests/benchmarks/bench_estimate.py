@@ -28,12 +28,9 @@ import scipy.fft
 import scipy.linalg
 import scipy.signal as ss
 
-from pipeline.estimate import (
-    estimate_from_normal_equations,
-    estimate_step_responses,
-    normal_equations,
-    sweep_orders,
-)
+from pipeline.estimate import estimate_from_normal_equations, estimate_step_responses
+from pipeline.normal_equations import normal_equations
+from pipeline.orders import sweep_orders
 
 
 def best_of(fn, repeat: int = 3):

@@ -1,53 +1,10 @@
-"""The Rerun sink: renders a run directory into ``recording.rrd`` (the only importer of
-``rerun``).
-
-It reads the stored files (``signals.parquet``, ``step_responses.parquet``,
-``residuals.parquet``, ``checks.json``, ``manifest.json``), never in-memory results, so a
-figure can be rebuilt from a run without refitting: ``render_run(run_dir)``.  Every file is
-optional; what is absent is simply not drawn.
-
-Layout (entity paths; names are escaped with ``rr.escape_entity_path_part``):
-
-* ``signals/raw/<signal>``, ``signals/conditioned/<signal>`` on the ``time`` timeline, one
-  row per stored sample; missing values and masked conditioned samples are NaN, which the
-  viewer draws as gaps.  Masked samples (``good == False``) that have a raw value are also
-  points on ``signals/masked/<signal>`` (red crosses over the raw line);
-* ``step/<output>/<input>/<window>`` on the ``lag_s`` timeline (``time_s`` of the stored
-  step response, as a duration), with ``step/<output>/<input>/all_upper`` and
-  ``all_lower`` (step ± 2·step_std of the estimate over all data); every disjoint window
-  overlaid in the same view;
-* ``residuals/<output>`` on ``time`` (residuals of the all-data estimate);
-* ``trends/<output>/<input>/<metric>`` on ``run_time`` when nightly trends are given.
-
-Series are sent in bulk with ``send_columns`` (≈30× faster than per-row ``log``), which
-injects no ``log_time``/``log_tick``; the recording id derives from job and run id and no
-wall-clock recording properties are sent, so the same run renders to the same *data*.
-The file is not byte-identical between renders: Rerun stamps every chunk and row with a
-time-based id (TUID), and the blueprint store gets a random id and a ``log_time``; compare
-decoded contents instead (``tests/test_rerun_sink.py`` does).
-
-A default blueprint opens tabs *Step responses* (one view per pair), *Signals*,
-*Residuals* and *Trends*, starting on the ``lag_s`` timeline; every TimeSeriesView is
-given the full time range explicitly (without it the viewer shows only ±30 s around the
-time cursor).  The other tabs need the ``time`` (signals, residuals) or ``run_time``
-(trends) timeline, chosen in the time panel.
-
-Discrepancy runs are rendered by ``render_discrepancy(run_dir)`` from
-``discrepancy.json`` and ``discrepancy_series.parquet`` (both required): measured vs
-nominal vs augmented outputs and the residual before/after on a ``time_s`` timeline, the
-localisation as bar charts and documents under ``discrepancy/<output>/localisation``,
-the candidate ranking under ``discrepancy/candidates``; its docstring lists the paths.
-"""
+"""The recording of a discrepancy run: measured / nominal / augmented, residuals, localisation."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
-import secrets
-import uuid
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -56,295 +13,19 @@ import polars as pl
 import rerun as rr
 import rerun.blueprint as rrb
 
-from pipeline.errors import ConfigError, DataQualityError
+from pipeline.adapters.rerun_sink.common import (
+    TIMELINES,
+    WINDOW_COLOURS,
+    check_out_name,
+    float_values,
+    full_range,
+    path_part,
+    send_series,
+    with_fixed_ids,
+    write_recording,
+)
+from pipeline.errors import DataQualityError
 
-__all__ = ["APPLICATION_ID", "TIMELINES", "recording_id_for", "render_discrepancy", "render_run"]
-
-APPLICATION_ID = "plantdyn"
-#: Timeline names: sample time of the signals, lag after the step, creation time of runs,
-#: seconds since the first sample of a discrepancy record.
-TIMELINES = {"signals": "time", "step": "lag_s", "trends": "run_time", "discrepancy": "time_s"}
-# Fixed namespace: recording ids are uuid5(namespace, "<job>/<run_id>"), stable across
-# processes and machines (uuid5 of a URL-namespace name, as the first version did).
-_NAMESPACE = uuid.NAMESPACE_URL
-_WINDOW_COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
-                   (148, 103, 189), (140, 86, 75), (227, 119, 194), (127, 127, 127)]
-_ALL_COLOUR = (240, 240, 240)
-_BAND_COLOUR = (150, 150, 150)
-_MASKED_COLOUR = (220, 0, 0)
-_TREND_COLUMNS = ("created_utc", "output", "input", "metric", "value")
-
-
-def recording_id_for(ident: str) -> str:
-    """The recording id of run ``"<job>/<run_id>"`` (a uuid5, deterministic).
-
-    Parameters
-    ----------
-    ident : str
-        Run identity, normally ``"<job>/<run_id>"``; the same text always gives the same
-        id.
-    """
-    return str(uuid.uuid5(_NAMESPACE, f"plantdyn:{ident}"))
-
-
-def _part(name: str) -> str:
-    # Escaping (not replacing) keeps distinct names distinct: 'flow rate' vs 'flow_rate'.
-    return rr.escape_entity_path_part(str(name))
-
-
-def _full_range(timeline: str) -> dict[str, Any]:
-    """Both the visible data range and the x-axis view range span all data (design.md:
-    without an explicit range the view shows ±30 s around the time cursor)."""
-    inf = rrb.TimeRangeBoundary.infinite()
-    return {"time_ranges": [rrb.VisibleTimeRange(timeline, start=inf, end=inf)],
-            "axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=inf, end=inf))}
-
-
-def _with_fixed_ids(item: Any, ident: str, key: str) -> Any:
-    """Give a blueprint view/container an id derived from the run and its place, instead
-    of the random uuid4 the SDK picks, so the same run gets the same blueprint."""
-    item.id = uuid.uuid5(_NAMESPACE, f"plantdyn:{ident}:blueprint:{key}")
-    return item
-
-
-def _series(rec: rr.RecordingStream, path: str, index: rr.TimeColumn, values: np.ndarray,
-            *, name: str, colour: tuple[int, int, int] | None = None, width: float = 1.5) -> None:
-    style = rr.SeriesLines(names=name, widths=width,
-                           **({"colors": [colour]} if colour is not None else {}))
-    rec.log(path, style, static=True, strict=True)
-    rec.send_columns(path, indexes=[index], columns=rr.Scalars.columns(scalars=values), strict=True)
-
-
-def _floats(series: pl.Series) -> np.ndarray:
-    """Float64 values with nulls as NaN (a gap in the plot)."""
-    return series.cast(pl.Float64).fill_null(np.nan).to_numpy()
-
-
-def _read_parquet(run_dir: Path, name: str) -> pl.DataFrame | None:
-    path = run_dir / name
-    return pl.read_parquet(path) if path.is_file() else None
-
-
-def _pairs(checks: dict[str, Any] | None, steps: pl.DataFrame | None) -> list[tuple[str, str]]:
-    """Output–input pairs: in checks.json's order when it lists them, else as stored."""
-    stored: list[tuple[str, str]] = []
-    if steps is not None:
-        stored = [tuple(r) for r in steps.select("output", "input").unique(maintain_order=True).rows()]
-    listed = []
-    if checks is not None and isinstance(checks.get("pairs"), list):
-        listed = [(p["output"], p["input"]) for p in checks["pairs"]
-                  if isinstance(p, dict) and "output" in p and "input" in p]
-    return list(dict.fromkeys([*listed, *stored]))
-
-
-def _check_trends(trends: pl.DataFrame) -> pl.DataFrame:
-    missing = [c for c in _TREND_COLUMNS if c not in trends.columns]
-    if missing:
-        raise ConfigError(f"trends: missing columns {missing}; pass ResultStore.trend(job) "
-                          f"(columns {list(_TREND_COLUMNS)})")
-    created = trends["created_utc"]
-    if created.dtype == pl.String:
-        trends = trends.with_columns(pl.col("created_utc").str.to_datetime(time_zone="UTC"))
-    elif not isinstance(created.dtype, pl.Datetime):
-        raise ConfigError(f"trends: created_utc must be a UTC Datetime or ISO string, got {created.dtype}")
-    trends = trends.filter(pl.col("output").is_not_null() & pl.col("input").is_not_null()
-                           & pl.col("value").is_not_null())
-    n_dup = trends.height - trends.select("output", "input", "metric", "created_utc").unique().height
-    if n_dup:
-        raise DataQualityError(f"trends: {n_dup} duplicate (output, input, metric, created_utc) row(s); "
-                               "pass one window's rows, e.g. ResultStore.trend(job, window='all')")
-    return trends
-
-
-def _blueprint(ident: str, pairs: Sequence[tuple[str, str]], signals: Sequence[str],
-               outputs: Sequence[str], trend_pairs: Sequence[tuple[str, str]]) -> rrb.Blueprint:
-    def view(key: str, **kwargs: Any) -> rrb.TimeSeriesView:
-        return _with_fixed_ids(rrb.TimeSeriesView(**kwargs), ident, key)
-
-    def container(kind: type, key: str, *views: Any, name: str) -> Any:
-        return _with_fixed_ids(kind(*views, name=name), ident, key)
-
-    tabs = [container(rrb.Grid, "steps", *[
-        view(f"step/{o}/{i}", origin=f"/step/{_part(o)}/{_part(i)}", name=f"{o} ← {i}",
-             **_full_range(TIMELINES["step"]))
-        for o, i in pairs], name="Step responses")]
-    if signals:
-        tabs.append(container(rrb.Vertical, "signals",
-                              view("signals/raw", origin="/signals", name="Raw signals (masked: ×)",
-                                   contents=["/signals/raw/**", "/signals/masked/**"],
-                                   **_full_range(TIMELINES["signals"])),
-                              view("signals/conditioned", origin="/signals/conditioned",
-                                   name="Conditioned signals", **_full_range(TIMELINES["signals"])),
-                              name="Signals"))
-    if outputs:
-        tabs.append(container(rrb.Vertical, "residuals", *[
-            view(f"residuals/{o}", origin=f"/residuals/{_part(o)}", name=f"residual {o}",
-                 **_full_range(TIMELINES["signals"]))
-            for o in outputs], name="Residuals"))
-    if trend_pairs:
-        tabs.append(container(rrb.Grid, "trends", *[
-            view(f"trends/{o}/{i}", origin=f"/trends/{_part(o)}/{_part(i)}", name=f"trend {o} ← {i}",
-                 **_full_range(TIMELINES["trends"]))
-            for o, i in trend_pairs], name="Trends"))
-    # The step responses are what people open the file for: start on their timeline.
-    return rrb.Blueprint(container(rrb.Tabs, "tabs", *tabs, name="plantdyn"),
-                         rrb.TimePanel(timeline=TIMELINES["step"], play_state="paused"),
-                         collapse_panels=False)
-
-
-def render_run(run_dir: Path, *, trends: pl.DataFrame | None = None,
-               out_name: str = "recording.rrd", ident: str | None = None) -> Path:
-    """Render the stored files of ``run_dir`` into ``run_dir/out_name``.
-
-    Parameters
-    ----------
-    run_dir : Path
-        A run directory (or the store's temporary directory before the rename).
-    trends : polars.DataFrame, optional
-        Catalog trend rows of earlier runs (columns ``created_utc``, ``output``, ``input``,
-        ``metric``, ``value``; one window, as ``ResultStore.trend(job)`` returns), drawn on
-        a ``run_time`` timeline.  Rows with a null value (labels such as verdicts) are skipped.
-    out_name : str
-        File name of the recording inside ``run_dir``.  It is written to a temporary name
-        and renamed, so a failed render leaves no partial file.
-    ident : str, optional
-        ``"<job>/<run_id>"``; the recording id derives from it.  Default: from
-        ``manifest.json``, else the folder name.  Pass it when rendering in the store's
-        temporary directory (whose name is random and which has no manifest yet).
-
-    Returns
-    -------
-    Path
-        The written recording.
-
-    Raises
-    ------
-    ConfigError
-        ``out_name`` is not a plain file name, or ``trends`` lacks columns.
-    DataQualityError
-        ``trends`` holds several rows per output, input, metric and run.
-    """
-    run_dir = Path(run_dir)
-    _check_out_name(out_name)
-    manifest_path = run_dir / "manifest.json"
-    if ident is None and manifest_path.is_file():
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-        ident = f"{manifest.get('job')}/{manifest.get('run_id')}"
-    ident = ident or run_dir.name
-    checks_path = run_dir / "checks.json"
-    checks = json.loads(checks_path.read_text(encoding="utf-8")) if checks_path.is_file() else None
-    steps = _read_parquet(run_dir, "step_responses.parquet")
-    signals = _read_parquet(run_dir, "signals.parquet")
-    resid = _read_parquet(run_dir, "residuals.parquet")
-    if resid is not None:
-        resid = resid.filter(pl.col("window") == "all")
-    trends = _check_trends(trends) if trends is not None and trends.height else None
-
-    pairs = _pairs(checks, steps)
-    signal_names = [] if signals is None else signals["signal"].unique(maintain_order=True).to_list()
-    outputs = [] if resid is None else resid["output"].unique(maintain_order=True).to_list()
-    trend_pairs = [] if trends is None else [
-        tuple(r) for r in trends.select("output", "input").unique(maintain_order=True).rows()]
-
-    def send(rec: rr.RecordingStream) -> None:
-        if signals is not None:
-            _send_signals(rec, signals)
-        if steps is not None:
-            _send_steps(rec, steps, pairs)
-        if resid is not None:
-            for (output,), df in resid.sort("time").group_by(["output"], maintain_order=True):
-                _series(rec, f"residuals/{_part(output)}",
-                        rr.TimeColumn(TIMELINES["signals"], timestamp=df["time"].to_numpy()),
-                        _floats(df["residual"]), name=f"residual {output}")
-        if trends is not None:
-            _send_trends(rec, trends)
-
-    return _write_recording(run_dir / out_name, ident,
-                            _blueprint(ident, pairs, signal_names, outputs, trend_pairs), send)
-
-
-def _check_out_name(out_name: str) -> None:
-    if not out_name or Path(out_name).name != out_name or out_name.startswith("."):
-        raise ConfigError(f"out_name {out_name!r} must be a plain file name such as 'recording.rrd'")
-
-
-def _write_recording(out: Path, ident: str, blueprint: rrb.Blueprint,
-                     send: Callable[[rr.RecordingStream], None]) -> Path:
-    """Write a recording with id ``recording_id_for(ident)`` to a temporary name next to
-    ``out``, call ``send(rec)`` to log the data, finalise and rename to ``out``.  Any
-    failure removes the temporary file and leaves ``out`` as it was."""
-    tmp = out.parent / f".{out.name}.{secrets.token_hex(4)}.part"
-    rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id_for(ident), send_properties=False)
-    try:
-        rec.set_log_time_enabled(False)
-        rec.set_log_tick_enabled(False)
-        rec.save(tmp, default_blueprint=blueprint)
-        rec.send_recording_name(ident)  # shown in the viewer; deterministic, unlike a start time
-        send(rec)
-        rec.flush()
-        rec.disconnect()  # finalises the file (footer with the chunk manifest)
-        if not tmp.is_file():
-            raise RuntimeError(f"Rerun wrote no file at {tmp}; is logging disabled (RERUN=off)?")
-        os.replace(tmp, out)
-    except BaseException:
-        with contextlib.suppress(Exception):
-            rec.disconnect()
-        tmp.unlink(missing_ok=True)
-        raise
-    return out
-
-
-def _send_signals(rec: rr.RecordingStream, signals: pl.DataFrame) -> None:
-    for (name, role), df in signals.sort("time").group_by(["signal", "role"], maintain_order=True):
-        times = df["time"].to_numpy()
-        index = rr.TimeColumn(TIMELINES["signals"], timestamp=times)
-        _series(rec, f"signals/raw/{_part(name)}", index, _floats(df["raw"]), name=f"{name} ({role})")
-        # A masked sample is not part of the conditioned signal the estimator used: gap.
-        conditioned = np.where(df["good"].to_numpy(), _floats(df["conditioned"]), np.nan)
-        _series(rec, f"signals/conditioned/{_part(name)}", index, conditioned, name=f"{name} ({role})")
-        bad = df.filter(~pl.col("good") & pl.col("raw").is_not_null())
-        if bad.height:
-            path = f"signals/masked/{_part(name)}"
-            rec.log(path, rr.SeriesPoints(names=f"{name} masked", colors=[_MASKED_COLOUR],
-                                          markers="cross", marker_sizes=4.0), static=True, strict=True)
-            rec.send_columns(path, indexes=[rr.TimeColumn(TIMELINES["signals"], timestamp=bad["time"].to_numpy())],
-                             columns=rr.Scalars.columns(scalars=_floats(bad["raw"])), strict=True)
-
-
-def _send_steps(rec: rr.RecordingStream, steps: pl.DataFrame, pairs: Sequence[tuple[str, str]]) -> None:
-    windows = sorted(steps["window"].unique().to_list(),
-                     key=lambda w: (w != "all", int(w[1:]) if w[1:].isdigit() else -1, w))
-    for output, inp in pairs:
-        base = f"step/{_part(output)}/{_part(inp)}"
-        pair = steps.filter((pl.col("output") == output) & (pl.col("input") == inp))
-        for k, window in enumerate(windows):
-            df = pair.filter(pl.col("window") == window).sort("lag")
-            if df.height == 0:
-                continue
-            index = rr.TimeColumn(TIMELINES["step"], duration=df["time_s"].to_numpy())
-            step = _floats(df["step"])
-            if window == "all":
-                std = _floats(df["step_std"])
-                _series(rec, f"{base}/all", index, step, name="all data", colour=_ALL_COLOUR, width=2.5)
-                _series(rec, f"{base}/all_upper", index, step + 2 * std, name="+2σ",
-                        colour=_BAND_COLOUR, width=1.0)
-                _series(rec, f"{base}/all_lower", index, step - 2 * std, name="−2σ",
-                        colour=_BAND_COLOUR, width=1.0)
-            else:
-                colour = _WINDOW_COLOURS[(k - ("all" in windows)) % len(_WINDOW_COLOURS)]
-                _series(rec, f"{base}/{_part(window)}", index, step, name=f"window {window}", colour=colour)
-
-
-def _send_trends(rec: rr.RecordingStream, trends: pl.DataFrame) -> None:
-    for (output, inp, metric), df in trends.sort("created_utc").group_by(
-            ["output", "input", "metric"], maintain_order=True):
-        path = f"trends/{_part(output)}/{_part(inp)}/{_part(metric)}"
-        rec.log(path, rr.SeriesPoints(names=metric, marker_sizes=5.0), static=True, strict=True)
-        rec.send_columns(path, indexes=[rr.TimeColumn(TIMELINES["trends"], timestamp=df["created_utc"].to_numpy())],
-                         columns=rr.Scalars.columns(scalars=_floats(df["value"])), strict=True)
-
-
-# --------------------------------------------------------------------------- discrepancy runs
 
 _DISCREPANCY_FILES = ("discrepancy.json", "discrepancy_series.parquet")
 _DISCREPANCY_VALUES = ("measured", "nominal", "augmented", "residual_before", "residual_after", "rolling_rms")
@@ -430,7 +111,7 @@ def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident:
         lacks required keys/columns, or holds values of the wrong kind.
     """
     run_dir = Path(run_dir)
-    _check_out_name(out_name)
+    check_out_name(out_name)
     summary = _read_discrepancy_json(run_dir)
     series = _read_discrepancy_series(run_dir)
     if ident is None:
@@ -469,7 +150,7 @@ def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident:
                                                                 media_type=rr.MediaType.MARKDOWN),
                 static=True, strict=True)
 
-    return _write_recording(run_dir / out_name, ident, blueprint, send)
+    return write_recording(run_dir / out_name, ident, blueprint, send)
 
 
 def _read_json_or_none(path: Path) -> Any:
@@ -597,18 +278,18 @@ def _split_lines(rec: rr.RecordingStream, base: str, values: Sequence[np.ndarray
 
 def _send_discrepancy_series(rec: rr.RecordingStream, output: str, df: pl.DataFrame,
                              split: tuple[float, float, float]) -> None:
-    base = f"discrepancy/{_part(output)}"
+    base = f"discrepancy/{path_part(output)}"
     index = _time_index(df["time_s"].to_numpy())
-    values = {c: _floats(df[c]) for c in _DISCREPANCY_VALUES}
+    values = {c: float_values(df[c]) for c in _DISCREPANCY_VALUES}
     for key in ("measured", "nominal", "augmented"):
-        _series(rec, f"{base}/signals/{key}", index, values[key], name=key, colour=_SIGNAL_COLOURS[key])
+        send_series(rec, f"{base}/signals/{key}", index, values[key], name=key, colour=_SIGNAL_COLOURS[key])
     _split_lines(rec, f"{base}/signals", [values[k] for k in ("measured", "nominal", "augmented")], split)
-    _series(rec, f"{base}/residual/before", index, values["residual_before"], name="before (measured − nominal)",
+    send_series(rec, f"{base}/residual/before", index, values["residual_before"], name="before (measured − nominal)",
             colour=_BEFORE_COLOUR)
-    _series(rec, f"{base}/residual/after", index, values["residual_after"], name="after (measured − augmented)",
+    send_series(rec, f"{base}/residual/after", index, values["residual_after"], name="after (measured − augmented)",
             colour=_AFTER_COLOUR)
     _split_lines(rec, f"{base}/residual", [values["residual_before"], values["residual_after"]], split)
-    _series(rec, f"{base}/rolling_rms", index, values["rolling_rms"], name="rolling RMS (before)",
+    send_series(rec, f"{base}/rolling_rms", index, values["rolling_rms"], name="rolling RMS (before)",
             colour=_ROLLING_COLOUR, width=2.0)
 
 
@@ -658,13 +339,13 @@ def _localisation_layout(loc: Any) -> dict[str, Any]:
 
 
 def _send_localisation(rec: rr.RecordingStream, output: str, loc: Mapping[str, Any], fit_start_s: float) -> None:
-    base = f"discrepancy/{_part(output)}/localisation"
+    base = f"discrepancy/{path_part(output)}/localisation"
     signals = _signals_of(loc)
     for j, (name, entry) in enumerate(signals.items()):
-        colour = _WINDOW_COLOURS[j % len(_WINDOW_COLOURS)]
-        _bars(rec, f"{base}/partial_r2/{_part(name)}", [_num(entry.get("partial_r2"))], [j - 0.4], 0.8, colour)
+        colour = WINDOW_COLOURS[j % len(WINDOW_COLOURS)]
+        _bars(rec, f"{base}/partial_r2/{path_part(name)}", [_num(entry.get("partial_r2"))], [j - 0.4], 0.8, colour)
         p = _num(entry.get("p_value"))
-        _bars(rec, f"{base}/neg_log10_p/{_part(name)}", [-math.log10(p) if p > 0 else float("nan")], [j - 0.4],
+        _bars(rec, f"{base}/neg_log10_p/{path_part(name)}", [-math.log10(p) if p > 0 else float("nan")], [j - 0.4],
               0.8, colour)
         bands = _bands_of(entry)
         if bands:
@@ -673,7 +354,7 @@ def _send_localisation(rec: rr.RecordingStream, output: str, loc: Mapping[str, A
             with np.errstate(divide="ignore", invalid="ignore"):
                 left, width = np.log10(lo), np.log10(hi) - np.log10(lo)
             for key, shift, colour in (("model_gain", 0.05, _MODEL_COLOUR), ("data_gain", 0.5, _DATA_COLOUR)):
-                _bars(rec, f"{base}/frequency_bands/{_part(name)}/{key}", [_num(b.get(key)) for b in bands],
+                _bars(rec, f"{base}/frequency_bands/{path_part(name)}/{key}", [_num(b.get(key)) for b in bands],
                       left + shift * width, 0.45 * width, colour)
 
     window_s, block_rms = _block_rms_of(loc)
@@ -847,10 +528,10 @@ def _discrepancy_blueprint(ident: str, outputs: Sequence[str], per_output: Mappi
     timeline = TIMELINES["discrepancy"]
 
     def fixed(item: Any, key: str) -> Any:
-        return _with_fixed_ids(item, ident, f"discrepancy:{key}")
+        return with_fixed_ids(item, ident, f"discrepancy:{key}")
 
     def series_view(key: str, **kwargs: Any) -> rrb.TimeSeriesView:
-        return fixed(rrb.TimeSeriesView(**kwargs, **_full_range(timeline)), key)
+        return fixed(rrb.TimeSeriesView(**kwargs, **full_range(timeline)), key)
 
     def bars_view(key: str, **kwargs: Any) -> rrb.BarChartView:
         return fixed(rrb.BarChartView(**kwargs), key)
@@ -860,29 +541,29 @@ def _discrepancy_blueprint(ident: str, outputs: Sequence[str], per_output: Mappi
 
     drawn = [o for o in outputs if o in per_output]
     summary = text_view("summary", "/discrepancy/summary", "Summary")
-    signal_views = [series_view(f"signals/{o}", origin=f"/discrepancy/{_part(o)}/signals",
+    signal_views = [series_view(f"signals/{o}", origin=f"/discrepancy/{path_part(o)}/signals",
                                 name=f"{o}: measured, nominal, augmented") for o in drawn]
     tabs = [fixed(rrb.Horizontal(fixed(rrb.Vertical(*signal_views), "signals_column"), summary,
                                  column_shares=[3, 1], name="Measured vs simulated"), "tab:signals")]
-    residual_views = [series_view(f"residual/{o}", origin=f"/discrepancy/{_part(o)}",
-                                  contents=[f"/discrepancy/{_part(o)}/residual/**", f"/discrepancy/{_part(o)}/rolling_rms"],
+    residual_views = [series_view(f"residual/{o}", origin=f"/discrepancy/{path_part(o)}",
+                                  contents=[f"/discrepancy/{path_part(o)}/residual/**", f"/discrepancy/{path_part(o)}/rolling_rms"],
                                   name=f"{o}: residual before/after") for o in drawn]
     if residual_views:
         tabs.append(fixed(rrb.Vertical(*residual_views, name="Residual before/after"), "tab:residual"))
     loc_views: list[Any] = []
     for o in outputs:
-        lay, base = layout[o], f"/discrepancy/{_part(o)}/localisation"
+        lay, base = layout[o], f"/discrepancy/{path_part(o)}/localisation"
         views: list[Any] = []
         if lay["signals"]:
             views.append(bars_view(f"partial_r2/{o}", origin=f"{base}/partial_r2", name=f"{o}: partial R² per signal"))
             views.append(bars_view(f"neg_log10_p/{o}", origin=f"{base}/neg_log10_p",
                                    name=f"{o}: −log10 p per signal (1.3 = p 0.05)"))
         for s in lay["bands"]:
-            views.append(bars_view(f"bands/{o}/{s}", origin=f"{base}/frequency_bands/{_part(s)}",
+            views.append(bars_view(f"bands/{o}/{s}", origin=f"{base}/frequency_bands/{path_part(s)}",
                                    name=f"{o} ← {s}: |H| model vs data (x: log10 f/Hz)"))
         if lay["blocks"] or o in per_output:
-            views.append(series_view(f"time_windows/{o}", origin=f"/discrepancy/{_part(o)}",
-                                     contents=[f"{base}/time_windows/**", f"/discrepancy/{_part(o)}/rolling_rms"],
+            views.append(series_view(f"time_windows/{o}", origin=f"/discrepancy/{path_part(o)}",
+                                     contents=[f"{base}/time_windows/**", f"/discrepancy/{path_part(o)}/rolling_rms"],
                                      name=f"{o}: residual level over time"))
         if lay["load_signal"] is not None:
             views.append(bars_view(f"operating_range/{o}", origin=f"{base}/operating_range",
