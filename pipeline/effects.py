@@ -60,21 +60,18 @@ import numpy as np
 import scipy.signal
 
 from pipeline.errors import ConfigError, ModelError
-from pipeline.model import (
+from pipeline.blocks import (
     Block,
     Deadband,
     FirstOrder,
     Gain,
-    Model,
     OperatingPointGain,
     Saturation,
     Sum,
     Term,
     Transfer,
-    insert_after,
-    insert_before,
-    scale_gain,
 )
+from pipeline.model import Model, insert_after, insert_before, scale_gain
 from pipeline.simulate import discrete_state_space, simulate
 
 __all__ = [

@@ -25,14 +25,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import polars as pl
 
-from pipeline.checks import cross_correlation_check, ljung_box, window_agreement
 from pipeline.conditioning import condition
 from pipeline.errors import (
     DataQualityError,
@@ -42,12 +41,13 @@ from pipeline.errors import (
     SingularSystemError,
 )
 from pipeline.estimate import estimate_step_responses
+from pipeline.job_summary import summarise
+from pipeline.job_types import Prepared, Recording, RunReport, Summary, WindowFailure
 from pipeline.normal_equations import good_segments
-from pipeline.prediction import innovations, residuals
-from pipeline.step_result import StepResponseEstimate, lag_times
-from pipeline.sampling import choose_sample_period, resample_average_masked
 from pipeline.progress import Tick, bar_of, silent
+from pipeline.sampling import choose_sample_period, resample_average_masked
 from pipeline.search import SearchResult, search
+
 
 __all__ = [
     "Recording",
@@ -80,99 +80,6 @@ def _quiet(stage: str, message: str) -> None:  # default progress sink
     pass
 
 
-# ------------------------------------------------------------------------ dataclasses
-@dataclass(frozen=True)
-class Recording:
-    """Signals of a job on one uniform grid, with quality masks.
-
-    ``values``/``good`` columns follow ``names`` (inputs first, then outputs).
-    """
-
-    names: tuple[str, ...]
-    roles: tuple[str, ...]
-    tags: tuple[str, ...]
-    time: np.ndarray  # datetime64[us] UTC, (N,)
-    dt_s: float
-    values: np.ndarray  # (N, k), NaN where masked
-    good: np.ndarray  # (N, k) bool
-    files: tuple[str, ...]
-    quality: dict  # per signal: counts of masked samples by reason + ingest stats
-    ingest: dict  # ingest report summary
-
-
-@dataclass(frozen=True)
-class Prepared:
-    """The record at the estimation sample period, conditioned."""
-
-    recording: Recording
-    dt_s: float
-    decimation: int
-    sampling: dict  # alpha_T choice (JSON-ready)
-    time: np.ndarray  # (N,) datetime64[us]
-    raw: np.ndarray  # (N, k) resampled, not conditioned (NaN where bad)
-    x: np.ndarray  # (N, n_x) conditioned inputs (NaN where bad)
-    y: np.ndarray  # (N, n_y) conditioned outputs (NaN where bad)
-    good: np.ndarray  # (N, k) bool
-    conditioning: dict
-    integrating: tuple[bool, ...]
-    r: np.ndarray | None = None  # (N, n_r) conditioned instruments (NaN where bad)
-
-    @property
-    def inputs(self) -> list[str]:
-        return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "input"]
-
-    @property
-    def outputs(self) -> list[str]:
-        return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "output"]
-
-    @property
-    def instruments(self) -> list[str]:
-        return [n for n, r in zip(self.recording.names, self.recording.roles)
-                if r == "instrument"]
-
-    @property
-    def good_xy(self) -> np.ndarray:
-        """Quality of the inputs and outputs (the estimator's mask)."""
-        return self.good[:, : len(self.inputs) + len(self.outputs)]
-
-
-@dataclass(frozen=True)
-class Summary:
-    """Everything a run writes, as tables and documents (no I/O yet)."""
-
-    step_responses: pl.DataFrame
-    signals: pl.DataFrame
-    residuals: pl.DataFrame
-    checks: dict
-    metrics: list
-    report_md: str
-    status: str
-
-
-@dataclass(frozen=True)
-class RunReport:
-    """What a run produced (printable)."""
-
-    job: str
-    run_id: str
-    run_dir: Path
-    status: str
-    dt_s: float
-    n_p: dict
-    n_d: int
-    verdicts: dict
-    files: tuple[str, ...]
-    recording: Path | None
-    timings_s: dict = field(default_factory=dict)
-
-    def __str__(self) -> str:
-        lines = [f"run {self.job}/{self.run_id}: {self.status}", f"  results: {self.run_dir}",
-                 f"  dt = {self.dt_s:g} s, N_d per window = {self.n_d}"]
-        for pair, v in self.verdicts.items():
-            lines.append(f"  {pair}: N_p={self.n_p[pair]}, windows {v}")
-        if self.recording:
-            lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
-        return "\n".join(lines)
 
 
 # -------------------------------------------------------------------------- stages
@@ -468,12 +375,6 @@ def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
         raise _named(exc, prep) from None
 
 
-@dataclass(frozen=True)
-class WindowFailure:
-    """A disjoint window that could not be estimated (recorded, not fatal)."""
-
-    window: tuple[int, int]
-    error: str
 
 
 def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
@@ -514,341 +415,6 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
         return WindowFailure(tuple(window), str(exc))
 
 
-_ABSOLUTE_TIMES = ("dead_time_s", "settling_time_s", "peak_time_s", "inverse_peak_time_s",
-                   "apparent_delay_s")
-
-
-def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
-    """Characteristic quantities of one pair (``{"error": ...}`` when none can be read).
-
-    The gain is the FIR model's own static gain, the final step ``step[n_p - 1]`` with
-    its std (the frequency response at zero; one definition everywhere), and the rate
-    of an integrating pair is the estimate's ``rate``.
-    """
-    from pipeline import characteristics as ch
-
-    n = int(est.n_p[i, j])
-    try:
-        if est.integrating[i]:
-            res = ch.integrating_characteristics(est.step[i, j, :n], dt_s=est.dt,
-                                                 step_std=est.step_std[i, j, :n],
-                                                 rate=float(est.rate[i, j]),
-                                                 rate_std=float(est.rate_std[i, j]))
-        else:
-            res = ch.self_regulating_characteristics(
-                est.step[i, j, :n], dt_s=est.dt, step_std=est.step_std[i, j, :n],
-                gain=float(est.step[i, j, n - 1]), gain_std=float(est.step_std[i, j, n - 1]))
-        out = res.to_dict()
-        # characteristics.py puts step[0] at t = 0; our lag times are (l - 1/2) dt
-        for key in _ABSOLUTE_TIMES:
-            if isinstance(out.get(key), float) and np.isfinite(out[key]):
-                out[key] += 0.5 * est.dt
-        return out
-    except PipelineError as exc:
-        return {"error": str(exc)}
-
-
-def _window_table(sr: SearchResult, window_results: list) -> tuple[list, list]:
-    labelled = [(f"w{k}", e) for k, e in enumerate(window_results)]
-    status = [{"window": lab, "samples": list(map(int, sr.windows[k])),
-               "status": "failed" if isinstance(e, WindowFailure) else "ok",
-               **({"error": e.error} if isinstance(e, WindowFailure) else {"n_d": int(e.n_d)})}
-              for k, (lab, e) in enumerate(labelled)]
-    return status, [(lab, e) for lab, e in labelled if not isinstance(e, WindowFailure)]
-
-
-def _step_table(ests: list[tuple[str, StepResponseEstimate]], outs, ins) -> pl.DataFrame:
-    rows = []
-    for label, est in ests:
-        P = est.step.shape[2]
-        t = lag_times(P, est.dt)
-        for i, o in enumerate(outs):
-            for j, u in enumerate(ins):
-                n = int(est.n_p[i, j])
-                rows.append(pl.DataFrame({
-                    "window": [label] * n, "output": [o] * n, "input": [u] * n,
-                    "lag": np.arange(1, n + 1, dtype=np.int32), "time_s": t[:n],
-                    "delta_h": est.delta_h[i, j, :n], "step": est.step[i, j, :n],
-                    "step_std": est.step_std[i, j, :n],
-                    "n_p": np.full(n, n, dtype=np.int32),
-                    "n_d": np.full(n, est.n_d, dtype=np.int32),
-                    "dt_s": np.full(n, est.dt)}))
-    return pl.concat(rows)
-
-
-def _pair_metrics(o: str, u: str, pair: dict) -> list[dict]:
-    """One row per metric of a pair (unique names: what the catalog trends)."""
-    vals = {"gain": pair["gain"], "gain_std": pair["gain_std"], "rate": pair["rate"],
-            "rate_std": pair["rate_std"],
-            "agreement_statistic": pair["agreement"].get("statistic"),
-            "agreement_p_value": pair["agreement"].get("p_value")}
-    for k, v in pair["characteristics"].items():
-        if k not in vals and isinstance(v, (int, float)) and not isinstance(v, bool):
-            vals[k] = v
-    return [{"window": "all", "output": o, "input": u, "metric": k, "value": float(v)}
-            for k, v in vals.items() if v is not None and np.isfinite(v)]
-
-
-def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
-              window_results: list) -> Summary:
-    """Tables, checks and the report of a run (pure: no I/O).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    prep : Prepared
-        The conditioned record.
-    sr : SearchResult
-        The order search's outcome.
-    all_est : StepResponseEstimate
-        The estimate on every usable sample.
-    window_results : list of StepResponseEstimate or WindowFailure
-        One per ``sr.windows``, in order.
-    """
-    from pipeline.verdicts import end_jump_z, pair_warnings
-
-    ins, outs = prep.inputs, prep.outputs
-    window_status, labelled = _window_table(sr, window_results)
-    window_ests = [e for _, e in labelled]
-    steps = _step_table([("all", all_est)] + labelled, outs, ins)
-    agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
-        [[None] * len(ins) for _ in outs]
-    # residuals and one-step prediction errors of the all-data estimate; NaN where any
-    # sample they need is masked
-    x0, y0 = np.nan_to_num(prep.x), np.nan_to_num(prep.y)
-    bad = ~prep.good_xy.all(axis=1)
-    P = int(all_est.n_p.max())
-    touched = np.convolve(bad.astype(float), np.ones(P + 1))[: bad.size] > 0
-    res = residuals(all_est, x0, y0)
-    res[touched] = np.nan
-    innov = innovations(all_est, x0, y0, good=~touched)
-    tags = cfg.tags()
-    pairs = []
-    metrics = []
-    xcorr = {}
-    whiteness = {}
-    for i, o in enumerate(outs):
-        lb = ljung_box(innov[:, i], lags=cfg.checks.ljung_box_lags)
-        whiteness[o] = {k: lb[k] for k in ("statistic", "p_value", "lags", "white")}
-        whiteness[o]["of"] = "residuals" if all_est.noise_model[i].order == 0 and \
-            all_est.noise_model[i].form != "level" else "prediction errors (noise model)"
-        nm = all_est.noise_model[i].to_dict()
-        for j, u in enumerate(ins):
-            n = int(all_est.n_p[i, j])
-            a = agreement[i][j]
-            agr = a.to_dict() if a is not None else {
-                "statistic": None, "p_value": None, "verdict": "insufficient_data",
-                "n_windows": len(window_ests)}
-            xc = cross_correlation_check(x0[:, j], innov[:, i],
-                                         max_lag=cfg.checks.xcorr_max_lag or n)
-            xcorr[f"{o}<-{u}"] = {k: xc[k] for k in ("band", "fraction_outside", "max_abs_r",
-                                                     "statistic", "p_value", "ok")}
-            chars = _characteristics(all_est, i, j)
-            fb = sr.feedback[i][j] if sr.feedback else None
-            fbd = fb.to_dict() if fb is not None else None
-            integ = bool(all_est.integrating[i])
-            pair = {"output": o, "input": u, "n_p": n, "n_k": int(all_est.n_k[i, j]),
-                    "settled": bool(sr.settled[i, j]), "integrating": integ,
-                    "gain": None if integ else float(all_est.step[i, j, n - 1]),
-                    "gain_std": None if integ else float(all_est.step_std[i, j, n - 1]),
-                    "rate": float(all_est.rate[i, j]) if integ else None,
-                    "rate_std": float(all_est.rate_std[i, j]) if integ else None,
-                    "method": all_est.method,
-                    "agreement": agr, "feedback": fbd, "characteristics": chars}
-            pair["warnings"] = pair_warnings(
-                inp=u, out=o, tag_in=tags[u], tag_out=tags[o], noise=cfg.estimation.noise,
-                noise_model=nm, whiteness_p=lb["p_value"], feedback=fbd,
-                feedback_mode=cfg.estimation.feedback, instruments=prep.instruments,
-                n_k=pair["n_k"], n_p=n, n_p_min=cfg.search.n_p_min,
-                settled=pair["settled"], significant=_significant(pair), dt_s=prep.dt_s,
-                end_jump=end_jump_z(*_settling_increments(all_est, i, j)),
-                agreement=agr)
-            pairs.append(pair)
-            metrics += _pair_metrics(o, u, pair)
-    d = all_est.diagnostics
-    checks = {
-        "dt_s": prep.dt_s,
-        "sampling": prep.sampling,
-        "conditioning": prep.conditioning,
-        "estimation": {"method": all_est.method, "noise": cfg.estimation.noise,
-                       "feedback": cfg.estimation.feedback,
-                       "instruments": {r: tags[r] for r in prep.instruments},
-                       **({"first_stage": {ins[k]: v for k, v in
-                                           all_est.extra["first_stage"].items()
-                                           if k < len(ins)}}
-                          if "first_stage" in all_est.extra else {})},
-        "noise_model": {o: all_est.noise_model[i].to_dict() for i, o in enumerate(outs)},
-        "search": {
-            "n_p": {f"{outs[i]}<-{ins[j]}": int(sr.n_p[i, j])
-                    for i in range(len(outs)) for j in range(len(ins))},
-            "n_k": {f"{outs[i]}<-{ins[j]}": int(all_est.n_k[i, j])
-                    for i in range(len(outs)) for j in range(len(ins))},
-            "n_d": sr.n_d, "window_samples": sr.window_samples,
-            "windows": window_status,
-            "bic_order": None if sr.bic_order is None else
-            {outs[i]: int(v) for i, v in enumerate(sr.bic_order)},
-            "noise_model_at_n_p_max": {outs[i]: m.to_dict()
-                                       for i, m in enumerate(sr.noise_model)},
-            "order_trace": _named_trace(sr.order_trace, outs, ins),
-            "nd_trace": _named_trace(sr.nd_trace, outs, ins),
-        },
-        "pairs": pairs,
-        "residuals": {
-            "whiteness": whiteness,
-            "input_cross_correlation": xcorr,
-        },
-        "excitation": {
-            "condition_number": d.condition_number,
-            "input_rms": {u: float(v) for u, v in zip(ins, d.input_rms)},
-            "input_correlation": {ins[a]: {ins[b]: float(d.input_correlation[a, b])
-                                           for b in range(len(ins))} for a in range(len(ins))},
-            "vif": {u: float(v) for u, v in zip(ins, d.vif)},
-            "near_collinear": [{"inputs": [ins[a], ins[b]], "correlation": c}
-                               for a, b, c in d.near_collinear],
-        },
-        "data_quality": {
-            "grid_dt_s": prep.recording.dt_s,
-            "samples_at_dt": int(prep.good.shape[0]),
-            "samples_used_all": int(all_est.n_d),
-            "signals": prep.recording.quality,
-            "ingest": prep.recording.ingest,
-        },
-    }
-    status = "ok"
-    if any(p["agreement"]["verdict"] == "fail" for p in pairs):
-        status = "windows_disagree"
-    sig = _signals_table(prep)
-    rtab = pl.DataFrame({
-        "window": ["all"] * (res.shape[0] * len(outs)),
-        "time": np.concatenate([prep.time] * len(outs)),
-        "output": np.repeat(outs, res.shape[0]),
-        "residual": res.T.ravel()}).with_columns(
-            pl.col("time").cast(pl.Datetime("us", "UTC"))).filter(
-                pl.col("residual").is_not_nan())  # undefined where lags touch a gap
-    report = _report_md(cfg, prep, sr, pairs, checks, status)
-    return Summary(steps, sig, rtab, checks, metrics, report, status)
-
-
-def _settling_increments(est: StepResponseEstimate, i: int, j: int):
-    """The increments that must die out and their stds: ``delta_h`` for a self-regulating
-    pair, ``delta_g`` (the change of slope) for an integrating one — from the step
-    covariance, so a level-form pair's precise final slope is compared with the noisy
-    transient slopes before it as a difference, not as a value."""
-    n = int(est.n_p[i, j])
-    D = np.eye(n) - np.eye(n, k=-1)
-    T = D @ D if est.integrating[i] else D
-    inc = T @ est.step[i, j, :n]
-    if est.step_cov is None:
-        return inc, (est.delta_h_std[i, j, :n] if not est.integrating[i] else
-                     np.full(n, np.inf))
-    var = np.einsum("ab,bc,ac->a", T, est.step_cov[i, j, :n, :n], T)
-    return inc, np.sqrt(np.clip(var, 0, None))
-
-
-def _significant(pair: dict) -> bool:
-    """The pair's gain (rate) is more than 2 standard deviations from zero."""
-    v, s = (pair["rate"], pair["rate_std"]) if pair["integrating"] else \
-        (pair["gain"], pair["gain_std"])
-    return bool(abs(v) > 2 * s)
-
-
-def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
-    out = []
-    for t in trace:
-        t = dict(t)
-        if "pairs" in t:
-            t["pairs"] = [{**p, "output": outs[p["output"]], "input": ins[p["input"]]}
-                          for p in t["pairs"]]
-        out.append(t)
-    return out
-
-
-def _signals_table(prep: Prepared) -> pl.DataFrame:
-    rec = prep.recording
-    cond = np.concatenate([prep.x, prep.y] + ([prep.r] if prep.r is not None else []), axis=1)
-    frames = []
-    for k, (name, role) in enumerate(zip(rec.names, rec.roles)):
-        frames.append(pl.DataFrame({
-            "time": prep.time, "signal": [name] * prep.time.size,
-            "role": [role] * prep.time.size,
-            "raw": prep.raw[:, k], "conditioned": cond[:, k],
-            "good": prep.good[:, k]}).with_columns(
-                pl.col("raw").fill_nan(None), pl.col("conditioned").fill_nan(None)))
-    return pl.concat(frames).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
-
-
-def _unit(cfg, name: str) -> str:
-    s = {**cfg.signals.inputs, **cfg.signals.outputs}.get(name)
-    return (s.unit if s is not None and s.unit else "")
-
-
-def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
-               status: str) -> str:
-    est = checks["estimation"]
-    method = {"least_squares": "least squares, white-noise assumption (the thesis)",
-              "prediction_error": "least squares with a noise model per output "
-                                  "(prediction-error method)",
-              "instrumental_variables": "instrumental variables ("
-                                        + ", ".join(est["instruments"]) + ")"}[est["method"]]
-    lines = [f"# plantdyn run: {cfg.job}", "",
-             f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
-             f"(decimation {prep.decimation} from the {prep.recording.dt_s:g} s grid, "
-             f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
-             f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
-             f"Estimator: {method}.", "",
-             "| output | input | N_p | N_p·T (s) | gain ± σ | rate K ± σ (/s) | windows (p) "
-             "| feedback (p) | warnings |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for p in pairs:
-        uo, ui = _unit(cfg, p["output"]), _unit(cfg, p["input"])
-        unit = f" {uo}/{ui}" if uo and ui else ""
-        gain = "" if p["gain"] is None else f"{p['gain']:.4g} ± {p['gain_std']:.2g}{unit}"
-        rate = "" if p["rate"] is None else f"{p['rate']:.4g} ± {p['rate_std']:.2g}"
-        a = p["agreement"]
-        agr = a["verdict"] + (f" ({a['p_value']:.2g})" if a.get("p_value") is not None else "")
-        fb = p["feedback"]
-        fbs = "not tested" if fb is None else \
-            (f"**yes** ({fb['p_value']:.2g})" if fb["detected"] else f"no ({fb['p_value']:.2g})")
-        codes = ", ".join(w["code"] for w in p["warnings"]) or "none"
-        lines.append(f"| {p['output']} | {p['input']} | {p['n_p']} | {p['n_p'] * prep.dt_s:g} "
-                     f"| {gain} | {rate} | {agr} | {fbs} | {codes} |")
-    lines += ["", "Noise models (per output, chosen from the data):", ""]
-    for o, nm in checks["noise_model"].items():
-        pole = nm.get("dominant_pole")
-        kind = "white" if nm["order"] == 0 else f"AR({nm['order']})" + \
-            (f", slowest pole {pole:.3f}" if pole is not None else "")
-        lines.append(f"- {o}: {kind}, {nm['form']} form, innovation σ "
-                     f"{nm['innovation_std']:.3g}; prediction errors "
-                     f"{'white' if checks['residuals']['whiteness'][o]['white'] else 'NOT white'}"
-                     f" (Ljung–Box p = {_fmt_p(checks['residuals']['whiteness'][o]['p_value'])})")
-    warned = [p for p in pairs if p["warnings"]]
-    lines += ["", "## When to distrust a pair", ""]
-    if not warned:
-        lines.append("No warnings: residuals white under the noise models, no feedback "
-                     "without an instrument, N_p inside its bounds, windows agree.")
-    for p in warned:
-        for w in p["warnings"]:
-            lines.append(f"- **{p['output']}<-{p['input']}** ({w['code']}): {w['message']}.")
-    masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
-    lines += ["", f"Masked grid samples per signal: {masked or 'none'}."]
-    grid = prep.recording.ingest.get("grid", {})
-    if len(grid.get("islands", [])) > 1:
-        lines.append(f"The record has {len(grid['islands'])} stretches separated by breaks "
-                     "longer than every signal's max_gap_s (not gridded).")
-    for name, sp in prep.recording.ingest.get("spikes", {}).items():
-        lines.append(f"Spikes masked in {name}: {sp['samples']} sample(s) far from their "
-                     f"neighbours (largest |value| {sp['largest']:.4g}, first at {sp['first']}); "
-                     "quality.spikes: off keeps them.")
-    for d in grid.get("stray_samples", []):
-        lines.append(f"Stray samples left out: {d['samples']} of {d['signal']} (tag {d['tag']}) "
-                     f"between {d['first']} and {d['last']}, far from the rest of the record "
-                     "— check the export's timestamps.")
-    return "\n".join(lines) + "\n"
-
-
-def _fmt_p(p) -> str:
-    return "n/a" if p is None else f"{p:.2g}"
 
 
 def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, float],

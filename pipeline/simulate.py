@@ -53,13 +53,8 @@ import numpy as np
 import scipy.signal
 
 from pipeline.errors import ConfigError, DataQualityError, ModelError
-from pipeline.model import (
-    Block,
-    Deadband,
-    Model,
-    OperatingPointGain,
-    Saturation,
-)
+from pipeline.blocks import Block, Deadband, OperatingPointGain, Saturation
+from pipeline.model import Model
 
 __all__ = [
     "DiscreteStateSpace",

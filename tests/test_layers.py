@@ -18,7 +18,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = ROOT / "pipeline"
-COMPOSITION = {"jobs", "discrepancy_job", "nightly", "demo"}
+COMPOSITION = {"jobs", "job_types", "job_summary", "discrepancy_job", "nightly", "demo"}
 """``pipeline`` modules that compose adapters and core (design.md layer 3)."""
 CORE_PACKAGES = ("discrepancy",)
 """Subpackages of ``pipeline`` that belong to the core."""

@@ -12,18 +12,20 @@ import pytest
 import yaml
 
 from pipeline.errors import ConfigError, ModelError
-from pipeline.model import (
+from pipeline.blocks import (
     BLOCK_TYPES,
     PI,
     PID,
     Deadband,
     FirstOrder,
     Gain,
-    Model,
     Saturation,
     Sum,
     Term,
     Transfer,
+)
+from pipeline.model import (
+    Model,
     insert_after,
     insert_before,
     model_from_dict,

@@ -22,17 +22,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.errors import ConfigError, DataQualityError, ModelError
-from pipeline.model import (
-    Deadband,
-    FirstOrder,
-    Gain,
-    Model,
-    Saturation,
-    Term,
-    insert_after,
-    insert_before,
-    model_from_dict,
-)
+from pipeline.blocks import Deadband, FirstOrder, Gain, Saturation, Term
+from pipeline.model import Model, insert_after, insert_before, model_from_dict
 from pipeline.simulate import (
     MAX_LIFTED_STATES,
     discrete_state_space,

@@ -17,7 +17,8 @@ from pipeline.discrepancy.localise import lag_filter
 from pipeline.discrepancy.problem import Problem
 from pipeline.effects import Effect, applicable_locations, predict_outputs
 from pipeline.errors import PipelineError
-from pipeline.model import Model, Sum, Term, insert_after, insert_before
+from pipeline.blocks import Sum, Term
+from pipeline.model import Model, insert_after, insert_before
 from pipeline.simulate import discrete_state_space, simulate
 
 

@@ -22,15 +22,8 @@ import numpy as np
 import scipy.signal
 import yaml
 
-from pipeline.model import (
-    Deadband,
-    Model,
-    Saturation,
-    Term,
-    insert_after,
-    insert_before,
-    model_from_dict,
-)
+from pipeline.blocks import Deadband, Saturation, Term
+from pipeline.model import Model, insert_after, insert_before, model_from_dict
 from pipeline.simulate import discrete_state_space, simulate
 
 MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"

@@ -1,0 +1,114 @@
+"""What the estimation job's stages hand each other: recording, prepared data, summary, report."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import polars as pl
+
+from pipeline.prediction import residuals
+
+
+@dataclass(frozen=True)
+class Recording:
+    """Signals of a job on one uniform grid, with quality masks.
+
+    ``values``/``good`` columns follow ``names`` (inputs first, then outputs).
+    """
+
+    names: tuple[str, ...]
+    roles: tuple[str, ...]
+    tags: tuple[str, ...]
+    time: np.ndarray  # datetime64[us] UTC, (N,)
+    dt_s: float
+    values: np.ndarray  # (N, k), NaN where masked
+    good: np.ndarray  # (N, k) bool
+    files: tuple[str, ...]
+    quality: dict  # per signal: counts of masked samples by reason + ingest stats
+    ingest: dict  # ingest report summary
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """The record at the estimation sample period, conditioned."""
+
+    recording: Recording
+    dt_s: float
+    decimation: int
+    sampling: dict  # alpha_T choice (JSON-ready)
+    time: np.ndarray  # (N,) datetime64[us]
+    raw: np.ndarray  # (N, k) resampled, not conditioned (NaN where bad)
+    x: np.ndarray  # (N, n_x) conditioned inputs (NaN where bad)
+    y: np.ndarray  # (N, n_y) conditioned outputs (NaN where bad)
+    good: np.ndarray  # (N, k) bool
+    conditioning: dict
+    integrating: tuple[bool, ...]
+    r: np.ndarray | None = None  # (N, n_r) conditioned instruments (NaN where bad)
+
+    @property
+    def inputs(self) -> list[str]:
+        return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "input"]
+
+    @property
+    def outputs(self) -> list[str]:
+        return [n for n, r in zip(self.recording.names, self.recording.roles) if r == "output"]
+
+    @property
+    def instruments(self) -> list[str]:
+        return [n for n, r in zip(self.recording.names, self.recording.roles)
+                if r == "instrument"]
+
+    @property
+    def good_xy(self) -> np.ndarray:
+        """Quality of the inputs and outputs (the estimator's mask)."""
+        return self.good[:, : len(self.inputs) + len(self.outputs)]
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Everything a run writes, as tables and documents (no I/O yet)."""
+
+    step_responses: pl.DataFrame
+    signals: pl.DataFrame
+    residuals: pl.DataFrame
+    checks: dict
+    metrics: list
+    report_md: str
+    status: str
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """What a run produced (printable)."""
+
+    job: str
+    run_id: str
+    run_dir: Path
+    status: str
+    dt_s: float
+    n_p: dict
+    n_d: int
+    verdicts: dict
+    files: tuple[str, ...]
+    recording: Path | None
+    timings_s: dict = field(default_factory=dict)
+
+    def __str__(self) -> str:
+        lines = [f"run {self.job}/{self.run_id}: {self.status}", f"  results: {self.run_dir}",
+                 f"  dt = {self.dt_s:g} s, N_d per window = {self.n_d}"]
+        for pair, v in self.verdicts.items():
+            lines.append(f"  {pair}: N_p={self.n_p[pair]}, windows {v}")
+        if self.recording:
+            lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class WindowFailure:
+    """A disjoint window that could not be estimated (recorded, not fatal)."""
+
+    window: tuple[int, int]
+    error: str
