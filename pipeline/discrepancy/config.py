@@ -20,7 +20,7 @@ class DiscrepancyConfig:
     holdout_fraction : float
         Last fraction of the record held out for selection and the gap, in (0.1, 0.6).
     warmup_s : float or None
-        Samples at the start ignored by every criterion (the simulation starts at rest
+        Time (s) at the start ignored by every criterion (the simulation starts at rest
         while the plant may not).  None: three times the model's 2 % settling time (an
         initial-state mismatch decays to ~1e-5 of itself for a first-order lag; 2 % would
         leave a transient that real records, which never start at rest, show as a
