@@ -634,16 +634,3 @@ def _too_short(n: int, P: int, extra: int):
         f"observations for n_p={P} (needs {need} samples); supply more data or lower "
         "n_p_max"
     )
-
-
-def agreement_table(agreement: list[list[AgreementResult]]) -> list[dict]:
-    """Flatten ``[output][input]`` agreement results into JSON-ready rows.
-
-    Parameters
-    ----------
-    agreement : list of list of AgreementResult
-        Verdicts ``[output][input]`` (:attr:`SearchResult.agreement`); rows carry the
-        indices as ``output`` and ``input``.
-    """
-    return [{"output": i, "input": j, **a.to_dict()}
-            for i, row in enumerate(agreement) for j, a in enumerate(row)]

@@ -10,7 +10,9 @@ import scipy.linalg
 import scipy.optimize
 
 from pipeline.errors import SingularSystemError
-from pipeline.step_result import RCOND_SINGULAR
+
+# Relative pivot size below which A counts as singular (rank deficient).
+RCOND_SINGULAR = 1e-12
 
 
 def unknown_index(n_p_row: np.ndarray, n_x: int, n_k_row: np.ndarray | None = None,

@@ -13,10 +13,6 @@ from pipeline.errors import ConfigError
 from pipeline.normal_equations import NormalEquations
 
 
-# Relative pivot size below which A counts as singular (rank deficient).
-RCOND_SINGULAR = 1e-12
-# Variance inflation factor above which inputs count as near-collinear.
-VIF_WARN = 10.0
 
 
 def lag_times(n_p: int, dt: float) -> np.ndarray:
