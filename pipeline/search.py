@@ -503,6 +503,64 @@ def search(
     y = y[:, None] if y.ndim == 1 else y
     n, n_x = x.shape
     n_y = y.shape[1]
+    order, n_p_max, fixed, P0, extra = _checked_setup(
+        x, y, n_p=n_p, n_p_max=n_p_max, n_p_min=n_p_min, noise=noise, feedback=feedback,
+        integrating=integrating, mask=mask, instruments=instruments)
+    nk = np.broadcast_to(np.asarray(n_k, dtype=int), (n_y, n_x)).copy()
+    # progress: stage 1 counts its fits (a noise model: one at n_p_max and ~16
+    # candidates and ~16 refinements; white: one nested solve), stage 2 its window
+    # lengths (doublings)
+    stage2 = max(1, int(np.log2(max(n / (2 * 10 * max(n_p_min, 1)), 1.0))) + 1)
+    steps = [0, (1 if fixed is not None or order == 0 else 34) + stage2]
+
+    def step() -> None:
+        steps[0] += 1
+        steps[1] = max(steps[1], steps[0] + 1)
+        tick(steps[0], steps[1])
+
+    tick(0, steps[1])
+    ctx, est_max, fb = None, None, []
+    if order != 0 or feedback != "off":
+        ctx, est_max, fb = _at_n_p_max(x, y, integrating=integrating, mask=mask, P0=P0,
+                                       fixed=fixed, nk=nk, dt=dt, noise=noise, order=order,
+                                       feedback=feedback, instruments=instruments)
+    noise_models = est_max.noise_model if est_max is not None else ()
+    if fixed is None:
+        npm, settled, order_trace, bic_order = _stage1_orders(
+            x, y, ctx, est_max, order=order, n_p_max=n_p_max, P0=P0, dt=dt,
+            n_p_min=max(n_p_min, int(np.max(n_k)) + 1), nk=nk, integrating=integrating,
+            mask=mask, fit_cap=(n // 2 + 1 - extra) // 11, step=step)
+    else:
+        npm, settled = fixed, np.ones((n_y, n_x), dtype=bool)
+        order_trace, bic_order = [], None
+    nk = np.minimum(nk, npm - 1)
+    P = int(npm.max())
+    n_d = int(n_d_start or 10 * P)
+    kw = {"noise": noise, "n_k": nk, "instruments": instruments}
+    stage2_left = 1 + sum(1 for k in range(1, 30) if 2 * (2**k * n_d + P - 1 + extra) <= n)
+    steps[1] = steps[0] + stage2_left + 1
+    chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d, P=P,
+                                      extra=extra, step=step)
+    if chosen is None:
+        _too_short(n, P, extra)
+    tick(steps[1], steps[1])
+    n_d, length = chosen
+    wins = split_windows_by_length(n, length, max_windows)
+    agreement = []
+    if estimate_windows:
+        agreement = window_agreement(
+            _usable_window_estimates(x, y, mask, wins, npm, dt, integrating, **kw))
+    return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
+                        bic_order, wins, nk, fb, noise_models, noise,
+                        instruments is not None)
+
+
+def _checked_setup(x, y, *, n_p, n_p_max, n_p_min: int, noise, feedback: str, integrating,
+                   mask, instruments):
+    """Arguments checked before any fit: the noise order, ``n_p_max``, fixed orders, the
+    largest order and the integrating extra sample; a useless instrument is an error here."""
+    n, n_x = x.shape
+    n_y = y.shape[1]
     if feedback not in ("auto", "report", "off"):
         raise ConfigError(f"feedback={feedback!r} is not allowed; use 'auto', 'report' or 'off'")
     order = noise_order(noise)
@@ -527,62 +585,57 @@ def search(
         check_instruments(lag_gram_context(x, y, integrating=integrating, mask=mask,
                                            instruments=instruments, n_lags=2 * P0 + 1,
                                            level_form=False), P0)
-    nk = np.broadcast_to(np.asarray(n_k, dtype=int), (n_y, n_x)).copy()
-    # progress: stage 1 counts its fits (a noise model: one at n_p_max and ~16
-    # candidates and ~16 refinements; white: one nested solve), stage 2 its window
-    # lengths (doublings)
-    stage2 = max(1, int(np.log2(max(n / (2 * 10 * max(n_p_min, 1)), 1.0))) + 1)
-    steps = [0, (1 if fixed is not None or order == 0 else 34) + stage2]
+    return order, n_p_max, fixed, P0, extra
 
-    def step() -> None:
-        steps[0] += 1
-        steps[1] = max(steps[1], steps[0] + 1)
-        tick(steps[0], steps[1])
 
-    tick(0, steps[1])
-    fb: list = []
-    noise_models: tuple = ()
-    ctx = None
-    if order != 0 or feedback != "off":
-        # one lag Gram for the noise models, the feedback test and stage 1
-        leads = FEEDBACK_LEADS if feedback != "off" else 0
-        ctx = lag_gram_context(x, y, integrating=integrating, mask=mask,
-                               n_lags=lags_needed(np.array([[P0]]), False,
-                                                   None if order == 0 else order, leads))
-        at_max = fixed if fixed is not None else np.full((n_y, n_x), P0)
-        est_max = estimate_from_context(ctx, n_p=at_max, n_k=_clip_n_k(nk, P0, n_y, n_x),
-                                        dt=dt, noise=NOISE_AUTO if order == 0 else noise,
-                                        use_instruments=False)
-        noise_models = est_max.noise_model
-        if feedback != "off":
-            fb = feedback_test(ctx, n_p=at_max, n_k=nk, noise_models=noise_models, leads=leads)
-            if feedback == "auto" and instruments is None:
-                for i in range(n_y):
-                    for j in range(n_x):
-                        if fb[i][j] is not None and fb[i][j].detected:
-                            nk[i, j] = max(nk[i, j], 1)
-    if fixed is None and order == 0:
+def _stage1_orders(x, y, ctx, est_max, *, order, n_p_max: int, P0: int, dt: float,
+                   n_p_min: int, nk: np.ndarray, integrating, mask, fit_cap: int, step):
+    """Stage 1: N_p per pair, by the thesis' nested least squares (white noise) or with
+    the noise models found at ``n_p_max``."""
+    if order == 0:
         ne = normal_equations(x, y, n_p_max=n_p_max, integrating=integrating, mask=mask)
-        npm, settled, order_trace, bic_order = choose_orders(
-            ne, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk)
+        out = choose_orders(ne, dt=dt, n_p_min=n_p_min, n_k=nk)
         step()
-    elif fixed is None:
-        npm, settled, order_trace, bic_order = _noise_model_orders(
-            ctx, P=P0, dt=dt, n_p_min=max(n_p_min, int(np.max(n_k)) + 1), n_k=nk,
-            forms=[m.form for m in noise_models], d_fixed=[m.d for m in noise_models],
-            sigma2=est_max.sigma2, fit_cap=(n // 2 + 1 - extra) // 11, on_fit=step)
-    else:
-        npm = fixed
-        settled = np.ones((n_y, n_x), dtype=bool)
-        order_trace, bic_order = [], None
-    nk = np.minimum(nk, npm - 1)
-    P = int(npm.max())
-    n_d = int(n_d_start or 10 * P)
-    nd_trace = []
+        return out
+    models = est_max.noise_model
+    return _noise_model_orders(
+        ctx, P=P0, dt=dt, n_p_min=n_p_min, n_k=nk, forms=[m.form for m in models],
+        d_fixed=[m.d for m in models], sigma2=est_max.sigma2, fit_cap=fit_cap, on_fit=step)
+
+
+def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: float, noise,
+                order: int | None, feedback: str, instruments):
+    """One lag Gram for the noise models, the feedback test and stage 1; the fit at
+    ``n_p_max`` (its noise models); the feedback test, which under ``feedback="auto"``
+    without instruments sets ``nk >= 1`` in place for pairs with feedback."""
+    n_y, n_x = y.shape[1], x.shape[1]
+    leads = FEEDBACK_LEADS if feedback != "off" else 0
+    ctx = lag_gram_context(x, y, integrating=integrating, mask=mask,
+                           n_lags=lags_needed(np.array([[P0]]), False,
+                                               None if order == 0 else order, leads))
+    at_max = fixed if fixed is not None else np.full((n_y, n_x), P0)
+    est_max = estimate_from_context(ctx, n_p=at_max, n_k=_clip_n_k(nk, P0, n_y, n_x),
+                                    dt=dt, noise=NOISE_AUTO if order == 0 else noise,
+                                    use_instruments=False)
+    fb: list = []
+    if feedback != "off":
+        fb = feedback_test(ctx, n_p=at_max, n_k=nk, noise_models=est_max.noise_model,
+                           leads=leads)
+        if feedback == "auto" and instruments is None:
+            for i in range(n_y):
+                for j in range(n_x):
+                    if fb[i][j] is not None and fb[i][j].detected:
+                        nk[i, j] = max(nk[i, j], 1)
+    return ctx, est_max, fb
+
+
+def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,
+                   n_d: int, P: int, extra: int, step) -> tuple[tuple[int, int] | None, list]:
+    """Stage 2: N_d doubled from ``n_d`` until two disjoint windows agree or data runs
+    out; the chosen ``(n_d, window samples)`` (None: no two windows fit) and the trace."""
+    n, n_y, n_x = x.shape[0], y.shape[1], x.shape[1]
+    nd_trace: list = []
     chosen = None
-    kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    stage2_left = 1 + sum(1 for k in range(1, 30) if 2 * (2**k * n_d + P - 1 + extra) <= n)
-    steps[1] = steps[0] + stage2_left + 1
     while True:
         length = n_d + P - 1 + extra
         wins = split_windows_by_length(n, length, 2)
@@ -613,18 +666,7 @@ def search(
         if 2 * (2 * n_d + P - 1 + extra) > n:
             break
         n_d *= 2
-    if chosen is None:
-        _too_short(n, P, extra)
-    tick(steps[1], steps[1])
-    n_d, length = chosen
-    wins = split_windows_by_length(n, length, max_windows)
-    agreement = []
-    if estimate_windows:
-        agreement = window_agreement(
-            _usable_window_estimates(x, y, mask, wins, npm, dt, integrating, **kw))
-    return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
-                        bic_order, wins, nk, fb, noise_models, noise,
-                        instruments is not None)
+    return chosen, nd_trace
 
 
 def _too_short(n: int, P: int, extra: int):
