@@ -333,6 +333,92 @@ def _grid_signal(
     return values, ok, dict(sorted(reasons.items()))
 
 
+def _specs_for(signals, slices: Mapping[str, tuple[int, int]], default_interpolation: str,
+               default_max_gap_s: float | None) -> dict[str, Any]:
+    """Each gridded signal's spec (interpolation, longest bridged gap), checked against
+    the signals the table has."""
+    present = list(slices)  # sorted by name
+    if signals is None:
+        items: Any = ((s, None) for s in present)
+    elif isinstance(signals, Mapping):
+        items = signals.items()
+    else:
+        items = ((s, None) for s in signals)
+    specs = {
+        name: _spec(raw, name, default_interpolation, default_max_gap_s) for name, raw in items
+    }
+    if not specs:
+        raise DataQualityError("to_grid: the table has no signals")
+    # Slices of the signal-sorted table: zero-copy views, one signal in memory at a time.
+    missing = [s for s in specs if s not in slices]
+    if missing:
+        raise IngestError(
+            f"signal(s) {missing} are not in the recording; it has {present}; fix "
+            f"the tag names in the job's signals section"
+        )
+    return specs
+
+
+def _fill_signals(table: pl.DataFrame, g: np.ndarray, breaks: list[int], names: tuple,
+                  bounds: Mapping[str, tuple[int, int]], specs: Mapping[str, Any],
+                  mask_suspect: bool):
+    """Values, good mask and mask reasons of every signal on the grid instants ``g``,
+    one signal in memory at a time; the break points between islands are gaps."""
+    n = g.size
+    values = np.empty((n, len(names)))
+    good = np.empty((n, len(names)), dtype=bool)
+    reasons: dict[str, dict[str, int]] = {}
+    for k, name in enumerate(names):
+        lo, m = bounds[name]
+        t, v, usable, label = _signal_arrays(table.slice(lo, m), mask_suspect)
+        values[:, k], good[:, k], reasons[name] = _grid_signal(g, t, v, usable, label, specs[name])
+        if breaks:  # a break point is a gap, whatever its neighbours say
+            was = good[breaks, k]
+            values[breaks, k] = np.nan
+            good[breaks, k] = False
+            r = reasons[name]
+            r[_REASON_GAP] = r.get(_REASON_GAP, 0) + int(was.sum())
+            reasons[name] = dict(sorted(r.items()))
+        del t, v, usable, label
+    return values, good, reasons
+
+
+def _span_us(table: pl.DataFrame, bounds: Mapping[str, tuple[int, int]], start, end
+             ) -> tuple[int, int]:
+    """Grid start and end (µs): as given, else the earliest / latest sample of the gridded
+    signals."""
+    if start is None or end is None:
+        firsts, lasts = [], []
+        tcol = table["time"]
+        for lo, n in bounds.values():
+            # min/max, not the first/last row: a hand-made table may be unsorted in time.
+            part = tcol.slice(lo, n)
+            firsts.append(part.min())
+            lasts.append(part.max())
+    if start is not None:
+        start_us = _to_us(start, "start")
+    else:
+        start_us = min(_to_us(x, "start") for x in firsts)
+    end_us = _to_us(end, "end") if end is not None else max(_to_us(x, "end") for x in lasts)
+    if end_us < start_us:
+        raise ConfigError(f"end ({end}) is before start ({start}); give end >= start")
+    return start_us, end_us
+
+
+def _grid_instants(islands: list[tuple[int, int]], start_us: int, dt_us: int
+                   ) -> tuple[np.ndarray, list[int]]:
+    """Grid instants (µs): each island's uniform points, with one (masked) break point
+    between islands; and the break points' indices."""
+    parts = []
+    breaks = []
+    for k, (k0, k1) in enumerate(islands):
+        if k:
+            breaks.append(sum(p.size for p in parts))
+            parts.append(np.array([start_us + (islands[k - 1][1] + 1) * dt_us], dtype=np.int64))
+        parts.append(start_us + np.arange(k0, k1 + 1, dtype=np.int64) * dt_us)
+    return np.concatenate(parts), breaks
+
+
 def to_grid(
     table: pl.DataFrame,
     *,
@@ -397,41 +483,9 @@ def to_grid(
         raise ConfigError(f"dt_s={dt_s!r} must be a whole number of microseconds (>= 1e-6 s)")
     table = _canonical_times(table)
     slices = signal_slices(table)
-    present = list(slices)  # sorted by name
-    if signals is None:
-        items: Any = ((s, None) for s in present)
-    elif isinstance(signals, Mapping):
-        items = signals.items()
-    else:
-        items = ((s, None) for s in signals)
-    specs = {
-        name: _spec(raw, name, default_interpolation, default_max_gap_s) for name, raw in items
-    }
-    if not specs:
-        raise DataQualityError("to_grid: the table has no signals")
-    # Slices of the signal-sorted table: zero-copy views, one signal in memory at a time.
-    missing = [s for s in specs if s not in slices]
-    if missing:
-        raise IngestError(
-            f"signal(s) {missing} are not in the recording; it has {present}; fix "
-            f"the tag names in the job's signals section"
-        )
+    specs = _specs_for(signals, slices, default_interpolation, default_max_gap_s)
     bounds = {name: slices[name] for name in specs}
-    if start is None or end is None:
-        firsts, lasts = [], []
-        tcol = table["time"]
-        for lo, n in bounds.values():
-            # min/max, not the first/last row: a hand-made table may be unsorted in time.
-            part = tcol.slice(lo, n)
-            firsts.append(part.min())
-            lasts.append(part.max())
-    if start is not None:
-        start_us = _to_us(start, "start")
-    else:
-        start_us = min(_to_us(x, "start") for x in firsts)
-    end_us = _to_us(end, "end") if end is not None else max(_to_us(x, "end") for x in lasts)
-    if end_us < start_us:
-        raise ConfigError(f"end ({end}) is before start ({start}); give end >= start")
+    start_us, end_us = _span_us(table, bounds, start, end)
     times = {name: (lambda lo=lo, n=n: _times_us(table, lo, n)) for name, (lo, n) in bounds.items()}
     islands, dropped = _islands(times, start_us, end_us, dt_us, break_gap_s, stray_fraction)
     n = sum(k1 - k0 + 1 for k0, k1 in islands) + len(islands) - 1
@@ -443,30 +497,8 @@ def to_grid(
             f"{n * len(names):,} values (limit {max_values:,}; {8 * n * len(names) / 1e9:.1f} "
             f"GB) for {span_d:.1f} days at {dt_us / 1e6:g} s; set source.grid_dt_s larger, "
             "or split the export into shorter files and run them as separate jobs")
-    # grid instants: each island's uniform points, one (masked) break point between
-    parts = []
-    breaks = []
-    for k, (k0, k1) in enumerate(islands):
-        if k:
-            breaks.append(sum(p.size for p in parts))
-            parts.append(np.array([start_us + (islands[k - 1][1] + 1) * dt_us], dtype=np.int64))
-        parts.append(start_us + np.arange(k0, k1 + 1, dtype=np.int64) * dt_us)
-    g = np.concatenate(parts)
-    values = np.empty((n, len(names)))
-    good = np.empty((n, len(names)), dtype=bool)
-    reasons: dict[str, dict[str, int]] = {}
-    for k, name in enumerate(names):
-        lo, m = bounds[name]
-        t, v, usable, label = _signal_arrays(table.slice(lo, m), mask_suspect)
-        values[:, k], good[:, k], reasons[name] = _grid_signal(g, t, v, usable, label, specs[name])
-        if breaks:  # a break point is a gap, whatever its neighbours say
-            was = good[breaks, k]
-            values[breaks, k] = np.nan
-            good[breaks, k] = False
-            r = reasons[name]
-            r[_REASON_GAP] = r.get(_REASON_GAP, 0) + int(was.sum())
-            reasons[name] = dict(sorted(r.items()))
-        del t, v, usable, label
+    g, breaks = _grid_instants(islands, start_us, dt_us)
+    values, good, reasons = _fill_signals(table, g, breaks, names, bounds, specs, mask_suspect)
     island_info = [{"start": str(np.datetime64(start_us + k0 * dt_us, "us")) + "Z",
                     "end": str(np.datetime64(start_us + k1 * dt_us, "us")) + "Z",
                     "points": int(k1 - k0 + 1)} for k0, k1 in islands]
