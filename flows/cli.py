@@ -14,6 +14,7 @@ import time
 import traceback
 from pathlib import Path
 
+from flows.common import say
 from pipeline.errors import UserInputError
 
 
@@ -25,8 +26,7 @@ class _Progress:
         self.t0 = time.perf_counter()
 
     def __call__(self, stage: str, message: str) -> None:
-        print(f"[{time.perf_counter() - self.t0:7.1f} s] {stage}: {message}", file=sys.stderr,
-              flush=True)
+        say(self.t0, stage, message)  # the same stage line as the flows print
 
     def bar(self, stage: str, unit: str, scale: float = 1.0):
         """A progress bar for long work inside ``stage`` (rate and ETA; terminal only

@@ -8,16 +8,13 @@ from pathlib import Path
 
 from pipeline.adapters.config import load_job
 from pipeline.demo import prepare_demo, prepare_discrepancy_demo
+from pipeline.progress import quiet
 
 
 def rerun_command() -> str:
     """The Rerun viewer beside this Python (works from any folder), else ``rerun``."""
     exe = Path(sys.executable).parent / "rerun"
     return str(exe) if exe.exists() else "rerun"
-
-
-def _quiet(stage: str, message: str) -> None:
-    """No stage lines."""
 
 
 def _print_where(report, *extra: tuple[str, Path]) -> int:
@@ -39,7 +36,7 @@ def _run(job: Path, *, no_prefect: bool, progress, discrepancy: bool):
             from pipeline.discrepancy_job import run_discrepancy as direct
         else:
             from pipeline.jobs import run_job as direct
-        return direct(load_job(job), progress=progress or _quiet)
+        return direct(load_job(job), progress=progress or quiet)
     from flows.common import prefect_env_defaults
 
     prefect_env_defaults()

@@ -42,7 +42,6 @@ Decisions (also in the README):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,6 +53,7 @@ from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_d
 from pipeline.errors import ConfigError, InsufficientDataError
 from pipeline.jobs import Recording, longest_common_good, load_recording
 from pipeline.model import Model, model_from_dict, model_to_dict
+from pipeline.progress import Progress, quiet
 from pipeline.sampling import resample_average_masked
 
 __all__ = [
@@ -69,7 +69,6 @@ __all__ = [
     "run_discrepancy",
 ]
 
-Progress = Callable[[str, str], None]
 
 #: Fewest samples in the analysed stretch (the core needs >= 300 in its fit part).
 MIN_SAMPLES = 600
@@ -78,9 +77,6 @@ MIN_SAMPLES = 600
 #: state change nothing a simulation comparison can see; longer outages split the record).
 MAX_FILL_SAMPLES = 5
 
-
-def _quiet(stage: str, message: str) -> None:
-    pass
 
 
 @dataclass(frozen=True)
@@ -319,7 +315,7 @@ def check_job(cfg) -> tuple[Model, str]:
 
 
 def analyse(cfg, model: Model, data: DiscrepancyData, *,
-            progress: Progress = _quiet) -> DiscrepancyResult:
+            progress: Progress = quiet) -> DiscrepancyResult:
     """Run the discrepancy core on the prepared data.
 
     Parameters
@@ -602,7 +598,7 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
 
 
 def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
-                    progress: Progress = _quiet) -> DiscrepancyReport:
+                    progress: Progress = quiet) -> DiscrepancyReport:
     """Run a discrepancy job end to end (no Prefect): the stages the flow runs.
 
     Parameters

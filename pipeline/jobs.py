@@ -24,7 +24,6 @@ Decisions (also in the README):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,7 +43,7 @@ from pipeline.estimate import estimate_step_responses
 from pipeline.job_summary import summarise
 from pipeline.job_types import Prepared, Recording, RunReport, Summary, WindowFailure
 from pipeline.normal_equations import good_segments
-from pipeline.progress import Tick, bar_of, silent
+from pipeline.progress import Progress, Tick, bar_of, quiet, silent
 from pipeline.sampling import choose_sample_period, resample_average_masked
 from pipeline.search import SearchResult, search
 
@@ -62,7 +61,6 @@ __all__ = [
     "run_job",
 ]
 
-Progress = Callable[[str, str], None]
 
 DEFAULT_MAX_GAP_S = 600.0
 """Default longest span bridged on the grid.  Historians record by exception: no record
@@ -75,9 +73,6 @@ STRAY_FRACTION = 0.001
 ``max_gap_s``) holding fewer than 0.1 % of the samples is a stray — mistyped or clock-reset
 timestamps — and is left out and reported (``checks.json`` → ``data_quality.stray_samples``)."""
 
-
-def _quiet(stage: str, message: str) -> None:  # default progress sink
-    pass
 
 
 
@@ -466,7 +461,7 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
 
 
 def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
-            progress: Progress = _quiet) -> RunReport:
+            progress: Progress = quiet) -> RunReport:
     """Run an estimation job end to end (no Prefect): the same stages the flow runs.
 
     Parameters
@@ -507,7 +502,7 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
 
 
 def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings: dict,
-               *, run_id: str | None = None, progress: Progress = _quiet) -> RunReport:
+               *, run_id: str | None = None, progress: Progress = quiet) -> RunReport:
     """Write the results and build the :class:`RunReport`.
 
     Parameters

@@ -16,6 +16,21 @@ from typing import Callable, ContextManager
 Tick = Callable[[float, float], None]
 """``tick(done, total)``: called by long work as it advances."""
 
+Progress = Callable[[str, str], None]
+"""``progress(stage, message)``: the stage lines a workflow reports."""
+
+
+def quiet(stage: str, message: str) -> None:  # noqa: ARG001 - the no-op Progress
+    """A :data:`Progress` that reports nothing (the default of every workflow).
+
+    Parameters
+    ----------
+    stage : str
+        The stage's name.
+    message : str
+        What it is doing.
+    """
+
 
 def silent(done: float, total: float) -> None:  # noqa: ARG001 - the no-op Tick
     """A :data:`Tick` that shows nothing (the default everywhere).

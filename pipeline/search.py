@@ -510,7 +510,7 @@ def search(
     # progress: stage 1 counts its fits (a noise model: one at n_p_max and ~16
     # candidates and ~16 refinements; white: one nested solve), stage 2 its window
     # lengths (doublings)
-    stage2 = max(1, int(np.log2(max(n / (2 * 10 * max(n_p_min, 1)), 1.0))) + 1)
+    stage2 = _window_trials(n, 10 * max(n_p_min, 1), max(n_p_min, 1), extra)  # a guess
     steps = [0, (1 if fixed is not None or order == 0 else 34) + stage2]
 
     def step() -> None:
@@ -537,8 +537,7 @@ def search(
     P = int(npm.max())
     n_d = int(n_d_start or 10 * P)
     kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    stage2_left = 1 + sum(1 for k in range(1, 30) if 2 * (2**k * n_d + P - 1 + extra) <= n)
-    steps[1] = steps[0] + stage2_left + 1
+    steps[1] = steps[0] + _window_trials(n, n_d, P, extra) + 1
     chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d, P=P,
                                       extra=extra, step=step)
     if chosen is None:
@@ -627,6 +626,11 @@ def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: 
                     if fb[i][j] is not None and fb[i][j].detected:
                         nk[i, j] = max(nk[i, j], 1)
     return ctx, est_max, fb
+
+
+def _window_trials(n: int, n_d: int, P: int, extra: int) -> int:
+    """Most N_d values stage 2 can try from ``n_d`` (doubling while two windows fit)."""
+    return 1 + sum(1 for k in range(1, 30) if 2 * (2**k * n_d + P - 1 + extra) <= n)
 
 
 def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,

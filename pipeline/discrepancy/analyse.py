@@ -20,6 +20,7 @@ from pipeline.discrepancy.select import criteria, holdout_z_score, pooled_rms, r
 from pipeline.effects import Effect, apply_effect, output_offsets
 from pipeline.errors import InsufficientDataError
 from pipeline.model import Model
+from pipeline.progress import quiet
 from pipeline.simulate import simulate
 
 
@@ -82,7 +83,7 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
              clock: Callable[[], float] | None = None) -> DiscrepancyResult:
     """:func:`analyse_discrepancy` (BLAS thread limits already set): the stages in order."""
     config = config or DiscrepancyConfig()
-    say = progress or (lambda stage, message: None)
+    say = progress or quiet
     timings: dict[str, float] = {}
     last = clock() if clock else 0.0
 

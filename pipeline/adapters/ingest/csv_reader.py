@@ -28,7 +28,7 @@ from pipeline.adapters.ingest import options as _options
 from pipeline.adapters.ingest.options import CsvOptions
 from pipeline.adapters.ingest.quality import BAD_FLAGS, GOOD_FLAGS, SUSPECT_FLAGS
 from pipeline.adapters.ingest.report import ReaderMeta
-from pipeline.adapters.ingest.sink import check_tags
+from pipeline.adapters.ingest.sink import ChunkSink, check_tags
 from pipeline.adapters.ingest.text import (
     SAMPLE_ROWS,
     as_utf8,
@@ -140,7 +140,7 @@ def read_csv_raw(
     options: CsvOptions,
     timezone: str,
     tags: list[str] | None,
-    sink: Callable[[pl.DataFrame], None],
+    sink: ChunkSink,
 ) -> ReaderMeta:
     """Read a historian CSV chunk by chunk into ``sink``.
 
@@ -161,9 +161,9 @@ def read_csv_raw(
     tags : list of str or None
         Keep only these tags; None keeps all. A requested tag absent from the file is an
         IngestError.
-    sink : callable
-        Called with each pre-canonical chunk; an ``at(fraction)`` method, if present, is
-        told how far through the file the reader is.
+    sink : ChunkSink
+        Called with each pre-canonical chunk; its ``at(fraction)`` is told how far
+        through the file the reader is.
 
     Returns
     -------
@@ -295,14 +295,10 @@ def first_ragged_line(path: Path, sep: str, n_header: int, skip: int,
     return None
 
 
-def _nowhere(fraction: float) -> None:
-    """Progress goes nowhere (a sink without ``at``)."""
-
-
 def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
              first_line: int, categorical: tuple[int, ...] = (),
              exprs: Sequence[pl.Expr] = (),
-             at: Callable[[float], None] = None,
+             at: Callable[[float], None],
              ) -> Iterator[tuple[int, pl.DataFrame]]:
     """The data lines in chunks of columns ``c0 .. c{n_fields-1}`` (text; Categorical for
     the indices in ``categorical``) plus ``_row`` (the row within the chunk) and the
@@ -315,7 +311,6 @@ def _batches(path: Path, name: str, *, sep: str, skip: int, n_fields: int,
     as rows of nulls (dropped by the caller). ``at(fraction)`` is told how far through
     the file each chunk ends (lines read x the mean line length of the first 64 KiB).
     """
-    at = at or _nowhere
     rows = max(1, _options.CHUNK_CELLS // max(n_fields, 1))
     size = max(path.stat().st_size, 1)
     with path.open("rb") as f:
@@ -386,7 +381,7 @@ def _read_long(
     tags: list[str] | None,
     name: str,
     encoding: str,
-    sink: Callable[[pl.DataFrame], None],
+    sink: ChunkSink,
 ) -> ReaderMeta:
     header = rows[0]
     named = {_key(h) for h in header} & (_TAG_KEYS | _VALUE_KEYS | _TIME_KEYS)
@@ -444,7 +439,7 @@ def _read_long(
                                  skip=options.skip_lines + (1 if has_header else 0),
                                  n_fields=n_fields, first_line=first_line,
                                  categorical=categorical, exprs=exprs,
-                                 at=getattr(sink, "at", _nowhere)):
+                                 at=sink.at):
             done += len(df)
             df = df.select("_row", *cols, *fast).rename({**cols, **fast})
             blank = pl.all_horizontal(pl.col(list(cols.values())).is_null())
@@ -523,7 +518,7 @@ def _read_wide(
     tags: list[str] | None,
     name: str,
     encoding: str,
-    sink: Callable[[pl.DataFrame], None],
+    sink: ChunkSink,
 ) -> ReaderMeta:
     header0 = rows[0]
     i_time = _find(header0, _TIME_KEYS, options.time_column, "time", name)
@@ -637,7 +632,7 @@ def _read_wide(
     with as_utf8(path, codec, name) as src:
         for base, df in _batches(src, name, sep=sep, skip=options.skip_lines + n_header,
                                  n_fields=n_cols, first_line=first_line, exprs=exprs,
-                                 at=getattr(sink, "at", _nowhere)):
+                                 at=sink.at):
             done += len(df)
             df = df.select("_row", *(f"c{i}" for i in wanted), *fast)
             blank = pl.all_horizontal(pl.col(f"c{i}").is_null() for i in wanted)

@@ -35,7 +35,7 @@ from mcap.stream_reader import StreamReader
 
 from pipeline.adapters.ingest.options import McapOptions
 from pipeline.adapters.ingest.report import ReaderMeta
-from pipeline.adapters.ingest.sink import check_tags
+from pipeline.adapters.ingest.sink import ChunkSink, check_tags
 from pipeline.adapters.ingest.timestamps import parse_timestamps
 from pipeline.adapters.ingest.values import null_series, numeric_value
 from pipeline.errors import IngestError
@@ -78,7 +78,7 @@ def _read_records(
     flush: Callable[[dict[int, Schema], dict[int, Channel], int, list[bytes], list[int], int],
                     None],
     batch: int,
-    at: Callable[[float], None] = lambda fraction: None,
+    at: Callable[[float], None],
 ) -> tuple[dict[int, Channel], dict[int, int], list[str], bool]:
     """Stream the records; each channel's payloads and log times go to ``flush`` in
     batches of ``batch`` messages (and the rest at the end), with the index of the
@@ -561,7 +561,7 @@ def read_mcap_raw(
     timezone: str,
     tags: list[str] | None,
     on_truncated: str,
-    sink: Callable[[pl.DataFrame], None],
+    sink: ChunkSink,
 ) -> ReaderMeta:
     """Read an MCAP file batch by batch into ``sink`` (pre-canonical chunks as in
     ``csv_reader.read_csv_raw``).
@@ -580,9 +580,9 @@ def read_mcap_raw(
     on_truncated : {"error", "warn"}
         A truncated or corrupt file raises IngestError, or (``"warn"``) gives its
         readable part with a warning (``truncated`` set in the result).
-    sink : callable
-        Called with each non-empty pre-canonical chunk; an ``at(fraction)`` method, if
-        present, is told how far through the file the reader is.
+    sink : ChunkSink
+        Called with each non-empty pre-canonical chunk; its ``at(fraction)`` is told how
+        far through the file the reader is.
     """
     from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
     from mcap_ros2.decoder import DecoderFactory as Ros2Factory
@@ -676,7 +676,7 @@ def read_mcap_raw(
 
     channels, counts, read_warnings, truncated = _read_records(
         path, options=options, on_truncated=on_truncated, flush=convert,
-        batch=_options.CHUNK_MESSAGES, at=getattr(sink, "at", lambda fraction: None),
+        batch=_options.CHUNK_MESSAGES, at=sink.at,
     )
     warnings = read_warnings + warnings
     if tags is not None:
