@@ -20,6 +20,20 @@ def prefect_env_defaults() -> None:
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 
 
+def artifact_key(job: str, suffix: str) -> str:
+    """A Prefect artifact key for ``job``'s ``suffix`` artifact (Prefect allows lowercase
+    letters, digits and dashes only).
+
+    Parameters
+    ----------
+    job : str
+        The job's name.
+    suffix : str
+        Which artifact (``progress``, ``report``, ``pairs``, ``nightly`` …).
+    """
+    return "".join(c if c.isalnum() else "-" for c in f"{job}-{suffix}".lower())
+
+
 def say(t_start: float, stage: str, message: str) -> None:
     """A stage line on stderr (written directly: a flow's ``log_prints`` would turn a print
     into a log record, and Prefect's console logging is quiet by default).

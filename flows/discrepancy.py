@@ -18,21 +18,23 @@ from prefect.artifacts import (
 from prefect.cache_policies import NO_CACHE
 
 from flows.common import (
+    artifact_key,
     console_without_user_error_tracebacks,
     flow_started,
     retry_transient_io,
     say,
 )
 from pipeline import discrepancy_job as dj
-from pipeline import jobs
+from pipeline import recording
 from pipeline.adapters.config import load_job
+from pipeline.stages import StageRunner
 
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 
 @task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def ingest_task(cfg, files):
-    """Ingest and grid the job's files (:func:`pipeline.jobs.load_recording`).
+    """Ingest and grid the job's files (:func:`pipeline.recording.load_recording`).
 
     Parameters
     ----------
@@ -41,7 +43,7 @@ def ingest_task(cfg, files):
     files : list of Path or None
         Files to read; ``None`` resolves the job's ``source``.
     """
-    return jobs.load_recording(cfg, files)
+    return recording.load_recording(cfg, files)
 
 
 @task(name="model", **_T)
@@ -116,8 +118,6 @@ def store_task(cfg, model, source, data, result, timings, run_id):
     return dj.finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
 
 
-def _key(job: str, suffix: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in f"{job}-{suffix}".lower())
 
 
 @flow(name="discrepancy", log_prints=True)
@@ -135,33 +135,29 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
     """
     flow_started()
     cfg = load_job(job_path)
-    timings: dict[str, float] = {}
-    progress = create_progress_artifact(0.0, key=_key(cfg.job, "progress"),
+    progress = create_progress_artifact(0.0, key=artifact_key(cfg.job, "progress"),
                                         description=f"{cfg.job}: discrepancy progress")
-    t0 = time.perf_counter()
-    rec = ingest_task(cfg, [Path(f) for f in files] if files else None)
-    timings["ingest"] = time.perf_counter() - t0
+    start = time.perf_counter()
+    stage = StageRunner(lambda name, message: say(start, name, message))
+    rec = stage("ingest", ingest_task, cfg, [Path(f) for f in files] if files else None)
     update_progress_artifact(progress, 10.0, description="ingested")
-    t0 = time.perf_counter()
-    model, source = model_task(cfg)
-    data = prepare_task(cfg, rec, model)
-    timings["prepare"] = time.perf_counter() - t0
+    model, source = stage("model", model_task, cfg)
+    data = stage("prepare", prepare_task, cfg, rec, model)
     update_progress_artifact(progress, 20.0, description=f"{data.summary['analysed_samples']} "
                                                          "samples prepared")
-    t0 = time.perf_counter()
-    result = analyse_task(cfg, model, data)
-    timings["analyse"] = time.perf_counter() - t0
+    result = stage("analyse", analyse_task, cfg, model, data)
     update_progress_artifact(progress, 90.0, description=f"verdict {result.verdict}")
+    timings = stage.timings
     report = store_task(cfg, model, source, data, result, timings, run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(dj.report_markdown(cfg, model, source, data, result),
-                             key=_key(cfg.job, "report"),
+                             key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")
     create_table_artifact(
         [{"effect": c.effect.describe(), "delta_bic": round(c.delta_bic, 2),
           "holdout_z": round(c.holdout_z, 2), "passed": c.passed}
          for c in result.candidates[:10]],
-        key=_key(cfg.job, "candidates"), description="candidate effects, best first")
+        key=artifact_key(cfg.job, "candidates"), description="candidate effects, best first")
     return report
 
 

@@ -16,14 +16,16 @@ from prefect.artifacts import (
 from prefect.cache_policies import NO_CACHE
 
 from flows.common import (
+    artifact_key,
     console_without_user_error_tracebacks,
     flow_started,
     retry_transient_io,
     say,
     task_runner_for,
 )
-from pipeline import jobs
+from pipeline import jobs, recording
 from pipeline.adapters.config import load_job
+from pipeline.stages import StageRunner
 from pipeline.adapters.progress import bar as progress_bar
 
 # Big arrays flow between tasks: hashing them for a cache key would cost more than the
@@ -33,7 +35,7 @@ _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 @task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def ingest_task(cfg, files):
-    """Ingest and grid the job's files (:func:`pipeline.jobs.load_recording`), with a
+    """Ingest and grid the job's files (:func:`pipeline.recording.load_recording`), with a
     progress bar on a terminal.
 
     Parameters
@@ -44,7 +46,7 @@ def ingest_task(cfg, files):
         Files to read; ``None`` resolves the job's ``source``.
     """
     with progress_bar("ingest", "MB", 1e-6) as tick:  # a bar on a terminal only
-        return jobs.load_recording(cfg, files, tick=tick)
+        return recording.load_recording(cfg, files, tick=tick)
 
 
 @task(name="prepare", **_T)
@@ -78,7 +80,7 @@ def search_task(cfg, prep):
 
 
 @task(name="estimate-window", **_T)
-def estimate_task(prep, window, n_p, n_k, noise, use_instruments):
+def estimate_task(prep, window, n_p, n_k, noise, use_instruments, method):
     """Estimate on one window (:func:`pipeline.jobs.estimate_window`); mapped over windows.
 
     Parameters
@@ -93,8 +95,10 @@ def estimate_task(prep, window, n_p, n_k, noise, use_instruments):
         The estimator's noise setting (``SearchResult.noise``).
     use_instruments : bool
         Estimate with the instruments (``SearchResult.instruments``).
+    method : str
+        The job's ``estimation.method``.
     """
-    return jobs.estimate_window(prep, window, n_p, n_k, noise, use_instruments)
+    return jobs.estimate_window(prep, window, n_p, n_k, noise, use_instruments, method)
 
 
 @task(name="summarise", **_T)
@@ -141,8 +145,12 @@ def store_task(cfg, summary, prep, sr, timings, run_id):
 
 
 
-def _artifact_key(job: str, suffix: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in f"{job}-{suffix}".lower())
+
+
+def _estimate_windows(prep, windows: list, settings: tuple) -> list:
+    """:func:`estimate_task` mapped over ``windows`` (all data first), results in order."""
+    return estimate_task.map(unmapped(prep), windows,
+                             *[unmapped(v) for v in settings]).result()
 
 
 @flow(name="estimate", log_prints=True)
@@ -160,43 +168,30 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     """
     flow_started()
     cfg = load_job(job_path)
-    timings: dict[str, float] = {}
-    progress = create_progress_artifact(0.0, key=_artifact_key(cfg.job, "progress"),
+    progress = create_progress_artifact(0.0, key=artifact_key(cfg.job, "progress"),
                                         description=f"{cfg.job}: estimation progress")
     start = time.perf_counter()
-    say(start, "ingest", f"reading {files or cfg.source.path}")
-    t0 = time.perf_counter()
-    rec = ingest_task(cfg, [Path(f) for f in files] if files else None)
-    timings["ingest"] = time.perf_counter() - t0
+    stage = StageRunner(lambda name, message: say(start, name, message))
+    rec = stage("ingest", ingest_task, cfg, [Path(f) for f in files] if files else None)
     update_progress_artifact(progress, 15.0, description="ingested")
     say(start, "ingest", f"{rec.values.shape[0]} grid samples at {rec.dt_s:g} s, "
          f"{sum(q['masked'] for q in rec.quality.values())} masked")
-    t0 = time.perf_counter()
-    prep = prepare_task(cfg, rec)
-    timings["prepare"] = time.perf_counter() - t0
+    prep = stage("prepare", prepare_task, cfg, rec)
     say(start, "prepare", f"T = {prep.dt_s:g} s (decimation {prep.decimation}), "
          f"conditioning {prep.conditioning['method']}")
-    t0 = time.perf_counter()
-    sr = search_task(cfg, prep)
-    timings["search"] = time.perf_counter() - t0
+    sr = stage("search", search_task, cfg, prep)
     update_progress_artifact(progress, 50.0, description=f"N_p chosen, N_d={sr.n_d}")
     say(start, "search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
          f"{len(sr.windows)} windows")
-    t0 = time.perf_counter()
     windows = [None] + [tuple(w) for w in sr.windows]
-    futures = estimate_task.map(unmapped(prep), windows, unmapped(sr.n_p), unmapped(sr.n_k),
-                                unmapped(sr.noise), unmapped(sr.instruments))
-    ests = futures.result()
-    timings["estimate"] = time.perf_counter() - t0
+    ests = stage("estimate", _estimate_windows, prep, windows, jobs.estimate_settings(cfg, sr))
     update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
-    say(start, "estimate", f"{len(windows)} estimates (all + windows)")
-    t0 = time.perf_counter()
-    summary = summarise_task(cfg, prep, sr, ests[0], ests[1:])
-    timings["summarise"] = time.perf_counter() - t0
+    summary = stage("summarise", summarise_task, cfg, prep, sr, ests[0], ests[1:])
+    timings = stage.timings
     say(start, "store", "writing run directory and Rerun recording")
     report = store_task(cfg, summary, prep, sr, timings, run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
-    create_markdown_artifact(summary.report_md, key=_artifact_key(cfg.job, "report"),
+    create_markdown_artifact(summary.report_md, key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")
     create_table_artifact(
         [{"output": p["output"], "input": p["input"], "n_p": p["n_p"],
@@ -206,7 +201,7 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
           "feedback": None if p["feedback"] is None else p["feedback"]["detected"],
           "warnings": ", ".join(w["code"] for w in p["warnings"])}
          for p in summary.checks["pairs"]],
-        key=_artifact_key(cfg.job, "pairs"), description="pairs and window-agreement verdicts")
+        key=artifact_key(cfg.job, "pairs"), description="pairs and window-agreement verdicts")
     return report
 
 

@@ -9,7 +9,12 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 from prefect.futures import as_completed
 
-from flows.common import console_without_user_error_tracebacks, flow_started, task_runner_for
+from flows.common import (
+    artifact_key,
+    console_without_user_error_tracebacks,
+    flow_started,
+    task_runner_for,
+)
 from pipeline.adapters.config import load_job
 from pipeline.adapters.progress import bar as progress_bar
 from pipeline.nightly import discover_files, process_file
@@ -74,7 +79,7 @@ def nightly_flow(job_path: str) -> list[dict]:
              f"{sum(r['status'].startswith('skipped') for r in rows)} skipped, "
              f"{len(failed)} failed."]
     lines += [f"- FAILED {r['path']}: {r['error']}" for r in failed]
-    key = "".join(c if c.isalnum() else "-" for c in f"{cfg.job}-nightly".lower())
+    key = artifact_key(cfg.job, "nightly")
     create_markdown_artifact("\n".join(lines), key=key)
     if rows:
         create_table_artifact([{k: r.get(k) for k in ("path", "status", "run_id", "error")}

@@ -63,6 +63,48 @@ _PARAMS = {
 
 
 # ------------------------------------------------------------------- single transforms
+def interpolate_gaps(values: np.ndarray, good: np.ndarray, max_run: int | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation over bad samples, column by column (one gap filler for every
+    workflow).
+
+    Parameters
+    ----------
+    values : ndarray (N, k)
+        Samples (any value where bad).
+    good : bool ndarray (N, k)
+        ``True`` where a sample is good.
+    max_run : int, optional
+        Fill only interior runs of at most ``max_run`` bad samples (runs touching either
+        end are left bad).  ``None``: fill every bad sample, the ends held at the nearest
+        good value — only to let a transform run; the caller masks them again.
+
+    Returns
+    -------
+    values : ndarray (N, k)
+        A copy with the filled samples interpolated.
+    filled : bool ndarray (N, k)
+        The samples that were filled.
+    """
+    out = np.array(values, dtype=float, copy=True)
+    filled = np.zeros(good.shape, dtype=bool)
+    idx = np.arange(out.shape[0])
+    for c in range(out.shape[1]):
+        g = good[:, c]
+        if g.all() or not g.any():
+            continue
+        if max_run is None:
+            filled[:, c] = ~g
+        else:
+            edges = np.diff(np.concatenate(([0], (~g).astype(np.int8), [0])))
+            for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+                if b - a <= max_run and a > 0 and b < out.shape[0]:
+                    filled[a:b, c] = True
+        if filled[:, c].any():
+            out[filled[:, c], c] = np.interp(idx[filled[:, c]], idx[g], out[g, c])
+    return out, filled
+
+
 def _as_2d(a, name: str) -> tuple[np.ndarray, bool]:
     arr = np.asarray(a, dtype=float)
     was_1d = arr.ndim == 1

@@ -51,9 +51,16 @@ import polars as pl
 
 from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
 from pipeline.errors import ConfigError, InsufficientDataError
-from pipeline.jobs import Recording, longest_common_good, load_recording
+from pipeline.conditioning import interpolate_gaps
 from pipeline.model import Model, model_from_dict, model_to_dict
 from pipeline.progress import Progress, quiet
+from pipeline.recording import (
+    Recording,
+    configured_decimation,
+    load_recording,
+    longest_common_good,
+)
+from pipeline.stages import StageRunner
 from pipeline.sampling import resample_average_masked
 
 __all__ = [
@@ -174,32 +181,6 @@ def load_discrepancy_model(cfg) -> tuple[Model, str]:
     return model, source
 
 
-def _bridge_short_gaps(values: np.ndarray, good: np.ndarray, max_run: int
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Interpolate interior runs of at most `max_run` bad samples, column by column.
-
-    Returns ``(values, good, filled)``: filled samples become good; ``filled`` marks them.
-    """
-    values = np.array(values, dtype=float, copy=True)
-    good = np.array(good, dtype=bool, copy=True)
-    filled = np.zeros_like(good)
-    idx = np.arange(values.shape[0])
-    for c in range(values.shape[1]):
-        bad = ~good[:, c]
-        if not bad.any() or bad.all():
-            continue
-        edges = np.diff(np.concatenate(([0], bad.astype(np.int8), [0])))
-        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-        for a, b in zip(starts, stops):
-            if b - a <= max_run and a > 0 and b < values.shape[0]:
-                filled[a:b, c] = True
-        if filled[:, c].any():
-            g = good[:, c]
-            values[filled[:, c], c] = np.interp(idx[filled[:, c]], idx[g], values[g, c])
-            good[filled[:, c], c] = True
-    return values, good, filled
-
-
 def _output_offsets_from_nominal(cfg, model: Model, inputs: dict, measured: dict,
                                  outputs: list[str], dt_s: float) -> dict[str, float]:
     """Mean of measured - nominal over the fit part (after the warm-up) per output."""
@@ -227,24 +208,18 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
     cfg : JobConfig
         The validated job (``sampling.dt_s``, ``discrepancy.operating_point``).
     rec : Recording
-        The gridded signals from :func:`pipeline.jobs.load_recording`.
+        The gridded signals from :func:`pipeline.recording.load_recording`.
     model : Model
         The job's model; its outputs select the measured signals.
     """
     section = cfg.discrepancy
-    factor = 1
-    if cfg.sampling.dt_s is not None:
-        factor = max(1, int(round(cfg.sampling.dt_s / rec.dt_s)))
-        if abs(factor * rec.dt_s - cfg.sampling.dt_s) > 1e-6 * cfg.sampling.dt_s:
-            raise ConfigError(
-                f"sampling.dt_s={cfg.sampling.dt_s} is not an integer multiple of the grid "
-                f"period {rec.dt_s} s; choose a multiple (e.g. {factor * rec.dt_s:g}) or set "
-                "source.grid_dt_s")
+    factor = configured_decimation(cfg, rec.dt_s) or 1
     vals, good = rec.values, rec.good
     if factor > 1:
         vals, good = resample_average_masked(np.nan_to_num(vals), good, factor)
     t = rec.time[::factor][: vals.shape[0]]
-    vals, good, filled = _bridge_short_gaps(vals, good, MAX_FILL_SAMPLES)
+    vals, filled = interpolate_gaps(vals, good, MAX_FILL_SAMPLES)
+    good = good | filled
     a, b = longest_common_good(good)
     n_grid = vals.shape[0]
     dt_s = float(factor * rec.dt_s)
@@ -612,20 +587,11 @@ def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None 
     progress : callable (stage, message)
         Told when each stage starts and ends, and passed to the core.
     """
-    timings: dict[str, float] = {}
-
-    def stage(name, fn, *a, **k):
-        progress(name, "start")
-        t0 = time.perf_counter()
-        out = fn(*a, **k)
-        timings[name] = time.perf_counter() - t0
-        progress(name, f"done in {timings[name]:.2f} s")
-        return out
-
+    stage = StageRunner(progress)
     rec = stage("ingest", load_recording, cfg, files)
     model, source = stage("model", load_discrepancy_model, cfg)
     data = stage("prepare", prepare_discrepancy, cfg, rec, model)
     result = stage("analyse", analyse, cfg, model, data, progress=progress)
     progress("store", "writing run directory and Rerun recording")
-    return finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
+    return finish_discrepancy(cfg, model, source, data, result, stage.timings, run_id=run_id)
 

@@ -176,7 +176,10 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
                        **({"first_stage": {ins[k]: v for k, v in
                                            all_est.extra["first_stage"].items()
                                            if k < len(ins)}}
-                          if "first_stage" in all_est.extra else {})},
+                          if "first_stage" in all_est.extra else {}),
+                       **({"hyperparameters": dict(zip(outs,
+                                                       all_est.extra["hyperparameters"]))}
+                          if "hyperparameters" in all_est.extra else {})},
         "noise_model": {o: all_est.noise_model[i].to_dict() for i, o in enumerate(outs)},
         "search": {
             "n_p": {f"{outs[i]}<-{ins[j]}": int(sr.n_p[i, j])
@@ -289,7 +292,10 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
               "prediction_error": "least squares with a noise model per output "
                                   "(prediction-error method)",
               "instrumental_variables": "instrumental variables ("
-                                        + ", ".join(est["instruments"]) + ")"}[est["method"]]
+                                        + ", ".join(est["instruments"]) + ")",
+              "correlation": "the correlation method (method.md §2), white-noise σ",
+              "regularized_tc": "kernel-regularised least squares, TC prior (hyperparameters "
+                                "by marginal likelihood, posterior σ)"}[est["method"]]
     lines = [f"# plantdyn run: {cfg.job}", "",
              f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
              f"(decimation {prep.decimation} from the {prep.recording.dt_s:g} s grid, "

@@ -36,9 +36,8 @@ class Prepared:
     """The record at the estimation sample period, conditioned."""
 
     recording: Recording
-    dt_s: float
-    decimation: int
-    sampling: dict  # alpha_T choice (JSON-ready)
+    decimation: int  # the sample period T is decimation x the grid period (decided once)
+    sampling: dict  # how T was chosen: alpha_T choice or the configured value (JSON-ready)
     time: np.ndarray  # (N,) datetime64[us]
     raw: np.ndarray  # (N, k) resampled, not conditioned (NaN where bad)
     x: np.ndarray  # (N, n_x) conditioned inputs (NaN where bad)
@@ -47,6 +46,11 @@ class Prepared:
     conditioning: dict
     integrating: tuple[bool, ...]
     r: np.ndarray | None = None  # (N, n_r) conditioned instruments (NaN where bad)
+
+    @property
+    def dt_s(self) -> float:
+        """The estimation sample period ``T`` (s): ``decimation`` grid periods."""
+        return float(self.decimation * self.recording.dt_s)
 
     @property
     def inputs(self) -> list[str]:

@@ -9,10 +9,8 @@ windows), so the flow and a plain call produce the same results.
 
 Decisions (also in the README):
 
-* Grid: the recording is put on a uniform grid at the median sample spacing of its
-  signals (or ``source.grid_dt_s``); inputs are linearly interpolated, outputs held,
-  each up to ``max_gap_s`` (default: the larger of 10 grid periods and 600 s, see
-  :data:`DEFAULT_MAX_GAP_S`), beyond which samples are masked.
+* Grid and a configured sample period: :mod:`pipeline.recording` (shared by every
+  workflow).
 * Sample period: α_T on the longest stretch where every signal is good; the record is
   then averaged-then-decimated (a decimated sample is bad if any source sample is).
 * Conditioning with gaps: masked samples are filled by linear interpolation only to let
@@ -24,14 +22,13 @@ Decisions (also in the README):
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import polars as pl
 
-from pipeline.conditioning import condition
+from pipeline.alt_estimates import estimate_correlation_method, estimate_regularized
+from pipeline.conditioning import condition, interpolate_gaps
 from pipeline.errors import (
     DataQualityError,
     InstrumentError,
@@ -42,10 +39,11 @@ from pipeline.errors import (
 from pipeline.estimate import estimate_step_responses
 from pipeline.job_summary import summarise
 from pipeline.job_types import Prepared, Recording, RunReport, Summary, WindowFailure
-from pipeline.normal_equations import good_segments
-from pipeline.progress import Progress, Tick, bar_of, quiet, silent
+from pipeline.progress import Progress, Tick, quiet, silent
+from pipeline.recording import configured_decimation, load_recording, longest_common_good
 from pipeline.sampling import choose_sample_period, resample_average_masked
 from pipeline.search import SearchResult, search
+from pipeline.stages import StageRunner
 
 
 __all__ = [
@@ -55,173 +53,12 @@ __all__ = [
     "load_recording",
     "prepare",
     "search_orders",
+    "estimate_settings",
     "estimate_window",
     "summarise",
     "write_run",
     "run_job",
 ]
-
-
-DEFAULT_MAX_GAP_S = 600.0
-"""Default longest span bridged on the grid.  Historians record by exception: no record
-means "no change beyond the deadband", and a tag is re-recorded at least every
-exception-max interval (PI's default ExcMax is 600 s).  Longer gaps are outages: masked."""
-
-
-STRAY_FRACTION = 0.001
-"""An island of the record (samples separated from the rest by more than every signal's
-``max_gap_s``) holding fewer than 0.1 % of the samples is a stray — mistyped or clock-reset
-timestamps — and is left out and reported (``checks.json`` → ``data_quality.stray_samples``)."""
-
-
-
-
-
-# -------------------------------------------------------------------------- stages
-def load_recording(cfg, files: list[Path] | None = None, tick: Tick = silent) -> Recording:
-    """Ingest the job's files and put its signals on one uniform grid (``tick``: bytes
-    read, :mod:`pipeline.progress`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    files : list of Path, optional
-        Files to read; ``None`` resolves the job's ``source`` (``resolve_sources``).
-    tick : callable (done, total)
-        Progress of the bytes read.
-    """
-    from pipeline.adapters.config import resolve_sources
-    from pipeline.adapters.grid import to_grid
-    from pipeline.adapters.ingest import read_recordings
-
-    files = list(files) if files is not None else resolve_sources(cfg)
-    sig = {**{n: ("input", s) for n, s in cfg.signals.inputs.items()},
-           **{n: ("output", s) for n, s in cfg.signals.outputs.items()},
-           **{n: ("instrument", s) for n, s in cfg.signals.instruments.items()}}
-    tags = [s.tag for _, s in sig.values()]
-    mcap = cfg.source.mcap.model_dump() if cfg.source.mcap else None
-    csv = cfg.source.csv.model_dump() if cfg.source.csv else None
-    table, report = read_recordings(files, layout=cfg.source.layout,
-                                    timezone=cfg.source.timezone, tags=list(dict.fromkeys(tags)),
-                                    mcap=mcap, csv=csv, on_truncated=cfg.source.on_truncated,
-                                    tick=tick)
-    if cfg.source.time_order == "strict":
-        _check_time_order(report)
-    grid_dt = cfg.source.grid_dt_s or _median_spacing_s(table)
-    spec = {}
-    for name, (role, s) in sig.items():
-        # inputs are continuous (linear); PVs are exception-reported and setpoints
-        # (instruments) are step signals: hold
-        interp = s.interpolation or ("linear" if role == "input" else "hold")
-        spec[s.tag] = {"interpolation": interp,
-                       "max_gap_s": s.max_gap_s or max(10 * grid_dt, DEFAULT_MAX_GAP_S)}
-    # breaks longer than every signal's max_gap_s are not gridded (all masked there
-    # anyway), and an island of stray samples (a year-9999 timestamp) is left out:
-    # memory follows the samples, not the span
-    grid = to_grid(table, dt_s=grid_dt, signals=spec,
-                   break_gap_s=max(v["max_gap_s"] for v in spec.values()),
-                   stray_fraction=STRAY_FRACTION)
-    order = [grid.names.index(t) for t in tags]
-    values = np.asarray(grid.values)[:, order]
-    good = np.asarray(grid.good)[:, order]
-    spikes = {}
-    if cfg.quality.spikes == "mask":
-        from pipeline.spikes import find_spikes
-
-        for k, name in enumerate(sig):
-            flag = find_spikes(values[:, k], good[:, k], sigmas=cfg.quality.spike_sigmas)
-            if flag.any():
-                spikes[name] = {"samples": int(flag.sum()),
-                                "first": str(np.asarray(grid.time)[flag][0]) + "Z",
-                                "largest": float(np.nanmax(np.abs(values[flag, k])))}
-                values[flag, k] = np.nan
-                good[flag, k] = False
-    quality = {}
-    ing = _report_dict(report)
-    tag_name = {s.tag: n for n, (_, s) in sig.items()}
-    ing["grid"] = {"islands": grid.islands,
-                   "stray_samples": [{**d, "signal": tag_name.get(d["signal"], d["signal"]),
-                                      "tag": d["signal"]} for d in grid.dropped]}
-    per_signal = {row.get("signal"): row for row in ing.get("signals", [])}
-    ing["spikes"] = spikes
-    for name, (role, s) in sig.items():
-        reasons = dict(grid.mask_reasons.get(s.tag, {}))
-        if name in spikes:
-            reasons["spike"] = spikes[name]["samples"]
-        quality[name] = {"tag": s.tag, "role": role,
-                         "grid_samples": int(values.shape[0]),
-                         "masked": int((~good[:, list(sig).index(name)]).sum()),
-                         "masked_by_reason": reasons,
-                         "ingest": per_signal.get(s.tag, {})}
-        if good[:, list(sig).index(name)].sum() == 0:
-            raise DataQualityError(
-                f"signal {name!r} (tag {s.tag}): every sample is bad or missing after ingestion "
-                f"({reasons}); check the tag's quality in the export or remove the signal"
-            )
-    return Recording(tuple(sig), tuple(r for r, _ in sig.values()), tuple(tags),
-                     np.asarray(grid.time), float(grid_dt), values, good,
-                     tuple(str(f) for f in files), quality, ing)
-
-
-def _check_time_order(report) -> None:
-    bad = [(st.signal, st.duplicates_removed, st.out_of_order) for st in report.signals
-           if st.duplicates_removed or st.out_of_order]
-    if bad:
-        detail = "; ".join(f"tag {t}: {d} duplicate and {o} out-of-order timestamp(s)"
-                           for t, d, o in bad[:5])
-        raise DataQualityError(
-            f"source.time_order is 'strict' but the recording has non-monotonic or "
-            f"duplicate times: {detail}; fix the export, or set source.time_order: fix to "
-            "resolve them (last value wins, rows sorted) and count them in checks.json"
-        )
-
-
-def _report_dict(report) -> dict:
-    for attr in ("to_dict", "as_dict"):
-        if hasattr(report, attr):
-            return getattr(report, attr)()
-    return {}
-
-
-def _median_spacing_s(table: pl.DataFrame) -> float:
-    from pipeline.adapters.grid import median_spacing_s
-
-    med = median_spacing_s(table)
-    if med is None:
-        raise InsufficientDataError(
-            "the recording has fewer than two distinct timestamps per signal; it cannot be "
-            "put on a grid — export a longer period"
-        )
-    # Exception-reported timestamps jitter (1.002 s); two significant figures give the
-    # period the historian was configured for, and grids of nightly files line up.
-    return max(float(f"{med:.2g}"), 0.001)
-
-
-def _fill(values: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """Linear interpolation over masked samples (edges held), column by column."""
-    out = values.copy()
-    idx = np.arange(values.shape[0])
-    for c in range(values.shape[1]):
-        g = good[:, c]
-        if g.all():
-            continue
-        out[~g, c] = np.interp(idx[~g], idx[g], values[g, c])
-    return out
-
-
-def longest_common_good(good: np.ndarray) -> tuple[int, int]:
-    """The longest stretch ``(start, stop)`` where every signal is good (``(0, 0)`` if none).
-
-    Parameters
-    ----------
-    good : ndarray of bool (N, k)
-        Quality mask, one column per signal.
-    """
-    segs = good_segments(good.all(axis=1))
-    if not segs:
-        return (0, 0)
-    return max(segs, key=lambda s: s[1] - s[0])
 
 
 def prepare(cfg, rec: Recording) -> Prepared:
@@ -235,14 +72,8 @@ def prepare(cfg, rec: Recording) -> Prepared:
         The gridded signals from :func:`load_recording`.
     """
     a, b = longest_common_good(rec.good)
-    if cfg.sampling.dt_s is not None:
-        factor = max(1, int(round(cfg.sampling.dt_s / rec.dt_s)))
-        if abs(factor * rec.dt_s - cfg.sampling.dt_s) > 1e-6 * cfg.sampling.dt_s:
-            raise DataQualityError(
-                f"sampling.dt_s={cfg.sampling.dt_s} is not an integer multiple of the grid "
-                f"period {rec.dt_s} s; choose a multiple (e.g. {factor * rec.dt_s:g}) or set "
-                "source.grid_dt_s"
-            )
+    factor = configured_decimation(cfg, rec.dt_s)
+    if factor is not None:
         sampling = {"dt_s": factor * rec.dt_s, "decimation": factor, "source": "config"}
     else:
         if b - a < 200:
@@ -266,7 +97,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
     dt_s = factor * rec.dt_s
     n_x = sum(r == "input" for r in rec.roles)
     n_y = sum(r == "output" for r in rec.roles)
-    filled = _fill(vals, good)
+    filled, _ = interpolate_gaps(vals, good)
     c = cfg.conditioning
     params: dict[str, Any] = {}
     if c.method == "difference":
@@ -289,7 +120,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
     yc = np.where(g[:, n_x:n_x + n_y], cond.y, np.nan)
     rc = np.where(g[:, n_x + n_y:], cond.x[:, n_x:], np.nan) if cond.x.shape[1] > n_x else None
     integ = tuple(cfg.signals.outputs[o].integrating for o in cfg.signals.outputs)
-    return Prepared(rec, float(dt_s), factor, sampling, t, raw, xc, yc, g,
+    return Prepared(rec, factor, sampling, t, raw, xc, yc, g,
                     {"method": c.method, **params}, integ, rc)
 
 
@@ -372,11 +203,25 @@ def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
 
 
 
+def estimate_settings(cfg, sr: SearchResult) -> tuple:
+    """The positional settings :func:`estimate_window` takes after ``prep, window``: the
+    search's choices and the job's ``estimation.method`` (one place for both paths).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``estimation.method``).
+    sr : SearchResult
+        The order search's outcome (``n_p``, ``n_k``, ``noise``, ``instruments``).
+    """
+    return (sr.n_p, sr.n_k, sr.noise, sr.instruments, cfg.estimation.method)
+
+
 def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
-                    noise="white", use_instruments: bool = False):
+                    noise="white", use_instruments: bool = False, method: str = "ls"):
     """Estimate on one window (``None`` = every usable sample) with the search's choices
     (``n_p``, ``n_k``, the noise setting and whether to use the instruments:
-    ``SearchResult.n_p, .n_k, .noise, .instruments``).
+    ``SearchResult.n_p, .n_k, .noise, .instruments``) by the job's ``estimation.method``.
 
     A disjoint window whose data cannot be estimated (an input that does not move in it,
     too many masked samples) returns a :class:`WindowFailure` — a bad window is a
@@ -389,18 +234,28 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
     window : (int, int) or None
         Sample slice ``(start, stop)`` of ``prep``; ``None`` for every sample.
     n_p : int or int array (n_y, n_x)
-        Order per pair (``SearchResult.n_p``).
+        Order per pair (``SearchResult.n_p``); ``tc`` takes the largest for every pair.
     n_k : int or int array (n_y, n_x)
         Known delay in samples per pair (``SearchResult.n_k``).
     noise : ``"white"``, ``"auto"`` or int
-        The estimator's noise setting (``SearchResult.noise``).
+        The estimator's noise setting (``SearchResult.noise``; ``ls`` only).
     use_instruments : bool
-        Estimate with ``prep.r`` as instruments (``SearchResult.instruments``).
+        Estimate with ``prep.r`` as instruments (``SearchResult.instruments``; ``ls`` only).
+    method : ``"ls"``, ``"correlation"`` or ``"tc"``
+        ``estimation.method`` of the job.
     """
     a, b = window if window is not None else (0, prep.x.shape[0])
+    x, y = np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b])
     try:
+        if method == "correlation":  # masked samples enter as zeros (the conditioned mean)
+            return estimate_correlation_method(x, y, n_p=n_p, dt=prep.dt_s,
+                                               integrating=prep.integrating, n_k=n_k)
+        if method == "tc":
+            return estimate_regularized(x, y, n_p=int(np.max(n_p)), dt=prep.dt_s,
+                                        integrating=prep.integrating,
+                                        mask=prep.good_xy[a:b], n_k=n_k)
         return estimate_step_responses(
-            np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b]), n_p=n_p, dt=prep.dt_s,
+            x, y, n_p=n_p, dt=prep.dt_s,
             integrating=prep.integrating, mask=prep.good_xy[a:b], noise=noise, n_k=n_k,
             instruments=None if (prep.r is None or not use_instruments) else prep.r[a:b])
     except DataQualityError as exc:
@@ -408,8 +263,6 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
         if window is None:
             raise exc from None
         return WindowFailure(tuple(window), str(exc))
-
-
 
 
 def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, float],
@@ -475,30 +328,17 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     progress : callable (stage, message)
         Told when each stage starts and ends; its ``bar`` (if any) shows ingest and search.
     """
-    timings: dict[str, float] = {}
-
-    def stage(name, fn, *a, bar: tuple[str, float] | None = None, **k):
-        progress(name, "start")
-        t0 = time.perf_counter()
-        if bar is None:
-            out = fn(*a, **k)
-        else:
-            with bar_of(progress, name, *bar) as tick:
-                out = fn(*a, tick=tick, **k)
-        timings[name] = time.perf_counter() - t0
-        progress(name, f"done in {timings[name]:.2f} s")
-        return out
-
+    stage = StageRunner(progress)
     rec = stage("ingest", load_recording, cfg, files, bar=("MB", 1e-6))
     prep = stage("prepare", prepare, cfg, rec)
     sr = stage("search", search_orders, cfg, prep, bar=("steps", 1.0))
-    choice = (sr.n_p, sr.n_k, sr.noise, sr.instruments)
+    choice = estimate_settings(cfg, sr)
     all_est = stage("estimate_all", estimate_window, prep, None, *choice)
     wins = []
     for k, w in enumerate(sr.windows):
         wins.append(stage(f"estimate_w{k}", estimate_window, prep, tuple(w), *choice))
     summary = stage("summarise", summarise, cfg, prep, sr, all_est, wins)
-    return finish_run(cfg, summary, prep, sr, timings, run_id=run_id, progress=progress)
+    return finish_run(cfg, summary, prep, sr, stage.timings, run_id=run_id, progress=progress)
 
 
 def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings: dict,

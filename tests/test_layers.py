@@ -18,7 +18,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = ROOT / "pipeline"
-COMPOSITION = {"jobs", "job_types", "job_summary", "discrepancy_job", "nightly", "demo"}
+COMPOSITION = {"jobs", "job_types", "job_summary", "discrepancy_job", "nightly", "demo",
+               "recording", "stages"}
 """``pipeline`` modules that compose adapters and core (design.md layer 3)."""
 CORE_PACKAGES = ("discrepancy",)
 """Subpackages of ``pipeline`` that belong to the core."""
@@ -121,3 +122,20 @@ def test_the_checks_see_the_project():
     assert {"estimate", "search", "checks", "frequency", "discrepancy",
             "discrepancy.fit"} <= set(CORE)
     assert len(_sources("pipeline")) >= 30 and len(_sources("flows")) >= 6
+
+
+def test_source_sections_are_the_ingest_options_with_their_defaults():
+    """``source.mcap`` / ``source.csv`` are the ingest adapter's options (one definition of
+    the keys and defaults; the sections only add the YAML's types and bounds)."""
+    import dataclasses
+
+    from pipeline.adapters.config import CsvConfig, McapConfig
+    from pipeline.adapters.ingest.options import CsvOptions, McapOptions
+
+    for section, options in ((McapConfig, McapOptions), (CsvConfig, CsvOptions)):
+        defaults = {f.name: f.default for f in dataclasses.fields(options)}
+        for key, field in section.model_fields.items():
+            assert key in defaults, (section.__name__, key)
+            assert field.default == defaults[key], (section.__name__, key)
+        # and a YAML section reaches the reader as those options
+        assert options(**section().model_dump()) == options()

@@ -28,6 +28,8 @@ from pydantic import (
     model_validator,
 )
 
+from pipeline.adapters.ingest.options import CsvOptions as IngestCsvOptions
+from pipeline.adapters.ingest.options import McapOptions as IngestMcapOptions
 from pipeline.errors import ConfigError
 
 __all__ = [
@@ -83,42 +85,46 @@ class SignalsConfig(_Strict):
         return v
 
 
-class McapOptions(_Strict):
-    """``source.mcap``: how samples are found in MCAP messages (see
-    :class:`pipeline.adapters.ingest.McapOptions`)."""
+# The ingest options own the defaults; these sections add the YAML's types and bounds.
+_MCAP, _CSV = IngestMcapOptions(), IngestCsvOptions()
 
-    time_field: str | None = "t"
-    value_field: str = "value"
-    quality_field: str | None = "quality"
-    tag_field: str | None = None
+
+class McapConfig(_Strict):
+    """``source.mcap``: how samples are found in MCAP messages (see
+    :class:`pipeline.adapters.ingest.McapOptions`, whose defaults these are)."""
+
+    time_field: str | None = _MCAP.time_field
+    value_field: str = _MCAP.value_field
+    quality_field: str | None = _MCAP.quality_field
+    tag_field: str | None = _MCAP.tag_field
     """Field holding the tag; default: the topic name is the tag."""
-    time_unit: Literal["s", "ms", "us", "ns"] = "s"
+    time_unit: Literal["s", "ms", "us", "ns"] = _MCAP.time_unit
     """Unit of numeric times (a recorder writing milliseconds needs ``ms``)."""
-    topics: list[str] | None = None
-    topic_prefix: str = "/"
-    samples_field: str = "samples"
+    topics: list[str] | None = _MCAP.topics
+    topic_prefix: str = _MCAP.topic_prefix
+    samples_field: str = _MCAP.samples_field
 
 
 class CsvConfig(_Strict):
     """``source.csv``: overrides for historian-CSV detection; every unset key is detected
-    (see :class:`pipeline.adapters.ingest.CsvOptions`)."""
+    (see :class:`pipeline.adapters.ingest.CsvOptions`, whose defaults these are)."""
 
-    separator: Literal[",", ";", "\t", "|"] | None = None
-    decimal: Literal[".", ","] | None = None
-    encoding: str | None = None
+    separator: Literal[",", ";", "\t", "|"] | None = _CSV.separator
+    decimal: Literal[".", ","] | None = _CSV.decimal
+    encoding: str | None = _CSV.encoding
     """A codec name (``cp1252``, ``latin-1``, ``utf-16``); default: UTF-8 or the BOM's."""
-    skip_lines: int = Field(default=0, ge=0, le=10_000)
-    tag_column: str | None = None
-    time_column: str | None = None
-    value_column: str | None = None
-    quality_column: str | None = None
-    header_rows: int | None = Field(default=None, ge=1, le=100)
-    tag_row: int = Field(default=0, ge=0, le=100)
-    unit_row: int | None = Field(default=None, ge=0, le=100)
-    description_row: int | None = Field(default=None, ge=0, le=100)
-    time_format: str | None = None
+    skip_lines: int = Field(default=_CSV.skip_lines, ge=0, le=10_000)
+    tag_column: str | None = _CSV.tag_column
+    time_column: str | None = _CSV.time_column
+    value_column: str | None = _CSV.value_column
+    quality_column: str | None = _CSV.quality_column
+    header_rows: int | None = Field(default=_CSV.header_rows, ge=1, le=100)
+    tag_row: int = Field(default=_CSV.tag_row, ge=0, le=100)
+    unit_row: int | None = Field(default=_CSV.unit_row, ge=0, le=100)
+    description_row: int | None = Field(default=_CSV.description_row, ge=0, le=100)
+    time_format: str | None = _CSV.time_format
     """A strptime format (``"%m-%d-%Y %H:%M:%S"``) or ``epoch_s``."""
-    quality_map: dict[str, Literal["good", "suspect", "bad"]] | None = None
+    quality_map: dict[str, Literal["good", "suspect", "bad"]] | None = _CSV.quality_map
 
     @field_validator("encoding")
     @classmethod
@@ -142,7 +148,7 @@ class SourceConfig(_Strict):
     sample by hours (and DST) without a sign."""
     layout: Literal["auto", "long", "wide", "mcap"] = "auto"
     on_truncated: Literal["error", "warn"] = "error"
-    mcap: McapOptions | None = None
+    mcap: McapConfig | None = None
     csv: CsvConfig | None = None
     grid_dt_s: float | None = Field(default=None, ge=0.001, le=86_400)
     """Period of the uniform grid before α_T resampling; default: median sample spacing."""
@@ -207,6 +213,16 @@ class ChecksConfig(_Strict):
 class EstimationConfig(_Strict):
     """How step responses are estimated (method.md §10)."""
 
+    method: Literal["ls", "correlation", "tc"] = "ls"
+    """``ls``: least squares (with the noise model and instruments below; the default);
+    ``correlation``: the thesis' older correlation method (method.md §2; whole-window
+    auto-correlations, masked samples enter as zeros; a comparison method that degrades
+    with input drift); ``tc``: kernel-regularised least squares with a TC prior whose
+    hyperparameters maximise the marginal likelihood (recommended for short records,
+    where N_d is a few times the number of unknowns; one N_p for every pair, the
+    largest the search chose).  ``correlation`` and ``tc`` assume white noise (``noise``
+    defaults to ``white`` for them) and take no instruments; the search of N_p/N_d is
+    the least-squares one in every case."""
     noise: str | int = "auto"
     """``auto``: per output a noise model chosen from the data (AR order by BIC; for
     integrating outputs also the differenced or level form); ``white``: the thesis' least
@@ -217,6 +233,19 @@ class EstimationConfig(_Strict):
     feedback: Literal["auto", "report", "off"] = "auto"
     """``auto``: a pair with detected feedback and no instrument gets ``n_k >= 1``;
     ``report``: test and report only; ``off``: no feedback test."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _white_for_alternatives(cls, data):
+        if isinstance(data, dict) and data.get("method") in ("correlation", "tc"):
+            noise = data.get("noise", "white")
+            if noise != "white":
+                raise ValueError(
+                    f"estimation.noise: {noise!r} applies to method ls only; method "
+                    f"{data['method']} assumes white noise — remove estimation.noise or set "
+                    "it to white (or use method: ls for a noise model)")
+            data = {**data, "noise": "white"}
+        return data
 
     @field_validator("noise", mode="before")
     @classmethod
@@ -336,6 +365,16 @@ class JobConfig(_Strict):
                              "inputs or outputs; an instrument is an extra signal — give it "
                              "its own name (the same tag may appear twice)")
         return v
+
+    @model_validator(mode="after")
+    def _method_takes_no_instruments(self) -> JobConfig:
+        m = self.estimation.method
+        if m != "ls" and self.signals.instruments:
+            raise ValueError(
+                f"estimation.method: {m} takes no instruments, but signals.instruments lists "
+                f"{sorted(self.signals.instruments)}; use method: ls (instrumental variables) "
+                "or remove signals.instruments")
+        return self
 
     @model_validator(mode="after")
     def _n_k_names(self) -> JobConfig:
