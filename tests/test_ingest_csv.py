@@ -494,3 +494,11 @@ def test_config_errors(tmp_path: Path) -> None:
         read_recording(p, csv={"encoding": "klingon"})
     with pytest.raises(ConfigError, match=r"quality_map\['x'\] = 'fine'"):
         read_recording(write(tmp_path, "tag,time,value,status\nA,2024-01-01 00:00:00,1,x\n", "q.csv"), csv={"quality_map": {"x": "fine"}})
+
+
+def test_more_header_rows_than_lines_is_a_specific_error(tmp_path):
+    """A wide export with only its header line, read with ``header_rows: 3``: the error
+    names the key and the numbers (it was a bare IndexError)."""
+    path = write(tmp_path, "time,A.PV,B.PV\n")
+    with pytest.raises(IngestError, match=r"header_rows is 3 but the file has only 1 line"):
+        read_recording(path, csv=CsvOptions(header_rows=3))

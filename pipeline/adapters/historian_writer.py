@@ -232,6 +232,50 @@ def write_long_csv(
     path = Path(path)
     us = _times_us(times_utc)
     n = len(us)
+    rng, jitter = _check_csv_args(us, timezone=timezone, irregular=irregular,
+                                  jitter_s=jitter_s, sep=sep, decimal=decimal)
+    fmt = time_format or ("%Y-%m-%d %H:%M:%S%.3f" if jitter else "%Y-%m-%d %H:%M:%S")
+    states = states or {}
+    unknown = sorted(set(states) - set(values))
+    if unknown:
+        raise ConfigError(f"states given for tags {unknown} that have no values")
+    frames = []
+    written: dict[str, WrittenSignal] = {}
+    for tag, raw in values.items():
+        v = np.asarray(raw, dtype=float)
+        if v.shape != (n,):
+            raise ConfigError(f"values[{tag!r}] has shape {v.shape}; expected ({n},)")
+        written[tag] = _written_tag(tag, us, v, states.get(tag, ()), rng=rng, jitter=jitter,
+                                    deadband=deadband, max_interval_s=max_interval_s)
+        frames.append(_tag_rows(tag, written[tag], decimal=decimal, status=status))
+    table = _csv_table(frames, order=order, timezone=timezone, dst=dst, fmt=fmt,
+                       header=header, status=status)
+    path.write_bytes(_encoded(table.write_csv(separator=sep), encoding))
+    return WrittenRecording(path=path, signals=written, jitter_s=jitter, rows=len(table))
+
+
+def _csv_table(frames: list[pl.DataFrame], *, order: str, timezone: str, dst: bool, fmt: str,
+               header: Sequence[str], status: Literal["text", "opc"] | None) -> pl.DataFrame:
+    """The tags' rows as the CSV table: in ``order``, local timestamp text, named columns."""
+    table = pl.concat(frames, how="vertical")
+    if order == "time":
+        table = table.sort("_us", maintain_order=True)
+    elif order != "tag":
+        raise ConfigError(f"order={order!r} must be 'tag' or 'time'")
+    table = table.with_columns(
+        _us=_local_text(table["_us"].to_numpy(), timezone, dst, fmt)
+    ).rename({"_us": "timestamp"})
+    names = list(header)[: 4 if status else 3]
+    table = table.select(["tag", "timestamp", "value", *(["status"] if status else [])])
+    table.columns = names
+    return table
+
+
+def _check_csv_args(us: np.ndarray, *, timezone: str, irregular: bool | np.random.Generator,
+                    jitter_s: float | None, sep: str,
+                    decimal: str) -> tuple[np.random.Generator | None, float]:
+    """Checked arguments of :func:`write_long_csv`: the jitter's generator (None without
+    exception reporting) and the jitter ``J`` in seconds."""
     if decimal not in (".", ","):
         raise ConfigError(f"decimal={decimal!r} must be '.' or ','")
     if decimal == "," and sep == ",":
@@ -253,101 +297,92 @@ def write_long_csv(
         raise ConfigError(
             f"jitter_s={jitter} must be < dt/2 = {dt_min_s / 2} s so samples keep their order"
         )
-    fmt = time_format or ("%Y-%m-%d %H:%M:%S%.3f" if jitter else "%Y-%m-%d %H:%M:%S")
-    states = states or {}
-    unknown = sorted(set(states) - set(values))
-    if unknown:
-        raise ConfigError(f"states given for tags {unknown} that have no values")
-    frames = []
-    written: dict[str, WrittenSignal] = {}
-    for tag, raw in values.items():
-        v = np.asarray(raw, dtype=float)
-        if v.shape != (n,):
-            raise ConfigError(f"values[{tag!r}] has shape {v.shape}; expected ({n},)")
-        state_text: list[str | None] = [None] * n
-        forced = np.zeros(n, dtype=bool)
-        for idx, text in states.get(tag, ()):
-            if not 0 <= idx < n:
-                raise ConfigError(f"states[{tag!r}]: index {idx} outside 0..{n - 1}")
-            state_text[idx] = text
-            forced[max(idx - 1, 0) : idx + 2] = True
-        v_num = v.copy()
-        for idx, _ in states.get(tag, ()):
-            v_num[idx] = np.nan
-        if rng is not None:
-            if deadband is None:
-                finite = np.diff(v_num)[np.isfinite(np.diff(v_num))]
-                d = 0.25 * float(np.median(np.abs(finite))) if len(finite) else 0.0
-            elif isinstance(deadband, Mapping):
-                d = float(deadband.get(tag, 0.0))
-            else:
-                d = float(deadband)
+    return rng, jitter
+
+
+def _written_tag(tag: str, us: np.ndarray, v: np.ndarray,
+                 tag_states: Sequence[tuple[int, str]], *, rng: np.random.Generator | None,
+                 jitter: float, deadband: float | Mapping[str, float] | None,
+                 max_interval_s: float) -> WrittenSignal:
+    """What is written for one tag: states, exception reporting, jittered times."""
+    n = len(us)
+    state_text: list[str | None] = [None] * n
+    forced = np.zeros(n, dtype=bool)
+    for idx, text in tag_states:
+        if not 0 <= idx < n:
+            raise ConfigError(f"states[{tag!r}]: index {idx} outside 0..{n - 1}")
+        state_text[idx] = text
+        forced[max(idx - 1, 0) : idx + 2] = True
+    v_num = v.copy()
+    for idx, _ in tag_states:
+        v_num[idx] = np.nan
+    if rng is not None:
+        if deadband is None:
+            finite = np.diff(v_num)[np.isfinite(np.diff(v_num))]
+            d = 0.25 * float(np.median(np.abs(finite))) if len(finite) else 0.0
+        elif isinstance(deadband, Mapping):
+            d = float(deadband.get(tag, 0.0))
+        else:
+            d = float(deadband)
+        keep = _exception_keep(us, v_num, d, max_interval_s * 1e6, forced)
+    else:
+        if deadband is None:
+            d = 0.0
+        elif isinstance(deadband, Mapping):
+            d = float(deadband.get(tag, 0.0))
+        else:
+            d = float(deadband)
+        if d > 0:
             keep = _exception_keep(us, v_num, d, max_interval_s * 1e6, forced)
         else:
-            if deadband is None:
-                d = 0.0
-            elif isinstance(deadband, Mapping):
-                d = float(deadband.get(tag, 0.0))
-            else:
-                d = float(deadband)
-            if d > 0:
-                keep = _exception_keep(us, v_num, d, max_interval_s * 1e6, forced)
-            else:
-                keep = np.ones(n, dtype=bool)
-        idx = np.flatnonzero(keep)
-        t_w = us[idx].copy()
-        if jitter and len(idx) > 2:
-            ms = int(math.floor(jitter * 1000))
-            shift_ms = rng.integers(-ms, ms + 1, size=len(idx) - 2)  # type: ignore[union-attr]
-            t_w[1:-1] += shift_ms * 1000
-        vals = v_num[idx]
-        sts = tuple(state_text[i] for i in idx)
-        written[tag] = WrittenSignal(
-            times_utc=t_w.astype("datetime64[us]"),
-            values=vals,
-            states=sts,
-            source_index=idx,
-            deadband=d,
-        )
-        value_text = pl.Series(vals).cast(pl.String)
-        if decimal == ",":
-            value_text = value_text.str.replace(".", ",", literal=True)
-        is_state = pl.Series([s is not None for s in sts])
-        value_text = pl.select(
-            pl.when(pl.lit(is_state))
-            .then(pl.lit(pl.Series(sts, dtype=pl.String)))
-            .otherwise(pl.lit(value_text))
-        ).to_series()
-        cols: dict[str, Any] = {
-            "tag": pl.repeat(tag, len(idx), dtype=pl.String, eager=True),
-            "_us": pl.Series(t_w),
-            "value": value_text,
-        }
-        if status == "text":
-            cols["status"] = pl.Series(["Bad" if s is not None else "Good" for s in sts])
-        elif status == "opc":
-            cols["status"] = pl.Series(["0" if s is not None else "192" for s in sts])
-        frames.append(pl.DataFrame(cols))
-    table = pl.concat(frames, how="vertical")
-    if order == "time":
-        table = table.sort("_us", maintain_order=True)
-    elif order != "tag":
-        raise ConfigError(f"order={order!r} must be 'tag' or 'time'")
-    table = table.with_columns(
-        _us=_local_text(table["_us"].to_numpy(), timezone, dst, fmt)
-    ).rename({"_us": "timestamp"})
-    names = list(header)[: 4 if status else 3]
-    table = table.select(["tag", "timestamp", "value", *(["status"] if status else [])])
-    table.columns = names
-    text = table.write_csv(separator=sep)
+            keep = np.ones(n, dtype=bool)
+    idx = np.flatnonzero(keep)
+    t_w = us[idx].copy()
+    if jitter and len(idx) > 2:
+        ms = int(math.floor(jitter * 1000))
+        shift_ms = rng.integers(-ms, ms + 1, size=len(idx) - 2)  # type: ignore[union-attr]
+        t_w[1:-1] += shift_ms * 1000
+    return WrittenSignal(
+        times_utc=t_w.astype("datetime64[us]"),
+        values=v_num[idx],
+        states=tuple(state_text[i] for i in idx),
+        source_index=idx,
+        deadband=d,
+    )
+
+
+def _tag_rows(tag: str, w: WrittenSignal, *, decimal: str,
+              status: Literal["text", "opc"] | None) -> pl.DataFrame:
+    """The CSV rows of one tag: tag, ``_us`` (UTC microseconds), value text, status?"""
+    vals, sts = w.values, w.states
+    value_text = pl.Series(vals).cast(pl.String)
+    if decimal == ",":
+        value_text = value_text.str.replace(".", ",", literal=True)
+    is_state = pl.Series([s is not None for s in sts])
+    value_text = pl.select(
+        pl.when(pl.lit(is_state))
+        .then(pl.lit(pl.Series(sts, dtype=pl.String)))
+        .otherwise(pl.lit(value_text))
+    ).to_series()
+    cols: dict[str, Any] = {
+        "tag": pl.repeat(tag, len(w.source_index), dtype=pl.String, eager=True),
+        "_us": pl.Series(w.times_utc.astype(np.int64)),
+        "value": value_text,
+    }
+    if status == "text":
+        cols["status"] = pl.Series(["Bad" if s is not None else "Good" for s in sts])
+    elif status == "opc":
+        cols["status"] = pl.Series(["0" if s is not None else "192" for s in sts])
+    return pl.DataFrame(cols)
+
+
+def _encoded(text: str, encoding: str) -> bytes:
+    """The CSV text in ``encoding``; UTF-16 with an explicit byte order gets a BOM too."""
     codec = codecs.lookup(encoding).name
     if codec in ("utf-16-le", "utf-16-be"):
         bom = codecs.BOM_UTF16_LE if codec == "utf-16-le" else codecs.BOM_UTF16_BE
-        data = bom + text.encode(codec)
-    else:
-        data = text.encode(codec)
-    path.write_bytes(data)
-    return WrittenRecording(path=path, signals=written, jitter_s=jitter, rows=len(table))
+        return bom + text.encode(codec)
+    return text.encode(codec)
 
 
 def write_json_mcap(
@@ -394,11 +429,30 @@ def write_json_mcap(
 
     path = Path(path)
     us = _times_us(times_utc)
-    n = len(us)
     if samples_per_message < 1:
         raise ConfigError(f"samples_per_message={samples_per_message} must be >= 1")
-    states = states or {}
-    t_s = us / 1e6
+    per_tag, written = _json_samples(us, values, states or {})
+    with path.open("wb") as f:
+        writer = Writer(f, chunk_size=chunk_size)
+        writer.start(profile="", library="plantdyn historian_writer")
+        if layout == "topic_per_tag":
+            n_messages = _write_topic_per_tag(writer, per_tag, us, samples_per_message,
+                                              topic_prefix)
+        elif layout == "samples":
+            n_messages = _write_samples_topic(writer, per_tag, us, samples_per_message)
+        else:
+            raise ConfigError(f"layout={layout!r} must be 'topic_per_tag' or 'samples'")
+        writer.finish()
+    return WrittenRecording(path=path, signals=written, jitter_s=0.0, rows=n_messages)
+
+
+def _json_samples(
+    us: np.ndarray,
+    values: Mapping[str, Sequence[float] | np.ndarray],
+    states: Mapping[str, Sequence[tuple[int, str]]],
+) -> tuple[dict[str, tuple[list[Any], list[str]]], dict[str, WrittenSignal]]:
+    """Per tag, the JSON values and qualities of its samples, and what is written."""
+    n = len(us)
     written: dict[str, WrittenSignal] = {}
     per_tag: dict[str, tuple[list[Any], list[str]]] = {}
     for tag, raw in values.items():
@@ -423,55 +477,64 @@ def write_json_mcap(
             source_index=np.arange(n),
             deadband=0.0,
         )
-    k = samples_per_message
+    return per_tag, written
+
+
+def _write_topic_per_tag(writer: Any, per_tag: dict[str, tuple[list[Any], list[str]]],
+                         us: np.ndarray, k: int, topic_prefix: str) -> int:
+    """One topic per tag, up to ``k`` samples per message; returns the messages written."""
+    n = len(us)
+    t_s = us / 1e6
     n_messages = 0
-    with path.open("wb") as f:
-        writer = Writer(f, chunk_size=chunk_size)
-        writer.start(profile="", library="plantdyn historian_writer")
-        if layout == "topic_per_tag":
-            for tag, (out, quality) in per_tag.items():
-                channel = writer.register_channel(
-                    topic=f"{topic_prefix}{tag}", message_encoding="json", schema_id=0
-                )
-                for a in range(0, n, k):
-                    b = min(a + k, n)
-                    if k == 1:
-                        msg = {"t": t_s[a], "value": out[a], "quality": quality[a]}
-                    else:
-                        msg = {"t": t_s[a:b].tolist(), "value": out[a:b], "quality": quality[a:b]}
-                    writer.add_message(
-                        channel_id=channel,
-                        log_time=int(us[a]) * 1000,
-                        data=json.dumps(msg).encode(),
-                        publish_time=int(us[a]) * 1000,
-                    )
-                    n_messages += 1
-        elif layout == "samples":
-            channel = writer.register_channel(
-                topic="/samples", message_encoding="json", schema_id=0
+    for tag, (out, quality) in per_tag.items():
+        channel = writer.register_channel(
+            topic=f"{topic_prefix}{tag}", message_encoding="json", schema_id=0
+        )
+        for a in range(0, n, k):
+            b = min(a + k, n)
+            if k == 1:
+                msg = {"t": t_s[a], "value": out[a], "quality": quality[a]}
+            else:
+                msg = {"t": t_s[a:b].tolist(), "value": out[a:b], "quality": quality[a:b]}
+            writer.add_message(
+                channel_id=channel,
+                log_time=int(us[a]) * 1000,
+                data=json.dumps(msg).encode(),
+                publish_time=int(us[a]) * 1000,
             )
-            flat = [
-                (i, tag, out[i], quality[i])
-                for i in range(n)
-                for tag, (out, quality) in per_tag.items()
+            n_messages += 1
+    return n_messages
+
+
+def _write_samples_topic(writer: Any, per_tag: dict[str, tuple[list[Any], list[str]]],
+                         us: np.ndarray, k: int) -> int:
+    """One topic ``/samples``, ``k`` samples of the tags in time order per message;
+    returns the messages written."""
+    n = len(us)
+    t_s = us / 1e6
+    n_messages = 0
+    channel = writer.register_channel(
+        topic="/samples", message_encoding="json", schema_id=0
+    )
+    flat = [
+        (i, tag, out[i], quality[i])
+        for i in range(n)
+        for tag, (out, quality) in per_tag.items()
+    ]
+    for a in range(0, len(flat), k):
+        chunk = flat[a : a + k]
+        msg = {
+            "samples": [
+                {"tag": tag, "t": t_s[i], "value": val, "quality": q}
+                for i, tag, val, q in chunk
             ]
-            for a in range(0, len(flat), k):
-                chunk = flat[a : a + k]
-                msg = {
-                    "samples": [
-                        {"tag": tag, "t": t_s[i], "value": val, "quality": q}
-                        for i, tag, val, q in chunk
-                    ]
-                }
-                first = int(us[chunk[0][0]]) * 1000
-                writer.add_message(
-                    channel_id=channel,
-                    log_time=first,
-                    data=json.dumps(msg).encode(),
-                    publish_time=first,
-                )
-                n_messages += 1
-        else:
-            raise ConfigError(f"layout={layout!r} must be 'topic_per_tag' or 'samples'")
-        writer.finish()
-    return WrittenRecording(path=path, signals=written, jitter_s=0.0, rows=n_messages)
+        }
+        first = int(us[chunk[0][0]]) * 1000
+        writer.add_message(
+            channel_id=channel,
+            log_time=first,
+            data=json.dumps(msg).encode(),
+            publish_time=first,
+        )
+        n_messages += 1
+    return n_messages

@@ -19,6 +19,7 @@ import csv as _csv
 import re
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -370,19 +371,98 @@ def _format_sample(rows: list[list[str]], i_time: int,
     return sample, (cands[0] if cands else None)
 
 
-def _read_long(
+@dataclass
+class _ChunkState:
+    """What the chunks of one CSV file showed: rows read, formats, repeated hour, decimal."""
+
+    decimal: str
+    fold: FoldState = field(default_factory=FoldState)
+    formats: list[str] = field(default_factory=list)
+    done: int = 0
+
+
+def _read_chunks(
     path: Path,
     codec: str,
-    rows: list[list[str]],
-    tail: list[list[str]],
+    name: str,
+    sink: ChunkSink,
+    *,
     sep: str,
     options: CsvOptions,
     timezone: str,
-    tags: list[str] | None,
-    name: str,
-    encoding: str,
-    sink: ChunkSink,
-) -> ReaderMeta:
+    data_rows: list[list[str]],
+    tail: list[list[str]],
+    i_time: int,
+    value_idx: list[int],
+    skip: int,
+    n_fields: int,
+    first_line: int,
+    cols: dict[str, str],
+    rename: bool,
+    categorical: tuple[int, ...] = (),
+    signal_col: str | None = None,
+    prepare: Callable[[int, pl.DataFrame], pl.DataFrame | None] | None = None,
+    emit: Callable[[pl.DataFrame, pl.Series, dict[str, tuple[pl.Series, pl.Series]]], None],
+) -> _ChunkState:
+    """The read shared by both layouts: detect the decimal mark and timestamp format, then
+    stream the file's chunks (text columns ``cols``, renamed to their values when
+    ``rename``), drop blank rows, ``prepare`` each chunk (None skips it), parse its times
+    and values and ``emit`` them."""
+    sample_values = [_cell(r, c) for r in data_rows for c in value_idx]
+    state = _ChunkState(decimal=options.decimal or _detect_decimal(sample_values, sep))
+    fmt_sample, fast_fmt = _format_sample(data_rows + tail, i_time, options.time_format)
+    vcols = [f"c{c}" for c in value_idx]
+    exprs = fast_parse_exprs(time_col=f"c{i_time}", value_cols=vcols, fmt=fast_fmt,
+                             timezone=timezone, decimal_comma=state.decimal == ",")
+    fast = {fast_value_column(c): fast_value_column(cols[c]) for c in vcols}
+    if fast_fmt is not None:
+        fast["__time"] = "__time"
+    time_col = cols[f"c{i_time}"]
+    value_cols = [cols[c] for c in vcols]
+    blank = pl.all_horizontal(pl.col(list(cols.values())).is_null())
+    with as_utf8(path, codec, name) as src:
+        for base, df in _batches(src, name, sep=sep, skip=skip, n_fields=n_fields,
+                                 first_line=first_line, categorical=categorical, exprs=exprs,
+                                 at=sink.at):
+            state.done += len(df)
+            df = df.select("_row", *cols, *fast)
+            if rename:
+                df = df.rename({**cols, **fast})
+            if df.select(blank.any()).item():
+                df = df.filter(~blank)
+            if len(df) == 0:
+                continue
+            if prepare is not None:
+                df = prepare(base, df)  # type: ignore[assignment]
+                if df is None:
+                    continue
+            rows_idx = df["_row"]
+            time, values, fmt, _, _ = parse_time_and_values(
+                df,
+                time_col=time_col,
+                value_cols=value_cols,
+                timezone=timezone,
+                time_format=options.time_format,
+                decimal_comma=state.decimal == ",",
+                signal=df[signal_col] if signal_col is not None else None,
+                line_of=lambda i, base=base, rows_idx=rows_idx: base + int(rows_idx[i]),
+                path=name,
+                fold_state=state.fold,
+                format_sample=fmt_sample,
+                fast_format=fast_fmt,
+            )
+            if fmt not in state.formats:
+                state.formats.append(fmt)
+            emit(df, time, values)
+            del df, time, values
+    return state
+
+
+def _long_roles(
+    rows: list[list[str]], options: CsvOptions, name: str
+) -> tuple[dict[str, int], bool, list[list[str]]]:
+    """Long layout: the column of each role (tag, time, value, flag?), whether the first
+    row is a header, and the sampled data rows."""
     header = rows[0]
     named = {_key(h) for h in header} & (_TAG_KEYS | _VALUE_KEYS | _TIME_KEYS)
     has_header = (
@@ -414,100 +494,42 @@ def _read_long(
     roles = {"tag": i_tag, "time": i_time, "value": i_value}
     if i_flag is not None:
         roles["flag"] = i_flag
-    by_index = sorted(roles.items(), key=lambda kv: kv[1])
-    sample_values = [_cell(r, i_value) for r in data_rows]
-    decimal = options.decimal or _detect_decimal(sample_values, sep)
-    first_line = options.skip_lines + (2 if has_header else 1)
-    _check_row_shapes(rows[0] if has_header else None, data_rows, sep, name, first_line)
-    # every field of every row is read: one more than the widest sampled row is an error
-    n_fields = max(len(r) for r in rows)
-    fmt_sample, fast_fmt = _format_sample(data_rows + tail, i_time, options.time_format)
-    exprs = fast_parse_exprs(time_col=f"c{i_time}", value_cols=[f"c{i_value}"], fmt=fast_fmt,
-                             timezone=timezone, decimal_comma=decimal == ",")
-    fold = FoldState()
-    formats: list[str] = []
-    warnings: list[str] = []
-    seen_tags: set[str] = set()
-    done = 0
-    cols = {f"c{i}": r for r, i in by_index}
-    fast = {fast_value_column(f"c{i_value}"): fast_value_column("value")}
-    if fast_fmt is not None:
-        fast["__time"] = "__time"
-    categorical = (i_tag,) + ((i_flag,) if i_flag is not None else ())
-    with as_utf8(path, codec, name) as src:
-        for base, df in _batches(src, name, sep=sep,
-                                 skip=options.skip_lines + (1 if has_header else 0),
-                                 n_fields=n_fields, first_line=first_line,
-                                 categorical=categorical, exprs=exprs,
-                                 at=sink.at):
-            done += len(df)
-            df = df.select("_row", *cols, *fast).rename({**cols, **fast})
-            blank = pl.all_horizontal(pl.col(list(cols.values())).is_null())
-            if df.select(blank.any()).item():
-                df = df.filter(~blank)
-            if len(df) == 0:
-                continue
-            tag_col = df["tag"]
-            if tag_col.null_count():
-                i = int(tag_col.is_null().arg_true()[0])
-                raise IngestError(f"{name}, line {base + int(df['_row'][i])}: empty tag name; "
-                                  "fix or remove the row")
-            head = tag_col.head(1000).cast(pl.String)
-            if bool(head.str.contains(r"^\s|\s$").any()):
-                df = df.with_columns(
-                    tag=tag_col.cast(pl.String).str.strip_chars().cast(pl.Categorical))
-            if tags is not None:
-                seen_tags.update(str(t) for t in df["tag"].unique().to_list())
-                df = df.filter(pl.col("tag").is_in(tags))
-                if len(df) == 0:
-                    continue
-            rows_idx = df["_row"]
+    return roles, has_header, data_rows
 
-            def line_of(i: int, base: int = base, rows_idx: pl.Series = rows_idx) -> int:
-                return base + int(rows_idx[i])
 
-            time, values, fmt, _, _ = parse_time_and_values(
-                df,
-                time_col="time",
-                value_cols=["value"],
-                timezone=timezone,
-                time_format=options.time_format,
-                decimal_comma=decimal == ",",
-                signal=df["tag"],
-                line_of=line_of,
-                path=name,
-                fold_state=fold,
-                format_sample=fmt_sample,
-                fast_format=fast_fmt,
-            )
-            if fmt not in formats:
-                formats.append(fmt)
-            value, state = values["value"]
-            flag = df["flag"] if "flag" in df.columns else \
-                pl.repeat(None, len(df), dtype=pl.String, eager=True)
-            sink(pl.DataFrame(
-                {"signal": df["tag"], "time": time, "value": value, "state_text": state,
-                 "flag": flag}))
-            del df, time, values, value, state, flag
-    if done == 0:
-        raise IngestError(f"{name}: the file has a header but no data rows; re-run the export")
+def _long_tags(base: int, df: pl.DataFrame, *, name: str, tags: list[str] | None,
+               seen_tags: set[str]) -> pl.DataFrame | None:
+    """Long layout chunk: no empty tag, tags stripped, only the requested tags (None when
+    none is left)."""
+    tag_col = df["tag"]
+    if tag_col.null_count():
+        i = int(tag_col.is_null().arg_true()[0])
+        raise IngestError(f"{name}, line {base + int(df['_row'][i])}: empty tag name; "
+                          "fix or remove the row")
+    head = tag_col.head(1000).cast(pl.String)
+    if bool(head.str.contains(r"^\s|\s$").any()):
+        df = df.with_columns(
+            tag=tag_col.cast(pl.String).str.strip_chars().cast(pl.Categorical))
     if tags is not None:
-        check_tags(seen_tags, tags, name)
-    warnings.extend(fold.warnings(timezone))
-    return ReaderMeta(
-        path=name,
-        layout="long",
-        encoding=encoding,
-        separator=sep,
-        decimal=decimal,
-        time_format="+".join(formats) or options.time_format,
-        header_rows=1 if has_header else 0,
-        dst_resolved=dict(fold.counts),
-        warnings=tuple(warnings),
-    )
+        seen_tags.update(str(t) for t in df["tag"].unique().to_list())
+        df = df.filter(pl.col("tag").is_in(tags))
+        if len(df) == 0:
+            return None
+    return df
 
 
-def _read_wide(
+def _emit_long(sink: ChunkSink, df: pl.DataFrame, time: pl.Series,
+               values: dict[str, tuple[pl.Series, pl.Series]]) -> None:
+    """Long layout: one parsed chunk to the sink as a pre-canonical chunk."""
+    value, state = values["value"]
+    flag = df["flag"] if "flag" in df.columns else \
+        pl.repeat(None, len(df), dtype=pl.String, eager=True)
+    sink(pl.DataFrame(
+        {"signal": df["tag"], "time": time, "value": value, "state_text": state,
+         "flag": flag}))
+
+
+def _read_long(
     path: Path,
     codec: str,
     rows: list[list[str]],
@@ -520,12 +542,57 @@ def _read_wide(
     encoding: str,
     sink: ChunkSink,
 ) -> ReaderMeta:
+    """Long layout (tag, time, value[, status] per row) chunk by chunk into ``sink``."""
+    roles, has_header, data_rows = _long_roles(rows, options, name)
+    by_index = sorted(roles.items(), key=lambda kv: kv[1])
+    first_line = options.skip_lines + (2 if has_header else 1)
+    _check_row_shapes(rows[0] if has_header else None, data_rows, sep, name, first_line)
+    i_flag = roles.get("flag")
+    seen_tags: set[str] = set()
+    state = _read_chunks(
+        path, codec, name, sink, sep=sep, options=options, timezone=timezone,
+        data_rows=data_rows, tail=tail, i_time=roles["time"], value_idx=[roles["value"]],
+        skip=options.skip_lines + (1 if has_header else 0),
+        # every field of every row is read: one more than the widest sampled row is an error
+        n_fields=max(len(r) for r in rows), first_line=first_line,
+        cols={f"c{i}": r for r, i in by_index}, rename=True,
+        categorical=(roles["tag"],) + ((i_flag,) if i_flag is not None else ()),
+        signal_col="tag",
+        prepare=lambda base, df: _long_tags(base, df, name=name, tags=tags,
+                                            seen_tags=seen_tags),
+        emit=lambda df, time, values: _emit_long(sink, df, time, values),
+    )
+    if state.done == 0:
+        raise IngestError(f"{name}: the file has a header but no data rows; re-run the export")
+    if tags is not None:
+        check_tags(seen_tags, tags, name)
+    return ReaderMeta(
+        path=name,
+        layout="long",
+        encoding=encoding,
+        separator=sep,
+        decimal=state.decimal,
+        time_format="+".join(state.formats) or options.time_format,
+        header_rows=1 if has_header else 0,
+        dst_resolved=dict(state.fold.counts),
+        warnings=tuple(state.fold.warnings(timezone)),
+    )
+
+
+def _wide_header_rows(rows: list[list[str]], options: CsvOptions, name: str) -> tuple[int, int]:
+    """Wide layout: the time column and the number of header rows (the rows before the
+    first timestamp)."""
     header0 = rows[0]
     i_time = _find(header0, _TIME_KEYS, options.time_column, "time", name)
     if i_time is None:
         i_time = 0
     if options.header_rows is not None:
         n_header = options.header_rows
+        if n_header > len(rows):
+            raise IngestError(
+                f"{name}: source.csv.header_rows is {n_header} but the file has only "
+                f"{len(rows)} line(s) after source.csv.skip_lines; lower header_rows to the "
+                "number of rows above the first timestamp, or export a period with data")
     else:
         n_header = next(
             (r for r, row in enumerate(rows) if looks_like_time(_cell(row, i_time))), None
@@ -542,22 +609,22 @@ def _read_wide(
             f"{name}: wide layout without a header row naming the tags; add one or export "
             f"in the long layout (tag,time,value)"
         )
-    header = rows[:n_header]
+    return i_time, n_header
+
+
+def _wide_columns(
+    rows: list[list[str]], n_header: int, i_time: int, options: CsvOptions, name: str
+) -> tuple[dict[str, int], dict[str, int], list[str]]:
+    """Wide layout: the value column of each tag, the quality column of each tag that has
+    one, and warnings (unnamed or orphaned columns)."""
+    header0 = rows[0]
+    tag_row = rows[options.tag_row]
     data_rows = rows[n_header:]
-    _check_row_shapes(header[options.tag_row] if 0 <= options.tag_row < n_header else None,
-                      data_rows, sep, name, options.skip_lines + n_header + 1)
-    if not (0 <= options.tag_row < n_header):
-        raise ConfigError(
-            f"source.csv.tag_row: {options.tag_row} must be in 0..{n_header - 1} "
-            f"(the file has {n_header} header rows)"
-        )
-    tag_row = header[options.tag_row]
-    n_cols = max(len(r) for r in rows)
     value_cols: dict[str, int] = {}
     quality_cols: dict[str, int] = {}
     warnings: list[str] = []
     last_tag: str | None = None
-    for c in range(n_cols):
+    for c in range(max(len(r) for r in rows)):
         if c == i_time:
             continue
         top = _cell(header0, c)
@@ -594,6 +661,13 @@ def _read_wide(
         last_tag = tag
     if not value_cols:
         raise IngestError(f"{name}: wide layout with no value columns besides the time column")
+    return value_cols, quality_cols, warnings
+
+
+def _wide_labels(
+    header: list[list[str]], n_header: int, value_cols: dict[str, int], options: CsvOptions
+) -> tuple[dict[str, str], dict[str, str]]:
+    """Wide layout: the unit and the description of each tag from the header rows."""
     unit_row = (
         options.unit_row
         if options.unit_row is not None
@@ -613,81 +687,85 @@ def _read_wide(
             cell = _cell(header[row_i], c)
             if cell and cell != tag:
                 out[tag] = cell
+    return units, descriptions
+
+
+def _emit_wide(sink: ChunkSink, value_cols: dict[str, int], quality_cols: dict[str, int],
+               df: pl.DataFrame, time: pl.Series,
+               values: dict[str, tuple[pl.Series, pl.Series]]) -> None:
+    """Wide layout: one parsed chunk to the sink, the tags one after another."""
+    frames = []
+    null_flags = pl.repeat(None, len(df), dtype=pl.String, eager=True)
+    for tag, c in value_cols.items():
+        value, state = values[f"c{c}"]
+        flag = df[f"c{quality_cols[tag]}"] if tag in quality_cols else null_flags
+        frames.append(
+            pl.DataFrame(
+                {
+                    # the tag as a category repeated: no string per row
+                    "signal": pl.Series([tag], dtype=pl.Categorical).new_from_index(
+                        0, len(df)),
+                    "time": time,
+                    "value": value,
+                    "state_text": state,
+                    "flag": flag,
+                }
+            )
+        )
+    sink(pl.concat(frames, how="vertical"))
+
+
+def _read_wide(
+    path: Path,
+    codec: str,
+    rows: list[list[str]],
+    tail: list[list[str]],
+    sep: str,
+    options: CsvOptions,
+    timezone: str,
+    tags: list[str] | None,
+    name: str,
+    encoding: str,
+    sink: ChunkSink,
+) -> ReaderMeta:
+    """Wide layout (a time column, a column per tag) chunk by chunk into ``sink``."""
+    i_time, n_header = _wide_header_rows(rows, options, name)
+    header = rows[:n_header]
+    data_rows = rows[n_header:]
+    _check_row_shapes(header[options.tag_row] if 0 <= options.tag_row < n_header else None,
+                      data_rows, sep, name, options.skip_lines + n_header + 1)
+    if not (0 <= options.tag_row < n_header):
+        raise ConfigError(
+            f"source.csv.tag_row: {options.tag_row} must be in 0..{n_header - 1} "
+            f"(the file has {n_header} header rows)"
+        )
+    value_cols, quality_cols, warnings = _wide_columns(rows, n_header, i_time, options, name)
+    units, descriptions = _wide_labels(header, n_header, value_cols, options)
     if tags is not None:
         check_tags(value_cols, tags, name)
         value_cols = {t: value_cols[t] for t in tags}
         quality_cols = {t: c for t, c in quality_cols.items() if t in value_cols}
-    sample_values = [_cell(r, c) for r in data_rows for c in value_cols.values()]
-    decimal = options.decimal or _detect_decimal(sample_values, sep)
     wanted = sorted({i_time, *value_cols.values(), *quality_cols.values()})
-    first_line = options.skip_lines + n_header + 1
-    fmt_sample, fast_fmt = _format_sample(data_rows + tail, i_time, options.time_format)
-    vcols = [f"c{c}" for c in value_cols.values()]
-    exprs = fast_parse_exprs(time_col=f"c{i_time}", value_cols=vcols, fmt=fast_fmt,
-                             timezone=timezone, decimal_comma=decimal == ",")
-    fast = [fast_value_column(c) for c in vcols] + (["__time"] if fast_fmt is not None else [])
-    fold = FoldState()
-    formats: list[str] = []
-    done = 0
-    with as_utf8(path, codec, name) as src:
-        for base, df in _batches(src, name, sep=sep, skip=options.skip_lines + n_header,
-                                 n_fields=n_cols, first_line=first_line, exprs=exprs,
-                                 at=sink.at):
-            done += len(df)
-            df = df.select("_row", *(f"c{i}" for i in wanted), *fast)
-            blank = pl.all_horizontal(pl.col(f"c{i}").is_null() for i in wanted)
-            if df.select(blank.any()).item():
-                df = df.filter(~blank)
-            if len(df) == 0:
-                continue
-            rows_idx = df["_row"]
-            time, values, fmt, _, _ = parse_time_and_values(
-                df,
-                time_col=f"c{i_time}",
-                value_cols=[f"c{c}" for c in value_cols.values()],
-                timezone=timezone,
-                time_format=options.time_format,
-                decimal_comma=decimal == ",",
-                signal=None,
-                line_of=lambda i, base=base, rows_idx=rows_idx: base + int(rows_idx[i]),
-                path=name,
-                fold_state=fold,
-                format_sample=fmt_sample,
-                fast_format=fast_fmt,
-            )
-            if fmt not in formats:
-                formats.append(fmt)
-            frames = []
-            null_flags = pl.repeat(None, len(df), dtype=pl.String, eager=True)
-            for tag, c in value_cols.items():
-                value, state = values[f"c{c}"]
-                flag = df[f"c{quality_cols[tag]}"] if tag in quality_cols else null_flags
-                frames.append(
-                    pl.DataFrame(
-                        {
-                            # the tag as a category repeated: no string per row
-                            "signal": pl.Series([tag], dtype=pl.Categorical).new_from_index(
-                                0, len(df)),
-                            "time": time,
-                            "value": value,
-                            "state_text": state,
-                            "flag": flag,
-                        }
-                    )
-                )
-            sink(pl.concat(frames, how="vertical"))
-            del df, time, values, frames
-    if done == 0:
+    state = _read_chunks(
+        path, codec, name, sink, sep=sep, options=options, timezone=timezone,
+        data_rows=data_rows, tail=tail, i_time=i_time, value_idx=list(value_cols.values()),
+        skip=options.skip_lines + n_header, n_fields=max(len(r) for r in rows),
+        first_line=options.skip_lines + n_header + 1,
+        cols={f"c{i}": f"c{i}" for i in wanted}, rename=False,
+        emit=lambda df, time, values: _emit_wide(sink, value_cols, quality_cols, df, time,
+                                                 values),
+    )
+    if state.done == 0:
         raise IngestError(f"{name}: the file has {n_header} header rows but no data rows")
-    warnings.extend(fold.warnings(timezone))
-    dst = fold.counts
+    warnings.extend(state.fold.warnings(timezone))
+    dst = state.fold.counts
     return ReaderMeta(
         path=name,
         layout="wide",
         encoding=encoding,
         separator=sep,
-        decimal=decimal,
-        time_format="+".join(formats) or options.time_format,
+        decimal=state.decimal,
+        time_format="+".join(state.formats) or options.time_format,
         header_rows=n_header,
         dst_resolved={tag: dst.get("", 0) for tag in value_cols} if dst else {},
         units=units,

@@ -584,104 +584,19 @@ def read_mcap_raw(
         Called with each non-empty pre-canonical chunk; its ``at(fraction)`` is told how
         far through the file the reader is.
     """
-    from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
-    from mcap_ros2.decoder import DecoderFactory as Ros2Factory
-
     from pipeline.adapters.ingest import options as _options
 
     name = str(path)
-    factories = {"protobuf": ProtobufFactory(), "cdr": Ros2Factory()}
-    wanted_topics = None if options.topics is None else set(options.topics)
-    encodings: list[str] = []
-    formats: list[str] = []
-    warnings: list[str] = []
-    skipped: set[int] = set()
-    seen_tags: set[str] = set()
-    rows_out = [0]
-
-    def convert(schemas: dict[int, Schema], channels: dict[int, Channel], cid: int,
-                datas: list[bytes], log_times: list[int], first: int) -> None:
-        channel = channels.get(cid)
-        if channel is None:
-            if cid not in skipped:
-                skipped.add(cid)
-                warnings.append(f"{name}: messages on unknown channel id {cid}; skipped")
-            return
-        topic = channel.topic
-        if wanted_topics is not None and topic not in wanted_topics:
-            return
-        _check_log_times(log_times, name, topic, first)
-        encoding = channel.message_encoding
-        topic_tag = topic.removeprefix(options.topic_prefix) if options.topic_prefix else topic
-        if encoding == "json":
-            df = _json_frame(datas, log_times, name, topic, first)
-            rows, _ = _samples_from_json(df, options, name, topic)
-            ns_times = False
-        elif encoding in factories:
-            schema = schemas.get(channel.schema_id)
-            try:
-                decoder = factories[encoding].decoder_for(encoding, schema)
-            except Exception as exc:  # noqa: BLE001 - library raises its own McapError types
-                raise IngestError(
-                    f"{name}: topic {topic!r}: cannot build a {encoding} decoder from schema "
-                    f"{getattr(schema, 'name', None)!r} ({type(exc).__name__}: {exc})"
-                ) from exc
-            if decoder is None:
-                if cid not in skipped:
-                    skipped.add(cid)
-                    warnings.append(f"{name}: topic {topic!r}: {encoding} messages without a "
-                                    "usable schema; skipped")
-                return
-            objs = []
-            for i, d in enumerate(datas):
-                try:
-                    objs.append(decoder(d))
-                except Exception as exc:  # noqa: BLE001 - decoder errors vary by library
-                    raise IngestError(
-                        f"{name}: topic {topic!r}, message {first + i} (log time "
-                        f"{log_times[i]} ns) does not decode as {encoding} with schema "
-                        f"{schema.name if schema else None!r} ({type(exc).__name__}: {exc}); "
-                        "fix or re-export the recording"
-                    ) from exc
-            rows, _ = _object_frame(objs, log_times, options, options.tag_field, name, topic)
-            ns_times = True
-        else:
-            if cid not in skipped:
-                skipped.add(cid)
-                warnings.append(
-                    f"{name}: topic {topic!r}: message encoding {encoding!r} is not supported "
-                    f"(json, protobuf, cdr); skipped"
-                )
-            return
-        pre, fmt = _to_pre(
-            rows,
-            topic_tag=topic_tag,
-            options=options,
-            timezone=timezone,
-            name=name,
-            topic=topic,
-            ns_times=ns_times,
-        )
-        del rows
-        if tags is not None:
-            seen_tags.update(pre["signal"].unique().to_list())
-            pre = pre.filter(pl.col("signal").is_in(tags))
-        if encoding not in encodings:
-            encodings.append(encoding)
-        if fmt not in formats:
-            formats.append(fmt)
-        rows_out[0] += len(pre)
-        if len(pre):
-            sink(pre)
-
+    convert = _BatchConverter(name=name, options=options, timezone=timezone, tags=tags,
+                              sink=sink)
     channels, counts, read_warnings, truncated = _read_records(
         path, options=options, on_truncated=on_truncated, flush=convert,
         batch=_options.CHUNK_MESSAGES, at=sink.at,
     )
-    warnings = read_warnings + warnings
+    warnings = read_warnings + convert.warnings
     if tags is not None:
-        check_tags(seen_tags, tags, name)
-    if rows_out[0] == 0 and not truncated:
+        check_tags(convert.seen_tags, tags, name)
+    if convert.rows_out == 0 and not truncated:
         raise IngestError(
             f"{name}: no samples found (channels: {sorted(c.topic for c in channels.values())}, "
             f"{sum(counts.values())} messages); check "
@@ -690,8 +605,116 @@ def read_mcap_raw(
     return ReaderMeta(
         path=name,
         layout="mcap",
-        encoding="+".join(encodings) or "none",
-        time_format="+".join(formats) or None,
+        encoding="+".join(convert.encodings) or "none",
+        time_format="+".join(convert.formats) or None,
         warnings=tuple(warnings),
         truncated=truncated,
     )
+
+
+class _BatchConverter:
+    """The ``flush`` of :func:`read_mcap_raw`: decodes a channel's batch of messages into
+    a pre-canonical chunk for the sink, and collects what the batches showed."""
+
+    def __init__(self, *, name: str, options: McapOptions, timezone: str,
+                 tags: list[str] | None, sink: ChunkSink) -> None:
+        from mcap_protobuf.decoder import DecoderFactory as ProtobufFactory
+        from mcap_ros2.decoder import DecoderFactory as Ros2Factory
+
+        self.name = name
+        self.options = options
+        self.timezone = timezone
+        self.tags = tags
+        self.sink = sink
+        self.factories = {"protobuf": ProtobufFactory(), "cdr": Ros2Factory()}
+        self.wanted_topics = None if options.topics is None else set(options.topics)
+        self.encodings: list[str] = []
+        self.formats: list[str] = []
+        self.warnings: list[str] = []
+        self.skipped: set[int] = set()
+        self.seen_tags: set[str] = set()
+        self.rows_out = 0
+
+    def _skip(self, cid: int, message: str) -> None:
+        """Warn once per channel that its messages are skipped."""
+        if cid not in self.skipped:
+            self.skipped.add(cid)
+            self.warnings.append(message)
+
+    def __call__(self, schemas: dict[int, Schema], channels: dict[int, Channel], cid: int,
+                 datas: list[bytes], log_times: list[int], first: int) -> None:
+        name, options = self.name, self.options
+        channel = channels.get(cid)
+        if channel is None:
+            self._skip(cid, f"{name}: messages on unknown channel id {cid}; skipped")
+            return
+        topic = channel.topic
+        if self.wanted_topics is not None and topic not in self.wanted_topics:
+            return
+        _check_log_times(log_times, name, topic, first)
+        encoding = channel.message_encoding
+        topic_tag = topic.removeprefix(options.topic_prefix) if options.topic_prefix else topic
+        if encoding == "json":
+            df = _json_frame(datas, log_times, name, topic, first)
+            rows, _ = _samples_from_json(df, options, name, topic)
+            ns_times = False
+        elif encoding in self.factories:
+            objs = self._decode(schemas, channel, cid, datas, log_times, first)
+            if objs is None:
+                return
+            rows, _ = _object_frame(objs, log_times, options, options.tag_field, name, topic)
+            ns_times = True
+        else:
+            self._skip(cid, f"{name}: topic {topic!r}: message encoding {encoding!r} is not "
+                            "supported (json, protobuf, cdr); skipped")
+            return
+        pre, fmt = _to_pre(
+            rows,
+            topic_tag=topic_tag,
+            options=options,
+            timezone=self.timezone,
+            name=name,
+            topic=topic,
+            ns_times=ns_times,
+        )
+        del rows
+        if self.tags is not None:
+            self.seen_tags.update(pre["signal"].unique().to_list())
+            pre = pre.filter(pl.col("signal").is_in(self.tags))
+        if encoding not in self.encodings:
+            self.encodings.append(encoding)
+        if fmt not in self.formats:
+            self.formats.append(fmt)
+        self.rows_out += len(pre)
+        if len(pre):
+            self.sink(pre)
+
+    def _decode(self, schemas: dict[int, Schema], channel: Channel, cid: int,
+                datas: list[bytes], log_times: list[int], first: int) -> list[Any] | None:
+        """Protobuf or ROS 2 messages decoded to objects; None when the channel has no
+        usable schema (skipped with a warning)."""
+        name, topic, encoding = self.name, channel.topic, channel.message_encoding
+        schema = schemas.get(channel.schema_id)
+        try:
+            decoder = self.factories[encoding].decoder_for(encoding, schema)
+        except Exception as exc:  # noqa: BLE001 - library raises its own McapError types
+            raise IngestError(
+                f"{name}: topic {topic!r}: cannot build a {encoding} decoder from schema "
+                f"{getattr(schema, 'name', None)!r} ({type(exc).__name__}: {exc})"
+            ) from exc
+        if decoder is None:
+            self._skip(cid, f"{name}: topic {topic!r}: {encoding} messages without a "
+                            "usable schema; skipped")
+            return None
+        objs = []
+        for i, d in enumerate(datas):
+            try:
+                objs.append(decoder(d))
+            except Exception as exc:  # noqa: BLE001 - decoder errors vary by library
+                raise IngestError(
+                    f"{name}: topic {topic!r}, message {first + i} (log time "
+                    f"{log_times[i]} ns) does not decode as {encoding} with schema "
+                    f"{schema.name if schema else None!r} ({type(exc).__name__}: {exc}); "
+                    "fix or re-export the recording"
+                ) from exc
+        return objs

@@ -177,12 +177,38 @@ def build_report(
     timezone : str
         Zone of the naive timestamps.
     """
+    totals = _signal_totals(table, runs)
+    per = _quality_counts(table, set(totals) | set(dropped) | set(rows or {}), totals)
+    signals = _signal_stats(per, totals, rows=rows, backward=backward, dups=dups,
+                            dropped=dropped, dst=dst, units=units, descriptions=descriptions)
+    return IngestReport(
+        paths=paths,
+        layout=layout,
+        encoding=encoding,
+        separator=separator,
+        decimal=decimal,
+        time_format=time_format,
+        timezone=timezone,
+        header_rows=header_rows,
+        signals=signals,
+        warnings=tuple(warnings),
+        truncated=truncated,
+    )
+
+
+def _signal_totals(table: pl.DataFrame,
+                   runs: tuple[list[str], np.ndarray] | None) -> dict[str, int]:
+    """Rows per signal of the table (sorted by signal), from its runs."""
     # The table is sorted by signal: run lengths give the totals in one linear pass.
     if runs is None:
         names, starts = _signal_runs(table["signal"]) if len(table) else ([], np.zeros(0, dtype=np.int64))
         runs = (names, np.diff(np.append(starts, len(table))))
-    totals = {n: int(c) for n, c in zip(runs[0], runs[1], strict=True)}
-    names = set(totals) | set(dropped) | set(rows or {})
+    return {n: int(c) for n, c in zip(runs[0], runs[1], strict=True)}
+
+
+def _quality_counts(table: pl.DataFrame, names: set[str],
+                    totals: Mapping[str, int]) -> dict[str, dict[str, Any]]:
+    """Per signal: good, suspect and bad rows, and the bad / suspect rows per state."""
     per: dict[str, dict[str, Any]] = {
         s: {
             "good": totals.get(s, 0),
@@ -203,7 +229,23 @@ def build_report(
         key = state or "unknown"
         by = d["bad_by_state"] if q == BAD else d["suspect_by_state"]
         by[key] = by.get(key, 0) + n
-    signals = tuple(
+    return per
+
+
+def _signal_stats(
+    per: Mapping[str, dict[str, Any]],
+    totals: Mapping[str, int],
+    *,
+    rows: Mapping[str, int] | None,
+    backward: Mapping[str, int],
+    dups: Mapping[str, int],
+    dropped: Mapping[str, int],
+    dst: Mapping[str, int],
+    units: Mapping[str, str],
+    descriptions: Mapping[str, str],
+) -> tuple[SignalIngestStats, ...]:
+    """The statistics of each signal, sorted by signal."""
+    return tuple(
         SignalIngestStats(
             signal=s,
             rows=int(
@@ -223,19 +265,6 @@ def build_report(
             description=descriptions.get(s),
         )
         for s, d in sorted(per.items())
-    )
-    return IngestReport(
-        paths=paths,
-        layout=layout,
-        encoding=encoding,
-        separator=separator,
-        decimal=decimal,
-        time_format=time_format,
-        timezone=timezone,
-        header_rows=header_rows,
-        signals=signals,
-        warnings=tuple(warnings),
-        truncated=truncated,
     )
 
 

@@ -202,6 +202,25 @@ def parse_timestamps(
         Empty or unparseable timestamps (row, text, formats tried), mixed naive and
         zoned timestamps, local times inside a DST gap.
     """
+    text = _timestamp_text(raw, line_of=line_of, path=path)
+    candidates = _candidate_formats(text, time_format, format_sample, line_of=line_of,
+                                    path=path)
+    parsed, fmt = _parse_first_fitting(text, candidates, line_of=line_of, path=path)
+    warnings: list[str] = []
+    dst_resolved: dict[str, int] = {}
+    if parsed.dtype.time_zone is None:  # type: ignore[union-attr]
+        state = fold_state if fold_state is not None else FoldState()
+        parsed = _localize(parsed, timezone=timezone, signal=signal, line_of=line_of,
+                           path=path, state=state)
+        if fold_state is None:
+            dst_resolved, warnings = dict(state.counts), state.warnings(timezone)
+    else:
+        parsed = parsed.dt.convert_time_zone("UTC")
+    return parsed.alias("time"), fmt, dst_resolved, warnings
+
+
+def _timestamp_text(raw: pl.Series, *, line_of: Callable[[int], int], path: str) -> pl.Series:
+    """The timestamp cells, stripped when the sample shows padding; an empty one is an error."""
     if raw.null_count():
         i = int(raw.is_null().arg_true()[0])
         raise IngestError(
@@ -211,19 +230,30 @@ def parse_timestamps(
     needs_strip = bool(
         sample_of(raw).str.contains(r"^\s|\s$").any()
     )  # stripping costs a copy: only when the sample shows padding
-    text = raw.str.strip_chars() if needs_strip else raw
+    return raw.str.strip_chars() if needs_strip else raw
+
+
+def _candidate_formats(text: pl.Series, time_format: str | None,
+                       format_sample: pl.Series | None, *, line_of: Callable[[int], int],
+                       path: str) -> list[str]:
+    """The formats to try, in order: the forced one, else those the sample matches."""
     if time_format is not None:
-        candidates = [time_format]
-    else:
-        fs = format_sample if format_sample is not None else sample_of(text)
-        candidates = formats_matching(fs) or formats_matching(fs, min_fraction=0.5)
-        if not candidates:
-            first = text.head(5).to_list()
-            raise IngestError(
-                f"{path}, line {line_of(0)}: timestamps like {first!r} match none of the "
-                f"formats tried ({', '.join(_TIME_FORMATS)}); set "
-                f"source.csv.time_format in the job YAML to a strptime format"
-            )
+        return [time_format]
+    fs = format_sample if format_sample is not None else sample_of(text)
+    candidates = formats_matching(fs) or formats_matching(fs, min_fraction=0.5)
+    if not candidates:
+        first = text.head(5).to_list()
+        raise IngestError(
+            f"{path}, line {line_of(0)}: timestamps like {first!r} match none of the "
+            f"formats tried ({', '.join(_TIME_FORMATS)}); set "
+            f"source.csv.time_format in the job YAML to a strptime format"
+        )
+    return candidates
+
+
+def _parse_first_fitting(text: pl.Series, candidates: list[str], *,
+                         line_of: Callable[[int], int], path: str) -> tuple[pl.Series, str]:
+    """The column parsed with the first candidate that parses every cell, and that format."""
     parsed = None
     fmt = candidates[0]
     first_failure: tuple[int, str] | None = None
@@ -244,17 +274,7 @@ def parse_timestamps(
             f"(each matched most sampled rows): {candidates}; fix the row or set "
             f"source.csv.time_format in the job YAML"
         )
-    warnings: list[str] = []
-    dst_resolved: dict[str, int] = {}
-    if parsed.dtype.time_zone is None:  # type: ignore[union-attr]
-        state = fold_state if fold_state is not None else FoldState()
-        parsed = _localize(parsed, timezone=timezone, signal=signal, line_of=line_of,
-                           path=path, state=state)
-        if fold_state is None:
-            dst_resolved, warnings = dict(state.counts), state.warnings(timezone)
-    else:
-        parsed = parsed.dt.convert_time_zone("UTC")
-    return parsed.alias("time"), fmt, dst_resolved, warnings
+    return parsed, fmt
 
 
 def time_expr(col: pl.Expr, fmt: str, *, timezone: str) -> pl.Expr:
@@ -398,45 +418,15 @@ def parse_time_and_values(
     raw_time = frame[time_col]
     dst: dict[str, int] = {}
     warnings: list[str] = []
-    time = None
     if all(fast_value_column(c) in frame.columns for c in value_cols):
         # parsed by the streaming read itself (fast_parse_exprs)
-        out = frame.select(pl.col(fast_value_column(c)).alias(c) for c in value_cols)
-        fmt = fast_format
-        if _FAST_TIME in frame.columns and raw_time.null_count() == 0:
-            time = frame[_FAST_TIME].alias("time")
-            if time.null_count():
-                time = None
+        out, time, fmt = _streamed_results(frame, raw_time, value_cols, fast_format)
     else:
-        sample = sample_of(raw_time)
-        padded = bool(sample.str.contains(r"^\s|\s$").any())
-        fmt = time_format
-        if fmt is None and not padded:
-            cands = formats_matching(format_sample if format_sample is not None else sample,
-                                     first_only=True)
-            fmt = cands[0] if cands else None
-        queries = [
-            frame.lazy().select(
-                value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(c)
-                for c in value_cols
-            )
-        ]
-        fast_time = fmt is not None and not padded and raw_time.null_count() == 0
-        if fast_time:
-            assert fmt is not None
-            # Time parsing is the costliest step and polars runs it on one thread per
-            # expression: parse slices of the column as separate queries, which
-            # collect_all runs concurrently with the value casts.
-            n = len(frame)
-            step = max(n // 4, 250_000)
-            expr = time_expr(pl.col(time_col), fmt, timezone=timezone)
-            queries += [frame.slice(a, step).lazy().select(expr) for a in range(0, n, step)]
-        results = pl.collect_all(queries)
-        out = results[0]
-        if fast_time:
-            time = pl.concat([r.to_series() for r in results[1:]], rechunk=False).alias("time")
-            if time.null_count():
-                time = None
+        out, time, fmt = _optimistic_parse(frame, raw_time, time_col=time_col,
+                                           value_cols=value_cols, timezone=timezone,
+                                           time_format=time_format,
+                                           decimal_comma=decimal_comma,
+                                           format_sample=format_sample)
     if time is None:
         time, fmt, dst, warnings = parse_timestamps(
             raw_time,
@@ -452,6 +442,59 @@ def parse_time_and_values(
         c: parse_value_text(frame[c], decimal_comma=decimal_comma, value=out[c]) for c in value_cols
     }
     return time, values, fmt, dst, warnings
+
+
+def _streamed_results(frame: pl.DataFrame, raw_time: pl.Series, value_cols: Sequence[str],
+                      fast_format: str | None
+                      ) -> tuple[pl.DataFrame, pl.Series | None, str | None]:
+    """The optimistic results a streaming read put in the frame (fast_parse_exprs): value
+    casts, time (None when absent or any failed) and its format."""
+    out = frame.select(pl.col(fast_value_column(c)).alias(c) for c in value_cols)
+    time = None
+    if _FAST_TIME in frame.columns and raw_time.null_count() == 0:
+        time = frame[_FAST_TIME].alias("time")
+        if time.null_count():
+            time = None
+    return out, time, fast_format
+
+
+def _optimistic_parse(frame: pl.DataFrame, raw_time: pl.Series, *, time_col: str,
+                      value_cols: Sequence[str], timezone: str, time_format: str | None,
+                      decimal_comma: bool, format_sample: pl.Series | None
+                      ) -> tuple[pl.DataFrame, pl.Series | None, str | None]:
+    """The value casts and the time parse with the first candidate format in one parallel
+    polars query: value casts, time (None when not tried or any failed) and its format."""
+    time = None
+    sample = sample_of(raw_time)
+    padded = bool(sample.str.contains(r"^\s|\s$").any())
+    fmt = time_format
+    if fmt is None and not padded:
+        cands = formats_matching(format_sample if format_sample is not None else sample,
+                                 first_only=True)
+        fmt = cands[0] if cands else None
+    queries = [
+        frame.lazy().select(
+            value_cast_expr(pl.col(c), decimal_comma=decimal_comma).alias(c)
+            for c in value_cols
+        )
+    ]
+    fast_time = fmt is not None and not padded and raw_time.null_count() == 0
+    if fast_time:
+        assert fmt is not None
+        # Time parsing is the costliest step and polars runs it on one thread per
+        # expression: parse slices of the column as separate queries, which
+        # collect_all runs concurrently with the value casts.
+        n = len(frame)
+        step = max(n // 4, 250_000)
+        expr = time_expr(pl.col(time_col), fmt, timezone=timezone)
+        queries += [frame.slice(a, step).lazy().select(expr) for a in range(0, n, step)]
+    results = pl.collect_all(queries)
+    out = results[0]
+    if fast_time:
+        time = pl.concat([r.to_series() for r in results[1:]], rechunk=False).alias("time")
+        if time.null_count():
+            time = None
+    return out, time, fmt
 
 
 @dataclass
