@@ -59,25 +59,38 @@ def _check_run_id(run_id: str | None) -> None:
         check_name(run_id, what="--run-id", pattern=NAME_RE)
 
 
-def _cmd_run(args) -> int:
+def _run_workflow(args, direct, flow_name: str, run_flow, check=None) -> int:
+    """Run a job's workflow — ``direct(cfg, run_id=, progress=)`` with ``--no-prefect``,
+    else the flow ``run_flow()`` returns, as ``(job, run_id=)``, through Prefect — after
+    the checks that need no data (``check(cfg)``), and print its report and run directory
+    (stdout's last line)."""
     cfg = _check_job(args.job)
     _check_run_id(args.run_id)
+    if check is not None:
+        check(cfg)
     if args.no_prefect:
-        from pipeline.jobs import run_job
-
-        report = run_job(cfg, run_id=args.run_id, progress=_Progress())
+        report = direct(cfg, run_id=args.run_id, progress=_Progress())
     else:
         from flows.common import prefect_env_defaults, starting
 
         prefect_env_defaults()
-        with starting("the Prefect flow 'estimate' (embedded server unless PREFECT_API_URL "
-                      "is set)"):
-            from flows.estimate import run_estimate
-
-            report = run_estimate(args.job, run_id=args.run_id)
+        with starting(f"the Prefect flow '{flow_name}' (embedded server unless "
+                      "PREFECT_API_URL is set)"):
+            report = run_flow()(args.job, run_id=args.run_id)
     print(report, file=sys.stderr)
     print(report.run_dir)
     return 0
+
+
+def _cmd_run(args) -> int:
+    from pipeline.jobs import run_job
+
+    def flow():
+        from flows.estimate import run_estimate
+
+        return run_estimate
+
+    return _run_workflow(args, run_job, "estimate", flow)
 
 
 def _cmd_nightly(args) -> int:
@@ -184,29 +197,15 @@ def _cmd_serve(args) -> int:
 
 
 def _cmd_discrepancy(args) -> int:
-    cfg = _check_job(args.job)
-    _check_run_id(args.run_id)
-    if args.no_prefect:
-        from pipeline.discrepancy_job import check_job, run_discrepancy
+    from pipeline.discrepancy_job import check_job, run_discrepancy
 
-        check_job(cfg)  # model and settings errors before reading data
-        report = run_discrepancy(cfg, run_id=args.run_id, progress=_Progress())
-    else:
-        from pipeline.discrepancy_job import check_job
-
-        check_job(cfg)
-        from flows.common import prefect_env_defaults
-
-        prefect_env_defaults()
-        from flows.common import starting
+    def flow():
         from flows.discrepancy import run_discrepancy_flow
 
-        with starting("the Prefect flow 'discrepancy' (embedded server unless "
-                      "PREFECT_API_URL is set)"):
-            report = run_discrepancy_flow(args.job, run_id=args.run_id)
-    print(report, file=sys.stderr)
-    print(report.run_dir)
-    return 0
+        return run_discrepancy_flow
+
+    # check_job: model and settings errors before reading data
+    return _run_workflow(args, run_discrepancy, "discrepancy", flow, check=check_job)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -118,8 +118,6 @@ def store_task(cfg, model, source, data, result, timings, run_id):
     return dj.finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
 
 
-
-
 @flow(name="discrepancy", log_prints=True)
 def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str | None = None):
     """Compare a job's simulation model with its measured data; name the missing effect.
@@ -150,7 +148,7 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
     timings = stage.timings
     report = store_task(cfg, model, source, data, result, timings, run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
-    create_markdown_artifact(dj.report_markdown(cfg, model, source, data, result),
+    create_markdown_artifact(report.report_md,
                              key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")
     create_table_artifact(

@@ -143,10 +143,6 @@ def store_task(cfg, summary, prep, sr, timings, run_id):
     return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
 
 
-
-
-
-
 def _estimate_windows(prep, windows: list, settings: tuple) -> list:
     """:func:`estimate_task` mapped over ``windows`` (all data first), results in order."""
     return estimate_task.map(unmapped(prep), windows,

@@ -15,10 +15,9 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import scipy.signal as ss
 
-from pipeline.model import model_from_dict
-from pipeline.simulate import simulate
+from pipeline.model import Model, model_from_dict
+from pipeline.synthetic import boiler_demo_signals, make_discrepancy_demo
 
 # The shipped jobs and models: configs/ of the checkout, reached through the package's
 # _shipped link, which the wheel carries as package data (so an installed plantdyn has them).
@@ -30,9 +29,16 @@ BOILER_MODEL = SHIPPED / "models" / "boiler_pressure.yaml"
 STEAM0, PRESSURE0, FUEL0 = 50.0, 120.0, 8.0
 
 
+def boiler_model() -> Model:
+    """The shipped boiler pressure model (``configs/models/boiler_pressure.yaml``)."""
+    from pipeline.adapters.config import load_yaml_file
+
+    return model_from_dict(load_yaml_file(BOILER_MODEL, what="model file"))
+
+
 def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) -> dict:
-    """Simulated plant signals on a 1 s grid: ``{"t_s", "steam_flow", "turbine_pressure",
-    "fuel_flow"}`` (absolute engineering values, noise included).
+    """The demo plant's signals (:func:`pipeline.synthetic.boiler_demo_signals` of the
+    shipped boiler model at the demo's operating point).
 
     Parameters
     ----------
@@ -43,26 +49,8 @@ def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) 
     seed : int
         Seeds the load and the sensor noise.
     """
-    from pipeline.adapters.config import load_yaml_file
-
-    rng = np.random.default_rng(seed)
-    n = int(hours * 3600 / dt_s)
-    # load: slow moves (correlation time ~20 min) plus turbulence (~40 s)
-    slow = ss.lfilter([1 - np.exp(-dt_s / 1200)], [1, -np.exp(-dt_s / 1200)],
-                      rng.standard_normal(n)) * 40.0
-    fast = ss.lfilter([np.sqrt(1 - np.exp(-2 * dt_s / 40))], [1, -np.exp(-dt_s / 40)],
-                      rng.standard_normal(n)) * 1.5
-    steam = slow + fast
-    model = model_from_dict(load_yaml_file(BOILER_MODEL, what="model file"))
-    sim = simulate(model, {"steam_flow": steam}, dt_s=dt_s)
-    pressure = sim.outputs[:, 0]
-    fuel = np.asarray(sim.signals["fuel"])
-    return {
-        "t_s": np.arange(n) * dt_s,
-        "steam_flow": STEAM0 + steam + 0.05 * rng.standard_normal(n),
-        "turbine_pressure": PRESSURE0 + pressure + 0.004 * rng.standard_normal(n),
-        "fuel_flow": FUEL0 + fuel + 0.05 * rng.standard_normal(n),
-    }
+    op = {"steam_flow": STEAM0, "turbine_pressure": PRESSURE0, "fuel_flow": FUEL0}
+    return boiler_demo_signals(boiler_model(), op, hours=hours, dt_s=dt_s, seed=seed)
 
 
 def write_demo_export(folder: Path, *, hours: float = 12.0, seed: int = 7) -> Path:
@@ -108,7 +96,7 @@ AUX0 = 20.0  # operating point of the unrelated auxiliary flow
 def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11) -> Path:
     """Historian export of a plant whose pressure controller gain is 20 % above the model's.
 
-    The signals come from :func:`pipeline.discrepancy.make_discrepancy_demo` (the shipped
+    The signals come from :func:`pipeline.synthetic.make_discrepancy_demo` (the shipped
     boiler model with ``controller.kp`` × 1.2, AR(1) sensor noise), moved to the demo's
     operating point and written as a PI-style long CSV at 1 s in local time with two
     isolated "Bad Input" states (bridged by the workflow).
@@ -123,9 +111,7 @@ def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11
         Seeds the simulated signals; ``seed + 1`` places the digital states.
     """
     from pipeline.adapters.historian_writer import write_long_csv
-    from pipeline.discrepancy import make_discrepancy_demo
-
-    inputs, measured, dt_s = make_discrepancy_demo(seed, hours=hours)
+    inputs, measured, dt_s = make_discrepancy_demo(boiler_model(), seed, hours=hours)
     n = measured["turbine_pressure"].size
     folder.mkdir(parents=True, exist_ok=True)
     start = np.datetime64("2026-11-20T22:00:00", "us")

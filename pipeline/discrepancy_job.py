@@ -44,12 +44,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import polars as pl
 
 from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
+from pipeline.discrepancy.report import summary_markdown
 from pipeline.errors import ConfigError, InsufficientDataError
 from pipeline.conditioning import interpolate_gaps
 from pipeline.model import Model, model_from_dict, model_to_dict
@@ -71,7 +71,6 @@ __all__ = [
     "prepare_discrepancy",
     "analyse",
     "series_table",
-    "report_markdown",
     "write_discrepancy_run",
     "run_discrepancy",
 ]
@@ -83,7 +82,6 @@ MIN_SAMPLES = 600
 #: Longest run of bad samples bridged by interpolation (a few samples of a digital
 #: state change nothing a simulation comparison can see; longer outages split the record).
 MAX_FILL_SAMPLES = 5
-
 
 
 @dataclass(frozen=True)
@@ -116,6 +114,7 @@ class DiscrepancyReport:
     recording: Path | None
     result: DiscrepancyResult | None = field(default=None, repr=False)
     timings_s: dict = field(default_factory=dict)
+    report_md: str = field(default="", repr=False)  # report.md as written
 
     def __str__(self) -> str:
         g = self.gap
@@ -391,84 +390,6 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
             for o in data.measured}
 
 
-def _fmt(v: Any, digits: int = 4) -> str:
-    if isinstance(v, float):
-        return f"{v:.{digits}g}"
-    return str(v)
-
-
-def report_markdown(cfg, model: Model, source: str, data: DiscrepancyData,
-                    result: DiscrepancyResult) -> str:
-    """``report.md``: verdict, effect, gap, candidates and localisation in a page.
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    model : Model
-        The nominal model.
-    source : str
-        ``"model"`` or ``"external_simulator"`` (from :func:`load_discrepancy_model`).
-    data : DiscrepancyData
-        The analysed stretch.
-    result : DiscrepancyResult
-        The core's outcome.
-    """
-    g = result.gap
-    lines = [f"# Discrepancy run: {cfg.job}", "",
-             f"Model `{model.name}` ({'external simulator outputs' if source != 'model' else 'block diagram'}), "
-             f"{data.summary['analysed_samples']} samples at {data.dt_s:g} s "
-             f"({data.summary['start_utc']} to {data.summary['end_utc']}), "
-             f"hold-out from sample {result.series.holdout_start}.", "",
-             f"**Verdict: `{result.verdict}`**", ""]
-    if result.effect is not None:
-        lines += [f"Effect: **{result.effect.describe()}** — added to `model_augmented.yaml`.", ""]
-    if result.lookalikes:
-        lines += ["Look-alike candidates (too close to tell apart on this record):", ""]
-        lines += [f"- {c.effect.describe()} (ΔBIC {c.delta_bic:.1f})" for c in result.lookalikes]
-        lines.append("")
-    lines += ["## Gap on held-out data", "",
-              "| output | RMS nominal | RMS augmented | reduction |", "|---|---|---|---|"]
-    for o, pg in g["per_output"].items():
-        lines.append(f"| {o} | {_fmt(pg['holdout_rms_before'])} | "
-                     f"{_fmt(pg['holdout_rms_after'])} | {100 * pg['reduction']:.1f} % |")
-    lines += ["", "## Candidates (best first)", "",
-              f"Accepted: ΔBIC ≥ {result.config.bic_margin:g}, held-out z ≥ "
-              f"{result.config.holdout_z_min:g} and a held-out gap below the nominal "
-              f"{_fmt(result.gap['holdout_rms_before'])}.", "",
-              "| effect | ΔBIC | held-out z | held-out gap | passed |", "|---|---|---|---|---|"]
-    for c in result.candidates[:8]:
-        lines.append(f"| {c.effect.describe()} | {c.delta_bic:.1f} | {c.holdout_z:.1f} | "
-                     f"{_fmt(c.holdout_gap)} | {'yes' if c.passed else 'no'} |")
-    lines += ["", "## Localisation", ""]
-    for o, loc in result.localization.items():
-        lines.append(f"**{o}**: residual RMS {_fmt(loc['residual_rms'])} "
-                     f"({100 * loc['relative_residual']:.1f} % of the measured std), "
-                     f"explained by {loc.get('explained_by') or 'no input'}.")
-        for sname, sig in loc["signals"].items():
-            if not sig.get("significant"):
-                continue
-            text = (f"- `{sname}`: partial R² {sig['partial_r2']:.3f}, p = {sig['p_value']:.3g}, "
-                    f"peak lag {_fmt(sig.get('peak_lag_s'))} s")
-            band = sig.get("band_of_largest_discrepancy_hz")
-            if band:
-                text += f", largest model-vs-data difference in {band[0]:.3g}–{band[1]:.3g} Hz"
-            lines.append(text)
-        tw = loc.get("time_windows", {})
-        if tw.get("mean_change_points_s") or tw.get("level_change_points_s"):
-            lines.append(f"- change points (s): mean {tw.get('mean_change_points_s')}, "
-                         f"level {tw.get('level_change_points_s')}")
-        orr = loc.get("operating_range")
-        if orr:
-            lines.append(f"- by {orr['load_signal']}: residual RMS spread over bins "
-                         f"{_fmt(orr['rms_spread'])}")
-        lines.append("")
-    lines += ["Files: `discrepancy.json` (everything above, machine-readable), "
-              "`model_augmented.yaml`, `discrepancy_series.parquet` (measured, nominal, "
-              "augmented, residuals), `recording.rrd` (open with `rerun`).", ""]
-    return "\n".join(lines)
-
-
 def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
                           result: DiscrepancyResult, *, timings: dict[str, float],
                           run_id: str | None = None) -> tuple[str, Path, Path | None, dict]:
@@ -518,7 +439,7 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
                   f"(verdict {result.verdict}).\nRe-simulated held-out RMS {check}.")
         run.write_text("model_augmented.yaml", dump_yaml(doc, header=header))
         run.write_parquet("discrepancy_series.parquet", series_table(result))
-        run.write_report(report_markdown(cfg, model, source, data, result))
+        run.write_report(summary_markdown(out))
         run.set_status(result.verdict)
         metrics = []
         for o, pg in result.gap["per_output"].items():
@@ -535,7 +456,7 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
             render_discrepancy(run.path, ident=f"{cfg.job}/{run.run_id}")
             run.record_timing("rerun", time.perf_counter() - t0)
         rid = run.run_id
-    run_dir = cfg.storage_root / cfg.job / rid
+    run_dir = store.run_dir(cfg.job, rid)
     rrd = run_dir / "recording.rrd" if cfg.rerun.enabled else None
     return rid, run_dir, rrd, out
 
@@ -563,13 +484,13 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
         Id of the run directory; ``None`` lets the store choose one.
     """
     t0 = time.perf_counter()
-    rid, run_dir, rrd, _ = write_discrepancy_run(cfg, model, source, data, result,
-                                                 timings=timings, run_id=run_id)
+    rid, run_dir, rrd, doc = write_discrepancy_run(cfg, model, source, data, result,
+                                                   timings=timings, run_id=run_id)
     timings["store"] = time.perf_counter() - t0
     return DiscrepancyReport(cfg.job, rid, run_dir, result.verdict, result.verdict,
                              None if result.effect is None else result.effect.to_dict(),
                              result.gap, data.dt_s, int(result.series.t_s.size), data.files,
-                             rrd, result, timings)
+                             rrd, result, timings, summary_markdown(doc))
 
 
 def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None = None,

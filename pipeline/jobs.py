@@ -201,8 +201,6 @@ def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
         raise _named(exc, prep) from None
 
 
-
-
 def estimate_settings(cfg, sr: SearchResult) -> tuple:
     """The positional settings :func:`estimate_window` takes after ``prep, window``: the
     search's choices and the job's ``estimation.method`` (one place for both paths).
@@ -307,7 +305,7 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
             render_run(run.path, trends=trends, ident=f"{cfg.job}/{run.run_id}")
             run.record_timing("rerun", time.perf_counter() - t0)
         rid = run.run_id
-    run_dir = cfg.storage_root / cfg.job / rid
+    run_dir = store.run_dir(cfg.job, rid)
     if cfg.rerun.enabled:
         rrd = run_dir / "recording.rrd"
     return rid, run_dir, rrd

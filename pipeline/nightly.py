@@ -165,7 +165,7 @@ def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | Non
         return {"path": path, "sha256": sha256, "status": "skipped", "run_id": None,
                 "error": None}
     rid = nightly_run_id(sha256)
-    manifest = cfg.storage_root / cfg.job / rid / "manifest.json"
+    manifest = store.run_dir(cfg.job, rid) / "manifest.json"
     if manifest.is_file():
         return _adopt(store, cfg, path, sha256, rid)
     try:

@@ -18,8 +18,8 @@ import pytest
 import scipy.signal
 import yaml
 
-from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy, make_discrepancy_demo
-from pipeline.discrepancy.demo import _BOILER_MODEL
+from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
+from pipeline.synthetic import make_discrepancy_demo
 from pipeline.discrepancy.localise import _input_relevance
 from pipeline.discrepancy.problem import Problem
 from pipeline.effects import (
@@ -54,7 +54,7 @@ def drum():
 
 @pytest.fixture(scope="module")
 def demo_result(boiler):
-    inputs, measured, dt_s = make_discrepancy_demo(seed=0)
+    inputs, measured, dt_s = make_discrepancy_demo(boiler, seed=0)
     result = analyse_discrepancy(boiler, inputs=inputs, measured=measured, dt_s=dt_s)
     return inputs, measured, dt_s, result
 
@@ -181,10 +181,6 @@ def test_effect_validation_messages(boiler):
 
 
 # -- the bundled demo ------------------------------------------------------------------
-def test_inline_boiler_model_matches_shipped_yaml(boiler):
-    assert model_from_dict(_BOILER_MODEL) == boiler
-
-
 def test_demo_names_controller_gain_and_shrinks_gap(demo_result):
     _, _, _, result = demo_result
     assert result.verdict == "effect_found"

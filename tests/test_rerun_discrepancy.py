@@ -30,10 +30,10 @@ from rerun.chunk import RrdReader
 
 from pipeline.adapters.rerun_sink import discrepancy as rerun_discrepancy_mod
 from pipeline.adapters.rerun_sink import render_discrepancy
-from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy, make_discrepancy_demo
-from pipeline.discrepancy.demo import _BOILER_MODEL
+from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
+from pipeline.synthetic import make_discrepancy_demo
+from pipeline.demo import boiler_model
 from pipeline.errors import ConfigError, DataQualityError
-from pipeline.model import model_from_dict
 
 VENV_BIN = Path(sys.executable).parent
 OUTPUT = "turbine_pressure"
@@ -66,8 +66,8 @@ def write_run(run_dir: Path, summary: dict, frame: pl.DataFrame) -> Path:
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    inputs, measured, dt_s = make_discrepancy_demo(7, hours=1.0)
-    result = analyse_discrepancy(model_from_dict(_BOILER_MODEL), inputs=inputs, measured=measured,
+    inputs, measured, dt_s = make_discrepancy_demo(boiler_model(), 7, hours=1.0)
+    result = analyse_discrepancy(boiler_model(), inputs=inputs, measured=measured,
                                  dt_s=dt_s, config=CONFIG)
     summary = {**result.to_dict(), "job": "demo_discrepancy", "run_id": "20260301T060000Z-ab12",
                "model": "boiler_pressure"}

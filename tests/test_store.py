@@ -106,6 +106,17 @@ def signals_frame(n: int = 50) -> pl.DataFrame:
     return pl.concat(rows)
 
 
+def discrepancy_series_frame(n: int = 30) -> pl.DataFrame:
+    """A discrepancy run's series: one output, warm-up, fit and held-out parts."""
+    t = np.arange(n, dtype=float)
+    y = np.sin(t / 5.0)
+    return pl.DataFrame({
+        "output": ["pressure"] * n, "time_s": t,
+        "part": ["warmup"] * 5 + ["fit"] * 15 + ["holdout"] * 10,
+        "measured": y, "nominal": 0.9 * y, "augmented": 0.99 * y,
+        "residual_before": 0.1 * y, "residual_after": 0.01 * y, "rolling_rms": np.abs(y)})
+
+
 def residuals_frame(n: int = 40) -> pl.DataFrame:
     start = np.datetime64("2026-03-01T00:00:00", "us")
     rng = np.random.default_rng(7)
@@ -154,7 +165,8 @@ def test_storage_format_matches_golden_file(tmp_path):
     """
     golden = json.loads(GOLDEN.read_text())
     declared = store_mod.schema_description()
-    assert declared == {k: golden[k] for k in ("format_version", "parquet", "manifest_keys", "catalog")}
+    assert declared == {k: golden[k] for k in ("format_version", "parquet", "json", "manifest_keys",
+                                               "catalog")}
 
     # The files as written (read back by an independent reader: pyarrow) have the same
     # columns, polars dtypes and parquet physical types.
@@ -163,6 +175,7 @@ def test_storage_format_matches_golden_file(tmp_path):
         run.write_step_responses(step_frame())
         run.write_signals(signals_frame())
         run.write_residuals(residuals_frame())
+        run.write_parquet("discrepancy_series.parquet", discrepancy_series_frame())
     for name, spec in golden["parquet"].items():
         path = run.path / name
         read_back = pl.read_parquet_schema(path)
@@ -323,10 +336,36 @@ def test_symlinked_job_dir_pointing_outside_is_refused(tmp_path):
     assert list(outside.iterdir()) == []
 
 
+def test_discrepancy_files_are_schema_checked_and_a_bad_one_leaves_no_run(tmp_path):
+    """discrepancy.json needs its top-level keys and a known verdict, and
+    discrepancy_series.parquet its schema; a refused file aborts the whole run."""
+    from pipeline.adapters.store import ResultSchemaError
+
+    store = ResultStore(tmp_path / "storage")
+    good = {k: None for k in ("job", "run_id", "kind", "model", "inputs", "outputs", "data",
+                              "effect", "candidates", "gap", "localization", "dt_s")}
+    with pytest.raises(ResultSchemaError, match=r"missing top-level key\(s\) \['verdict'\]"):
+        with store.new_run("disc", run_id="r1", config={}, inputs=[]) as run:
+            run.write_json("discrepancy.json", good)
+    with pytest.raises(ResultSchemaError, match=r"verdict 'found_it' is not one of"):
+        with store.new_run("disc", run_id="r2", config={}, inputs=[]) as run:
+            run.write_json("discrepancy.json", {**good, "verdict": "found_it"})
+    with pytest.raises(ResultSchemaError, match=r"column 'part' must be 'warmup', 'fit' or"):
+        with store.new_run("disc", run_id="r3", config={}, inputs=[]) as run:
+            frame = discrepancy_series_frame().with_columns(pl.lit("later").alias("part"))
+            run.write_parquet("discrepancy_series.parquet", frame)
+    assert store.list_runs("disc").height == 0
+    assert not any((store.root / "disc").glob("r*"))
+    with store.new_run("disc", run_id="ok", config={}, inputs=[]) as run:
+        run.write_json("discrepancy.json", {**good, "verdict": "no_significant_effect"})
+        run.write_parquet("discrepancy_series.parquet", discrepancy_series_frame())
+    assert store.list_runs("disc")["run_id"].to_list() == ["ok"]
+
+
 def test_extra_files_bad_names_and_duplicate_run_ids(tmp_path):
     store = ResultStore(tmp_path / "storage")
     with store.new_run("disc", run_id="r1", config={}, inputs=[]) as run:
-        run.write_json("discrepancy.json", {"effects": [{"name": "dead_time", "delay_s": np.float64(8.0)}]})
+        run.write_json("effects.json", {"effects": [{"name": "dead_time", "delay_s": np.float64(8.0)}]})
         run.write_text("model_augmented.yaml", "model:\n  name: x\n")
         run.write_parquet("extra_table.parquet", pl.DataFrame({"a": [1, 2]}))
         (run.path / "recording.rrd").write_bytes(b"written by another adapter")
@@ -337,12 +376,12 @@ def test_extra_files_bad_names_and_duplicate_run_ids(tmp_path):
             run.write_json("manifest.json", {})
     manifest = json.loads((run.path / "manifest.json").read_text())
     assert [f["name"] for f in manifest["files"]] == [
-        "discrepancy.json",
+        "effects.json",
         "extra_table.parquet",
         "model_augmented.yaml",
         "recording.rrd",
     ]
-    assert json.loads((run.path / "discrepancy.json").read_text()) == {"effects": [{"delay_s": 8.0, "name": "dead_time"}]}
+    assert json.loads((run.path / "effects.json").read_text()) == {"effects": [{"delay_s": 8.0, "name": "dead_time"}]}
     with pytest.raises(ConfigError, match="already exists"):
         with store.new_run("disc", run_id="r1", config={}, inputs=[]):
             pass

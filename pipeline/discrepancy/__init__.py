@@ -76,16 +76,14 @@ seeds below 20 000); the published suite uses seeds from 100 000 on and the CI t
 seeds from 200 000 on.
 
 The module is core: numpy/scipy and :mod:`pipeline.model`, :mod:`pipeline.simulate`,
-:mod:`pipeline.estimate`, :mod:`pipeline.effects`.  It also provides
-:func:`make_discrepancy_demo`, the bundled demo data (controller gain 20 % above the
-model's).
+:mod:`pipeline.estimate`, :mod:`pipeline.effects`.  The bundled demo's data come from
+:func:`pipeline.synthetic.make_discrepancy_demo`.
 """
 
 from __future__ import annotations
 
 from pipeline.discrepancy.analyse import analyse_discrepancy
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.discrepancy.demo import make_discrepancy_demo
 from pipeline.discrepancy.results import VERDICTS, Candidate, DiscrepancyResult, DiscrepancySeries
 
 __all__ = [
@@ -94,6 +92,5 @@ __all__ = [
     "DiscrepancyResult",
     "DiscrepancySeries",
     "analyse_discrepancy",
-    "make_discrepancy_demo",
     "VERDICTS",
 ]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -186,49 +186,70 @@ class Fitter:
             and least squares then runs from the best start only (the multi-start search
             was done in the previous pass; only the weighting changed).
         """
-        P, dt = self.P, self.P.dt_s
         name, loc = s.name, s.location
         eq = tuple(m for m in s.members if m != loc)
         mk = lambda params: Effect(name, loc, params, eq)  # noqa: E731
         w = warm.parameters if warm is not None and warm.name == name else None
         n_starts = 1 if w is not None else 2
-        tau_lo, tau_hi = 0.05 * dt, 20.0 * max(P.settling_s, dt)
         if name == "sensor_bias_drift":
-            # linear in both parameters: exact closed form on the whitened residual
-            i = P.outputs.index(loc)
-            stop = self.stop
-            r = P.whiten(P.y[:stop] - P.y_nominal[:stop], P.fit_start, stop)
-            cols = []
-            for c in (np.ones(stop), np.arange(stop) * dt / 3600.0):
-                d = np.zeros((stop, P.n_y))
-                d[:, i] = c
-                cols.append(P.whiten(d, P.fit_start, stop))
-            beta, *_ = np.linalg.lstsq(np.column_stack(cols), r, rcond=None)
-            return mk({"bias": float(beta[0]), "drift_per_h": float(beta[1])})
+            return self._fit_bias_drift(loc, mk)
         if name == "unmodelled_input":
             return self._fit_unmodelled(s, mk)
         if name == "dead_time":
-            # exact sums of squares on a coarse integer grid plus the screening's best
-            # delays, then an integer walk downhill from the best
-            tried: dict[int, float] = {}
-            grid = {int(round(st["delay_s"] / dt)) for st in s.starts}
-            if w is not None:
-                grid.add(int(round(w["delay_s"] / dt)))
-            grid |= {int(round(v)) for v in np.geomspace(1, P.max_delay, 10)}
-            for d in sorted(grid):
-                if 1 <= d <= P.max_delay:
+            return self._fit_dead_time(s, mk, w)
+        if name in ("gain", "extra_lag", "inverse_response", "operating_point_gain",
+                    "deadband"):
+            return self._fit_by_lsq(s, mk, w, n_starts)
+        if name == "saturation":
+            return self._fit_saturation_limits(s, mk, w, n_starts)
+        raise ConfigError(f"effect {name!r} is not in the catalogue")  # pragma: no cover
+
+    def _fit_bias_drift(self, loc: str, mk: Callable[[dict], Effect]) -> Effect:
+        """sensor_bias_drift: linear in both parameters, exact closed form on the whitened residual."""
+        P, dt = self.P, self.P.dt_s
+        i = P.outputs.index(loc)
+        stop = self.stop
+        r = P.whiten(P.y[:stop] - P.y_nominal[:stop], P.fit_start, stop)
+        cols = []
+        for c in (np.ones(stop), np.arange(stop) * dt / 3600.0):
+            d = np.zeros((stop, P.n_y))
+            d[:, i] = c
+            cols.append(P.whiten(d, P.fit_start, stop))
+        beta, *_ = np.linalg.lstsq(np.column_stack(cols), r, rcond=None)
+        return mk({"bias": float(beta[0]), "drift_per_h": float(beta[1])})
+
+    def _fit_dead_time(self, s: Screen, mk: Callable[[dict], Effect],
+                       w: Mapping[str, Any] | None) -> Effect:
+        """dead_time: exact sums of squares on a coarse integer grid plus the screening's
+        best delays, then an integer walk downhill from the best."""
+        P, dt = self.P, self.P.dt_s
+        tried: dict[int, float] = {}
+        grid = {int(round(st["delay_s"] / dt)) for st in s.starts}
+        if w is not None:
+            grid.add(int(round(w["delay_s"] / dt)))
+        grid |= {int(round(v)) for v in np.geomspace(1, P.max_delay, 10)}
+        for d in sorted(grid):
+            if 1 <= d <= P.max_delay:
+                tried[d] = self.sse(mk({"delay_s": float(d * dt)}))
+        d_best = min(tried, key=tried.get)
+        while True:
+            moved = False
+            for d in (d_best - 1, d_best + 1):
+                if 1 <= d <= P.max_delay and d not in tried:
                     tried[d] = self.sse(mk({"delay_s": float(d * dt)}))
-            d_best = min(tried, key=tried.get)
-            while True:
-                moved = False
-                for d in (d_best - 1, d_best + 1):
-                    if 1 <= d <= P.max_delay and d not in tried:
-                        tried[d] = self.sse(mk({"delay_s": float(d * dt)}))
-                        if tried[d] < tried[d_best]:
-                            d_best, moved = d, True
-                if not moved:
-                    break
-            return mk({"delay_s": float(d_best * dt)})
+                    if tried[d] < tried[d_best]:
+                        d_best, moved = d, True
+            if not moved:
+                break
+        return mk({"delay_s": float(d_best * dt)})
+
+    def _fit_by_lsq(self, s: Screen, mk: Callable[[dict], Effect],
+                    w: Mapping[str, Any] | None, n_starts: int) -> Effect:
+        """gain, extra_lag, inverse_response, operating_point_gain, deadband: multi-start
+        bounded least squares in a transformed parameter."""
+        P, dt = self.P, self.P.dt_s
+        name, loc = s.name, s.location
+        tau_lo, tau_hi = 0.05 * dt, 20.0 * max(P.settling_s, dt)
         tau_grid = np.geomspace(0.5 * dt, max(dt, 0.5 * P.settling_s), 6)
         if name == "gain":
             starts = [np.array([math.log(max(st["factor"], 0.05))]) for st in s.starts[:1]]
@@ -265,29 +286,31 @@ class Fitter:
                 starts.insert(0, np.array([w["slope"] * spread]))
             return self._lsq(lambda x: mk({"slope": float(x[0] / spread), "signal": signal}),
                              starts, np.array([-5.0]), np.array([5.0]), n_starts=n_starts)
-        if name == "deadband":
-            u = self._screener().block_input(loc)
-            scale = float(np.max(np.abs(u))) or 1.0
-            starts = [np.array([st["width"] / scale]) for st in s.starts[:2]]
-            starts += [np.array([v]) for v in (0.05, 0.15, 0.3, 0.5)]
-            if w is not None:
-                starts.insert(0, np.array([w["width"] / scale]))
-            return self._lsq(lambda x: mk({"width": float(x[0] * scale)}), starts,
-                             np.array([0.0]), np.array([2.0]), diff_step=1e-2,
-                             n_starts=n_starts)
-        if name == "saturation":
-            low, high = self._fit_saturation(s, mk, w, n_starts)
-            # a limit the fitted signal never reaches is not identified: report it as
-            # absent (+-inf), which simulates identically
-            best = mk({"low": low, "high": high})
-            up = self._upstream_signal(best)
-            if up is not None:
-                if low <= float(up.min()):
-                    low = -math.inf
-                if high >= float(up.max()):
-                    high = math.inf
-            return mk({"low": low, "high": high})
-        raise ConfigError(f"effect {name!r} is not in the catalogue")  # pragma: no cover
+        # deadband
+        u = self._screener().block_input(loc)
+        scale = float(np.max(np.abs(u))) or 1.0
+        starts = [np.array([st["width"] / scale]) for st in s.starts[:2]]
+        starts += [np.array([v]) for v in (0.05, 0.15, 0.3, 0.5)]
+        if w is not None:
+            starts.insert(0, np.array([w["width"] / scale]))
+        return self._lsq(lambda x: mk({"width": float(x[0] * scale)}), starts,
+                         np.array([0.0]), np.array([2.0]), diff_step=1e-2,
+                         n_starts=n_starts)
+
+    def _fit_saturation_limits(self, s: Screen, mk: Callable[[dict], Effect],
+                               w: Mapping[str, Any] | None, n_starts: int) -> Effect:
+        """saturation: fitted limits, a limit the fitted signal never reaches reported as absent."""
+        low, high = self._fit_saturation(s, mk, w, n_starts)
+        # a limit the fitted signal never reaches is not identified: report it as
+        # absent (+-inf), which simulates identically
+        best = mk({"low": low, "high": high})
+        up = self._upstream_signal(best)
+        if up is not None:
+            if low <= float(up.min()):
+                low = -math.inf
+            if high >= float(up.max()):
+                high = math.inf
+        return mk({"low": low, "high": high})
 
     def _fit_saturation(self, s: Screen, mk: Callable[[dict], Effect],
                         warm: Mapping[str, Any] | None, n_starts: int) -> tuple[float, float]:
@@ -315,135 +338,25 @@ class Fitter:
         P, stop, loc = self.P, self.stop, s.location
         v = P.nominal_signals[loc][:stop]
         span = float(v.max() - v.min()) or 1.0
-        cache = self.scr._h
-        path = static_path(P, cache, loc, stop)
-        inf = math.inf
-
-        def evaluate(lows: Sequence[float], highs: Sequence[float]) -> np.ndarray:
-            lo, hi = np.asarray(lows, dtype=float), np.asarray(highs, dtype=float)
-            if lo.size == 0:
-                return np.zeros(0)
-            if path is None:  # nonlinear nominal model: one exact simulation each
-                return np.array([self.sse(mk({"low": float(a), "high": float(b)}))
-                                 for a, b in zip(lo, hi, strict=True)])
-            self.n_eval += 1  # one pass simulates the whole batch
-            with np.errstate(all="ignore"):
-                y = path.corrections(clip_map(lo, hi), lo.size, first=first_crossing(v, lo, hi))
-            return batch_sse(P, y, stop)
-
-        profile = saturation_profile(P, cache, loc, stop)
-        grid_lo, grid_hi = saturation_grids(v)
-        if profile is None:  # exact simulations one by one: coarser grids
-            grid_lo, grid_hi = grid_lo[::6], grid_hi[::6]
-            p_lows, p_highs = one_sided(grid_lo, grid_hi)
-            p_sse = evaluate(p_lows, p_highs)
-        else:
-            p_lows, p_highs, y_corr = profile
-            p_sse = batch_sse(P, y_corr, stop)
-        tried: dict[tuple[float, float], float] = {
-            (float(a), float(b)): float(e) for a, b, e in zip(p_lows, p_highs, p_sse, strict=True)}
-        tried[(-inf, inf)] = self.sse(mk({"low": -inf, "high": inf}))
-
-        def run(pairs: Sequence[tuple[float, float]]) -> None:
-            new = [pq for pq in dict.fromkeys(pairs) if pq not in tried and pq[0] < pq[1]]
-            for pq, e in zip(new, evaluate([a for a, _ in new], [b for _, b in new]),
-                             strict=True):
-                tried[pq] = float(e)
-
-        def minima(values: np.ndarray, sse: np.ndarray, m: int = 3) -> list[float]:
-            order = np.argsort(values)
-            x, e = values[order], sse[order]
-            local = [i for i in range(e.size)
-                     if (i == 0 or e[i] <= e[i - 1]) and (i == e.size - 1 or e[i] <= e[i + 1])]
-            return [float(x[i]) for i in sorted(local, key=lambda i: e[i])[:m]]
-
+        search = _SaturationSearch(self, mk, v, span, static_path(P, self.scr._h, loc, stop))
+        p_lows, p_highs, p_sse, scan_lo, scan_hi = search.profiles(loc)
         one_low = np.isfinite(p_lows)
-        lows_min = minima(p_lows[one_low], p_sse[one_low])
-        highs_min = minima(p_highs[~one_low], p_sse[~one_low])
+        lows_min = _local_minima(p_lows[one_low], p_sse[one_low])
+        highs_min = _local_minima(p_highs[~one_low], p_sse[~one_low])
         # 2. coordinate descent on the grids from the best one-sided limit of each side
-        # each chain: [low, high, side scanned next].  The SECOND limit of a pair may lie
-        # outside the nominal signal's range: once the first limit acts, a loop can
-        # drive the signal beyond where it ever went nominally (a drum level clipped
-        # high is refilled low by its controller).  So the scans of the other limit
-        # reach half a range beyond the nominal extremes, every 2 %.
-        scan_lo = np.concatenate([np.linspace(v.min() - 0.5 * span, v.min(), 26)[:-1], grid_lo])
-        scan_hi = np.concatenate([grid_hi, np.linspace(v.max(), v.max() + 0.5 * span, 26)[1:]])
-        chains: list[list[Any]] = [[lows_min[0], inf, "high"]] if lows_min else []
-        chains += [[-inf, highs_min[0], "low"]] if highs_min else []
-        for sweep in range(3):
-            run([(float(x), c[1]) if c[2] == "low" else (c[0], float(x))
-                 for c in chains for x in (scan_lo if c[2] == "low" else scan_hi)])
-            moved = False
-            for c in chains:
-                if c[2] == "low":
-                    options = [(float(x), c[1]) for x in scan_lo] + [(c[0], c[1])]
-                else:
-                    options = [(c[0], float(x)) for x in scan_hi] + [(c[0], c[1])]
-                low, high = min((pq for pq in options if pq in tried), key=lambda pq: tried[pq])
-                moved |= (low, high) != (c[0], c[1])
-                c[:] = [low, high, "high" if c[2] == "low" else "low"]
-            if not moved and sweep:
-                break
+        search.coordinate_descent(lows_min, highs_min, scan_lo, scan_hi)
         # 3. pairs of local minima, the screening's best points and the previous fit
-        pairs = [(a, b) for a in [*lows_min, -inf] for b in [*highs_min, inf]]
+        pairs = [(a, b) for a in [*lows_min, -math.inf] for b in [*highs_min, math.inf]]
         for st in ([warm] if warm is not None else []) + list(s.starts[:2]):
             pairs.append((float(st["low"]), float(st["high"])))
-        run(pairs)
-        centres: list[list[float]] = []
-        for (a, b), _ in sorted(tried.items(), key=lambda kv: kv[1]):
-            if len(centres) >= n_starts:
-                break
-            if math.isinf(a) and math.isinf(b):
-                continue
-            if not any(near(a, c[0], 1e-3 * span) and near(b, c[1], 1e-3 * span)
-                       for c in centres):
-                centres.append([a, b])
+        search.run(pairs)
+        centres = search.centres(n_starts)
         if not centres:
-            return -inf, inf
-
-        def gap(grid: np.ndarray, x: float) -> float:
-            """Twice the spacing of the profile grid around x."""
-            g = np.sort(grid)
-            if not math.isfinite(x) or g.size < 2:
-                return 0.0
-            i = int(np.clip(np.searchsorted(g, x), 1, g.size - 1))
-            return 2.0 * float(max(g[i] - g[i - 1], g[min(i + 1, g.size - 1)] - g[i]))
-
-        widths = [[max(gap(scan_lo, a), 1e-3 * span), max(gap(scan_hi, b), 1e-3 * span)]
-                  for a, b in centres]
-        offsets = np.linspace(-1.0, 1.0, 7)
-        for round_ in range(40):
-            batch = []
-            for (a, b), (wa, wb) in zip(centres, widths, strict=True):
-                grid_a = [a] if math.isinf(a) else [a + wa * o for o in offsets]
-                grid_b = [b] if math.isinf(b) else [b + wb * o for o in offsets]
-                batch.append([(x, y_) for x in grid_a for y_ in grid_b if x < y_])
-            run([pq for part in batch for pq in part])
-            for j, part in enumerate(batch):
-                centres[j] = list(min(part, key=lambda pq: tried[pq]))
-                widths[j] = [0.4 * widths[j][0], 0.4 * widths[j][1]]
-            if round_ == 2 and len(centres) > 1:  # keep refining the best valley only
-                k = int(np.argmin([tried[tuple(c)] for c in centres]))
-                centres, widths = [centres[k]], [widths[k]]
-            if max(max(wa, wb) for wa, wb in widths) < 1e-4 * span:
-                break
-        (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+            return -math.inf, math.inf
+        search.refine(centres, scan_lo, scan_hi)
+        (low, high), _ = min(search.tried.items(), key=lambda kv: kv[1])
         if math.isfinite(low) and math.isfinite(high):
-            # 4. with integral action, shifting both limits together changes little (the
-            # integrator re-centres the loop): the valley runs along the shift, and its
-            # floor is rugged (episodes start and end on whole samples).  Scan it.
-            shifts = np.linspace(-0.08, 0.08, 41) * span
-            spreads = np.linspace(-0.01, 0.01, 9) * span
-            run([(low + d - e, high + d + e) for d in shifts for e in spreads])
-            (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
-            widths_l = [0.005 * span, 0.005 * span]
-            for _ in range(8):
-                part = [(low + widths_l[0] * x, high + widths_l[1] * y_)
-                        for x in offsets for y_ in offsets]
-                run(part)  # (pairs with low >= high are skipped: not in `tried`)
-                low, high = min((pq for pq in part if pq in tried), key=lambda pq: tried[pq])
-                widths_l = [0.4 * w_ for w_ in widths_l]
-            (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+            low, high = search.shift_scan(low, high)
         return low, high
 
     def _screener(self) -> Screener:
@@ -495,6 +408,164 @@ class Fitter:
                     best = (val, k, math.exp(res.x) * dt, dd * dt)
         assert best is not None
         return mk({"k": float(best[1]), "tau_s": float(best[2]), "delay_s": float(best[3])})
+
+
+def _local_minima(values: np.ndarray, sse: np.ndarray, m: int = 3) -> list[float]:
+    """The (up to) `m` lowest local minima of `sse` over sorted `values`, best first."""
+    order = np.argsort(values)
+    x, e = values[order], sse[order]
+    local = [i for i in range(e.size)
+             if (i == 0 or e[i] <= e[i - 1]) and (i == e.size - 1 or e[i] <= e[i + 1])]
+    return [float(x[i]) for i in sorted(local, key=lambda i: e[i])[:m]]
+
+
+def _grid_gap(grid: np.ndarray, x: float) -> float:
+    """Twice the spacing of the profile grid around x."""
+    g = np.sort(grid)
+    if not math.isfinite(x) or g.size < 2:
+        return 0.0
+    i = int(np.clip(np.searchsorted(g, x), 1, g.size - 1))
+    return 2.0 * float(max(g[i] - g[i - 1], g[min(i + 1, g.size - 1)] - g[i]))
+
+
+@dataclass
+class _SaturationSearch:
+    """State of :meth:`Fitter._fit_saturation`: limit pairs tried and their exact sums of squares."""
+
+    fitter: Fitter
+    mk: Callable[[dict], Effect]
+    v: np.ndarray  # nominal signal at the location, samples [0, stop)
+    span: float
+    path: Any  # StaticMapPath or None (nonlinear nominal model)
+    tried: dict[tuple[float, float], float] = field(default_factory=dict)
+
+    def evaluate(self, lows: Sequence[float], highs: Sequence[float]) -> np.ndarray:
+        """Exact whitened sums of squares of the limit pairs (lows[j], highs[j])."""
+        f = self.fitter
+        P, stop, v, path = f.P, f.stop, self.v, self.path
+        lo, hi = np.asarray(lows, dtype=float), np.asarray(highs, dtype=float)
+        if lo.size == 0:
+            return np.zeros(0)
+        if path is None:  # nonlinear nominal model: one exact simulation each
+            return np.array([f.sse(self.mk({"low": float(a), "high": float(b)}))
+                             for a, b in zip(lo, hi, strict=True)])
+        f.n_eval += 1  # one pass simulates the whole batch
+        with np.errstate(all="ignore"):
+            y = path.corrections(clip_map(lo, hi), lo.size, first=first_crossing(v, lo, hi))
+        return batch_sse(P, y, stop)
+
+    def run(self, pairs: Sequence[tuple[float, float]]) -> None:
+        """Evaluate the new valid pairs (low < high) and record them in `tried`."""
+        tried = self.tried
+        new = [pq for pq in dict.fromkeys(pairs) if pq not in tried and pq[0] < pq[1]]
+        for pq, e in zip(new, self.evaluate([a for a, _ in new], [b for _, b in new]),
+                         strict=True):
+            tried[pq] = float(e)
+
+    def profiles(self, loc: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          np.ndarray]:
+        """1. one-sided profiles: (lows, highs, sse, scan_lo, scan_hi); fills `tried`."""
+        f, v, span = self.fitter, self.v, self.span
+        P, stop, inf = f.P, f.stop, math.inf
+        profile = saturation_profile(P, f.scr._h, loc, stop)
+        grid_lo, grid_hi = saturation_grids(v)
+        if profile is None:  # exact simulations one by one: coarser grids
+            grid_lo, grid_hi = grid_lo[::6], grid_hi[::6]
+            p_lows, p_highs = one_sided(grid_lo, grid_hi)
+            p_sse = self.evaluate(p_lows, p_highs)
+        else:
+            p_lows, p_highs, y_corr = profile
+            p_sse = batch_sse(P, y_corr, stop)
+        self.tried.update({(float(a), float(b)): float(e)
+                           for a, b, e in zip(p_lows, p_highs, p_sse, strict=True)})
+        self.tried[(-inf, inf)] = f.sse(self.mk({"low": -inf, "high": inf}))
+        # each chain: [low, high, side scanned next].  The SECOND limit of a pair may lie
+        # outside the nominal signal's range: once the first limit acts, a loop can
+        # drive the signal beyond where it ever went nominally (a drum level clipped
+        # high is refilled low by its controller).  So the scans of the other limit
+        # reach half a range beyond the nominal extremes, every 2 %.
+        scan_lo = np.concatenate([np.linspace(v.min() - 0.5 * span, v.min(), 26)[:-1], grid_lo])
+        scan_hi = np.concatenate([grid_hi, np.linspace(v.max(), v.max() + 0.5 * span, 26)[1:]])
+        return p_lows, p_highs, p_sse, scan_lo, scan_hi
+
+    def coordinate_descent(self, lows_min: list[float], highs_min: list[float],
+                           scan_lo: np.ndarray, scan_hi: np.ndarray) -> None:
+        """2. alternate scans of the other limit from the best one-sided limit of each side."""
+        tried, inf = self.tried, math.inf
+        chains: list[list[Any]] = [[lows_min[0], inf, "high"]] if lows_min else []
+        chains += [[-inf, highs_min[0], "low"]] if highs_min else []
+        for sweep in range(3):
+            self.run([(float(x), c[1]) if c[2] == "low" else (c[0], float(x))
+                      for c in chains for x in (scan_lo if c[2] == "low" else scan_hi)])
+            moved = False
+            for c in chains:
+                if c[2] == "low":
+                    options = [(float(x), c[1]) for x in scan_lo] + [(c[0], c[1])]
+                else:
+                    options = [(c[0], float(x)) for x in scan_hi] + [(c[0], c[1])]
+                low, high = min((pq for pq in options if pq in tried), key=lambda pq: tried[pq])
+                moved |= (low, high) != (c[0], c[1])
+                c[:] = [low, high, "high" if c[2] == "low" else "low"]
+            if not moved and sweep:
+                break
+
+    def centres(self, n_starts: int) -> list[list[float]]:
+        """The best `n_starts` distinct pairs tried, not both limits infinite."""
+        span = self.span
+        centres: list[list[float]] = []
+        for (a, b), _ in sorted(self.tried.items(), key=lambda kv: kv[1]):
+            if len(centres) >= n_starts:
+                break
+            if math.isinf(a) and math.isinf(b):
+                continue
+            if not any(near(a, c[0], 1e-3 * span) and near(b, c[1], 1e-3 * span)
+                       for c in centres):
+                centres.append([a, b])
+        return centres
+
+    def refine(self, centres: list[list[float]], scan_lo: np.ndarray,
+               scan_hi: np.ndarray) -> None:
+        """3. shrinking 7 x 7 grids around the centres (the best valley only after 3 rounds)."""
+        tried, span = self.tried, self.span
+        widths = [[max(_grid_gap(scan_lo, a), 1e-3 * span), max(_grid_gap(scan_hi, b), 1e-3 * span)]
+                  for a, b in centres]
+        offsets = np.linspace(-1.0, 1.0, 7)
+        for round_ in range(40):
+            batch = []
+            for (a, b), (wa, wb) in zip(centres, widths, strict=True):
+                grid_a = [a] if math.isinf(a) else [a + wa * o for o in offsets]
+                grid_b = [b] if math.isinf(b) else [b + wb * o for o in offsets]
+                batch.append([(x, y_) for x in grid_a for y_ in grid_b if x < y_])
+            self.run([pq for part in batch for pq in part])
+            for j, part in enumerate(batch):
+                centres[j] = list(min(part, key=lambda pq: tried[pq]))
+                widths[j] = [0.4 * widths[j][0], 0.4 * widths[j][1]]
+            if round_ == 2 and len(centres) > 1:  # keep refining the best valley only
+                k = int(np.argmin([tried[tuple(c)] for c in centres]))
+                centres, widths = [centres[k]], [widths[k]]
+            if max(max(wa, wb) for wa, wb in widths) < 1e-4 * span:
+                break
+
+    def shift_scan(self, low: float, high: float) -> tuple[float, float]:
+        """4. scan along the common shift of two finite limits, then a shrinking grid."""
+        # with integral action, shifting both limits together changes little (the
+        # integrator re-centres the loop): the valley runs along the shift, and its
+        # floor is rugged (episodes start and end on whole samples).  Scan it.
+        tried, span = self.tried, self.span
+        offsets = np.linspace(-1.0, 1.0, 7)
+        shifts = np.linspace(-0.08, 0.08, 41) * span
+        spreads = np.linspace(-0.01, 0.01, 9) * span
+        self.run([(low + d - e, high + d + e) for d in shifts for e in spreads])
+        (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+        widths_l = [0.005 * span, 0.005 * span]
+        for _ in range(8):
+            part = [(low + widths_l[0] * x, high + widths_l[1] * y_)
+                    for x in offsets for y_ in offsets]
+            self.run(part)  # (pairs with low >= high are skipped: not in `tried`)
+            low, high = min((pq for pq in part if pq in tried), key=lambda pq: tried[pq])
+            widths_l = [0.4 * w_ for w_ in widths_l]
+        (low, high), _ = min(tried.items(), key=lambda kv: kv[1])
+        return low, high
 
 
 def refit_nested_lags(fitter: Fitter, preds: list[tuple[Screen, Effect, np.ndarray]]) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.fft
@@ -162,20 +162,31 @@ def _fir_signals(P: Problem, signals: list[str], x: np.ndarray, r: np.ndarray
     return [s for s in signals if s in kept], left
 
 
-def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
-              ) -> tuple[dict[str, Any], list[np.ndarray], dict[str, np.ndarray]]:
-    """Localisation per output; returns (dict, FIR residual per output, rolling RMS).
+class _FirFit(NamedTuple):
+    """Detrended fit-part data and the residual FIR regression shared by the per-output stages."""
 
-    Parameters
-    ----------
-    P : Problem
-        Validated signals, nominal simulation and split; only samples from
-        ``P.fit_start`` on are analysed (the noise model is not used).
-    resid : ndarray (N, n_y)
-        Residual: measured minus nominal simulated outputs, full record.
-    rng : numpy.random.Generator
-        Random offsets of the circular-shift bootstrap.
-    """
+    start: int
+    signals: list[str]
+    n: int
+    trend: np.ndarray
+    r_all: np.ndarray
+    fir_signals: list[str]
+    collinear: dict[str, list[str]]
+    est: Any
+    fir_res: np.ndarray
+
+
+class _Spectra(NamedTuple):
+    """Model step responses and the frequency grid / band edges of the band comparison."""
+
+    model_step: dict[str, dict[str, np.ndarray]]
+    nfft: int
+    freqs: np.ndarray
+    edges: np.ndarray
+
+
+def _fir_fit(P: Problem, resid: np.ndarray) -> _FirFit:
+    """Detrend signals and residual on the fit part and regress the residual on FIR lags."""
     start = P.fit_start
     signals = list(P.inputs)
     x = np.column_stack([P.inputs[s] for s in signals])[start:]
@@ -198,7 +209,11 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
             f"discrepancy localisation: the residual FIR regression failed ({exc}); the "
             "inputs do not excite the model enough or are collinear"
         ) from None
-    # Model step responses (per model input) for the frequency comparison.
+    return _FirFit(start, signals, n, trend, r_all, fir_signals, collinear, est, fir_res)
+
+
+def _spectra(P: Problem) -> _Spectra:
+    """Model step responses (per model input) for the frequency comparison, and the bands."""
     model_step = {}
     for name in P.model.inputs:
         u = {k: (np.ones(P.n_p) if k == name else np.zeros(P.n_p)) for k in P.model.inputs}
@@ -208,125 +223,175 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
     freqs = np.fft.rfftfreq(nfft, d=P.dt_s)
     f_lo, f_hi = 1.0 / (P.n_p * P.dt_s), 0.5 / P.dt_s
     edges = np.geomspace(f_lo, f_hi, 5)
-    window = max(P.n_p, n // 40)
+    return _Spectra(model_step, nfft, freqs, edges)
+
+
+def _frequency_bands(h_model: np.ndarray, dh: np.ndarray, sp: _Spectra) -> list[dict[str, float]]:
+    """Mean |H| of the model and of the data (model + discrepancy) per frequency band."""
+    hm = np.abs(np.fft.rfft(h_model, sp.nfft))
+    hd = np.abs(np.fft.rfft(h_model + dh, sp.nfft))
+    hr = np.abs(np.fft.rfft(dh, sp.nfft))
+    bands = []
+    for lo, hi in zip(sp.edges[:-1], sp.edges[1:], strict=True):
+        sel = (sp.freqs >= lo) & (sp.freqs < hi)
+        m_mean = float(hm[sel].mean()) if sel.any() else float("nan")
+        bands.append({
+            "f_lo_hz": float(lo), "f_hi_hz": float(hi),
+            "model_gain": m_mean,
+            "data_gain": float(hd[sel].mean()) if sel.any() else float("nan"),
+            "relative_difference": (float(hr[sel].mean()) / m_mean
+                                    if sel.any() and m_mean > 0 else float("nan")),
+        })
+    return bands
+
+
+def _signal_entry(P: Problem, ff: _FirFit, sp: _Spectra, rel: dict[str, dict[str, float]],
+                  i: int, out: str, name: str) -> dict[str, Any]:
+    """Localisation entry of signal `name` for output `out` (index `i`)."""
+    if name not in ff.fir_signals:  # left out of the FIR regression (collinear)
+        entry = dict(rel[name])
+        entry.update(significant=bool(rel[name]["p_value"] < 0.05),
+                     first_significant_lag_s=None, peak_lag_s=None,
+                     significant_lags=0, discrepancy_step_final=None,
+                     discrepancy_step_final_std=None,
+                     fir_left_out=f"collinear with {ff.collinear[name]}")
+        return entry
+    est = ff.est
+    j = ff.fir_signals.index(name)
+    dh = est.delta_h[i, j]
+    sd = est.delta_h_std[i, j]
+    z = np.abs(dh) / np.where(sd > 0, sd, np.inf)
+    sig_lags = np.flatnonzero(z > 3.0)
+    entry = dict(rel[name])
+    entry.update(
+        significant=bool(rel[name]["p_value"] < 0.05),
+        first_significant_lag_s=(float(sig_lags[0] * P.dt_s) if sig_lags.size else None),
+        peak_lag_s=float(np.argmax(np.abs(dh)) * P.dt_s),
+        significant_lags=int(sig_lags.size),
+        discrepancy_step_final=float(est.step[i, j, -1]),
+        discrepancy_step_final_std=float(est.step_std[i, j, -1]),
+    )
+    if name in sp.model_step:
+        h_model = np.diff(sp.model_step[name][out], prepend=0.0)
+        bands = _frequency_bands(h_model, dh, sp)
+        worst = max(bands, key=lambda b: -1 if math.isnan(b["relative_difference"])
+                    else b["relative_difference"])
+        entry["frequency_bands"] = bands
+        entry["band_of_largest_discrepancy_hz"] = [worst["f_lo_hz"], worst["f_hi_hz"]]
+        entry["model_step_final"] = float(sp.model_step[name][out][-1])
+        entry["data_step_final"] = float(sp.model_step[name][out][-1] + est.step[i, j, -1])
+    return entry
+
+
+def _time_windows(P: Problem, ff: _FirFit, resid: np.ndarray, i: int, window: int
+                  ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Rolling RMS of output `i`'s residual and its block RMS / change points summary."""
+    start = ff.start
+    # time windows: block RMS and change points of block mean / block RMS
+    e = resid[:, i]
+    kernel = np.ones(window) / window
+    rolling = np.sqrt(np.convolve(e**2, kernel, mode="same"))
+    nb = ff.n // window
+    blocks = ff.r_all[: nb * window, i].reshape(nb, window)
+    b_mean = blocks.mean(axis=1)
+    b_rms = np.sqrt((blocks**2).mean(axis=1))
+    cp_mean = _change_points(b_mean)
+    cp_level = _change_points(np.log(b_rms + 1e-300))
+    med = float(np.median(b_rms))
+    return rolling, {
+        "window_s": float(window * P.dt_s),
+        "block_rms": [float(v) for v in b_rms],
+        "block_mean": [float(v) for v in b_mean],
+        "high_rms_windows_s": [
+            [float((start + k * window) * P.dt_s), float((start + (k + 1) * window) * P.dt_s)]
+            for k in np.flatnonzero(b_rms > 1.5 * med)
+        ],
+        "mean_change_points_s": [float((start + k * window) * P.dt_s) for k in cp_mean],
+        "level_change_points_s": [float((start + k * window) * P.dt_s) for k in cp_level],
+    }
+
+
+def _load_bins(P: Problem, ff: _FirFit, i: int) -> tuple[str, list[dict[str, Any]]]:
+    """Load signal and residual mean / RMS of output `i` per load-quantile bin."""
+    signals = ff.signals
+    load_name = P.config.load_signal or (P.model.inputs[0] if P.model.inputs else signals[0])
+    if load_name not in P.inputs:
+        raise ConfigError(
+            f"discrepancy.load_signal={load_name!r} is not a measured signal; choose one "
+            f"of {signals}"
+        )
+    load = P.inputs[load_name][ff.start:]
+    q = np.quantile(load, np.linspace(0, 1, P.config.n_load_bins + 1))
+    idx = np.clip(np.searchsorted(q, load, side="right") - 1, 0, P.config.n_load_bins - 1)
+    bins = []
+    for b in range(P.config.n_load_bins):
+        sel = idx == b
+        if not sel.any():
+            continue
+        eb = ff.r_all[sel, i]
+        bins.append({"load_lo": float(q[b]), "load_hi": float(q[b + 1]), "n": int(sel.sum()),
+                     "mean": float(eb.mean()), "rms": float(np.sqrt(np.mean(eb**2)))})
+    return load_name, bins
+
+
+def _localise_output(P: Problem, ff: _FirFit, sp: _Spectra, resid: np.ndarray, i: int,
+                     out: str, rel: dict[str, dict[str, float]], window: int
+                     ) -> tuple[dict[str, Any], np.ndarray]:
+    """Localisation dict and rolling RMS of output `out` (index `i`)."""
+    start, r_all, n = ff.start, ff.r_all, ff.n
+    per_signal = {name: _signal_entry(P, ff, sp, rel, i, out, name) for name in ff.signals}
+    # trend terms of the residual (mean and drift over the record)
+    coef = np.linalg.lstsq(ff.trend, r_all[:, i], rcond=None)[0]
+    duration_h = n * P.dt_s / 3600.0
+    rolling, time_windows = _time_windows(P, ff, resid, i, window)
+    # operating range
+    load_name, bins = _load_bins(P, ff, i)
+    rms_bins = [b["rms"] for b in bins]
+    total_rms = float(np.sqrt(np.mean(r_all[:, i] ** 2)))
+    return {
+        "residual_rms": total_rms,
+        "residual_mean": float(r_all[:, i].mean()),
+        "measured_std": float(np.std(P.y[start:, i])),
+        "relative_residual": total_rms / max(float(np.std(P.y[start:, i])), 1e-300),
+        "fir_residual_rms": float(np.sqrt(np.mean(np.nan_to_num(ff.fir_res[:, i]) ** 2))),
+        "signals": per_signal,
+        "explained_by": [s for s, v in sorted(rel.items(), key=lambda kv: kv[1]["p_value"])
+                         if v["p_value"] < 0.05],
+        "lags_n_p": P.n_p,
+        "trend": {"mean": float(coef[0]),
+                  "drift_per_h": float(2 * coef[1] / duration_h) if duration_h > 0 else 0.0},
+        "time_windows": time_windows,
+        "operating_range": {
+            "load_signal": load_name,
+            "bins": bins,
+            "rms_spread": (max(rms_bins) - min(rms_bins)) / max(total_rms, 1e-300)
+            if rms_bins else 0.0,
+        },
+    }, rolling
+
+
+def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
+              ) -> tuple[dict[str, Any], list[np.ndarray], dict[str, np.ndarray]]:
+    """Localisation per output; returns (dict, FIR residual per output, rolling RMS).
+
+    Parameters
+    ----------
+    P : Problem
+        Validated signals, nominal simulation and split; only samples from
+        ``P.fit_start`` on are analysed (the noise model is not used).
+    resid : ndarray (N, n_y)
+        Residual: measured minus nominal simulated outputs, full record.
+    rng : numpy.random.Generator
+        Random offsets of the circular-shift bootstrap.
+    """
+    ff = _fir_fit(P, resid)
+    sp = _spectra(P)
+    window = max(P.n_p, ff.n // 40)
     rolling: dict[str, np.ndarray] = {}
     loc: dict[str, Any] = {}
     fir_out = []
-    relevance_all = {}
     for i, out in enumerate(P.outputs):
-        rel = _input_relevance(P, resid[:, i], signals, start, rng)
-        relevance_all[out] = rel
-        fir_out.append(np.nan_to_num(fir_res[:, i]))
-        per_signal = {}
-        for name in signals:
-            if name not in fir_signals:  # left out of the FIR regression (collinear)
-                entry = dict(rel[name])
-                entry.update(significant=bool(rel[name]["p_value"] < 0.05),
-                             first_significant_lag_s=None, peak_lag_s=None,
-                             significant_lags=0, discrepancy_step_final=None,
-                             discrepancy_step_final_std=None,
-                             fir_left_out=f"collinear with {collinear[name]}")
-                per_signal[name] = entry
-                continue
-            j = fir_signals.index(name)
-            dh = est.delta_h[i, j]
-            sd = est.delta_h_std[i, j]
-            z = np.abs(dh) / np.where(sd > 0, sd, np.inf)
-            sig_lags = np.flatnonzero(z > 3.0)
-            entry = dict(rel[name])
-            entry.update(
-                significant=bool(rel[name]["p_value"] < 0.05),
-                first_significant_lag_s=(float(sig_lags[0] * P.dt_s) if sig_lags.size else None),
-                peak_lag_s=float(np.argmax(np.abs(dh)) * P.dt_s),
-                significant_lags=int(sig_lags.size),
-                discrepancy_step_final=float(est.step[i, j, -1]),
-                discrepancy_step_final_std=float(est.step_std[i, j, -1]),
-            )
-            if name in model_step:
-                h_model = np.diff(model_step[name][out], prepend=0.0)
-                hm = np.abs(np.fft.rfft(h_model, nfft))
-                hd = np.abs(np.fft.rfft(h_model + dh, nfft))
-                hr = np.abs(np.fft.rfft(dh, nfft))
-                bands = []
-                for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-                    sel = (freqs >= lo) & (freqs < hi)
-                    m_mean = float(hm[sel].mean()) if sel.any() else float("nan")
-                    bands.append({
-                        "f_lo_hz": float(lo), "f_hi_hz": float(hi),
-                        "model_gain": m_mean,
-                        "data_gain": float(hd[sel].mean()) if sel.any() else float("nan"),
-                        "relative_difference": (float(hr[sel].mean()) / m_mean
-                                                if sel.any() and m_mean > 0 else float("nan")),
-                    })
-                worst = max(bands, key=lambda b: -1 if math.isnan(b["relative_difference"])
-                            else b["relative_difference"])
-                entry["frequency_bands"] = bands
-                entry["band_of_largest_discrepancy_hz"] = [worst["f_lo_hz"], worst["f_hi_hz"]]
-                entry["model_step_final"] = float(model_step[name][out][-1])
-                entry["data_step_final"] = float(model_step[name][out][-1] + est.step[i, j, -1])
-            per_signal[name] = entry
-        # trend terms of the residual (mean and drift over the record)
-        coef = np.linalg.lstsq(trend, r_all[:, i], rcond=None)[0]
-        duration_h = n * P.dt_s / 3600.0
-        # time windows: block RMS and change points of block mean / block RMS
-        e = resid[:, i]
-        kernel = np.ones(window) / window
-        rolling[out] = np.sqrt(np.convolve(e**2, kernel, mode="same"))
-        nb = n // window
-        blocks = r_all[: nb * window, i].reshape(nb, window)
-        b_mean = blocks.mean(axis=1)
-        b_rms = np.sqrt((blocks**2).mean(axis=1))
-        cp_mean = _change_points(b_mean)
-        cp_level = _change_points(np.log(b_rms + 1e-300))
-        med = float(np.median(b_rms))
-        # operating range
-        load_name = P.config.load_signal or (P.model.inputs[0] if P.model.inputs else signals[0])
-        if load_name not in P.inputs:
-            raise ConfigError(
-                f"discrepancy.load_signal={load_name!r} is not a measured signal; choose one "
-                f"of {signals}"
-            )
-        load = P.inputs[load_name][start:]
-        q = np.quantile(load, np.linspace(0, 1, P.config.n_load_bins + 1))
-        idx = np.clip(np.searchsorted(q, load, side="right") - 1, 0, P.config.n_load_bins - 1)
-        bins = []
-        for b in range(P.config.n_load_bins):
-            sel = idx == b
-            if not sel.any():
-                continue
-            eb = r_all[sel, i]
-            bins.append({"load_lo": float(q[b]), "load_hi": float(q[b + 1]), "n": int(sel.sum()),
-                         "mean": float(eb.mean()), "rms": float(np.sqrt(np.mean(eb**2)))})
-        rms_bins = [b["rms"] for b in bins]
-        total_rms = float(np.sqrt(np.mean(r_all[:, i] ** 2)))
-        loc[out] = {
-            "residual_rms": total_rms,
-            "residual_mean": float(r_all[:, i].mean()),
-            "measured_std": float(np.std(P.y[start:, i])),
-            "relative_residual": total_rms / max(float(np.std(P.y[start:, i])), 1e-300),
-            "fir_residual_rms": float(np.sqrt(np.mean(np.nan_to_num(fir_res[:, i]) ** 2))),
-            "signals": per_signal,
-            "explained_by": [s for s, v in sorted(rel.items(), key=lambda kv: kv[1]["p_value"])
-                             if v["p_value"] < 0.05],
-            "lags_n_p": P.n_p,
-            "trend": {"mean": float(coef[0]),
-                      "drift_per_h": float(2 * coef[1] / duration_h) if duration_h > 0 else 0.0},
-            "time_windows": {
-                "window_s": float(window * P.dt_s),
-                "block_rms": [float(v) for v in b_rms],
-                "block_mean": [float(v) for v in b_mean],
-                "high_rms_windows_s": [
-                    [float((start + k * window) * P.dt_s), float((start + (k + 1) * window) * P.dt_s)]
-                    for k in np.flatnonzero(b_rms > 1.5 * med)
-                ],
-                "mean_change_points_s": [float((start + k * window) * P.dt_s) for k in cp_mean],
-                "level_change_points_s": [float((start + k * window) * P.dt_s) for k in cp_level],
-            },
-            "operating_range": {
-                "load_signal": load_name,
-                "bins": bins,
-                "rms_spread": (max(rms_bins) - min(rms_bins)) / max(total_rms, 1e-300)
-                if rms_bins else 0.0,
-            },
-        }
+        rel = _input_relevance(P, resid[:, i], ff.signals, ff.start, rng)
+        fir_out.append(np.nan_to_num(ff.fir_res[:, i]))
+        loc[out], rolling[out] = _localise_output(P, ff, sp, resid, i, out, rel, window)
     return loc, fir_out, rolling

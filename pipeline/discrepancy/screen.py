@@ -16,7 +16,7 @@ import scipy.signal
 from pipeline.discrepancy.localise import lag_filter
 from pipeline.discrepancy.problem import Problem
 from pipeline.effects import Effect, applicable_locations, predict_outputs
-from pipeline.errors import PipelineError
+from pipeline.errors import ModelError, PipelineError
 from pipeline.blocks import Sum, Term
 from pipeline.model import Model, insert_after, insert_before
 from pipeline.simulate import discrete_state_space, simulate
@@ -25,6 +25,10 @@ from pipeline.simulate import discrete_state_space, simulate
 #: Relative tolerance under which two candidates' sensitivities count as identical
 #: (equivalent locations): rounding of an FFT convolution is ~1e-13 relative.
 _EQUIVALENT_RTOL = 1e-7
+
+
+#: One screening grid point: (explained whitened SS, parameters, whitened direction).
+_GridPoint = tuple[float, dict[str, Any], np.ndarray]
 
 
 @dataclass(eq=False)  # identity comparison: the direction arrays make == ambiguous
@@ -201,116 +205,18 @@ class Screener:
             Measured signal scheduling operating_point_gain; unused by other effects.
         """
         P, dt = self.P, self.P.dt_s
-        grid: list[tuple[float, dict[str, Any], np.ndarray]] = []
+        grid: list[_GridPoint] = []
         n_par = 1
         taus = np.geomspace(0.5, max(2.0, P.settling_s / dt), 12)
         if name == "sensor_bias_drift":
-            i = P.outputs.index(loc)
-            t_h = np.arange(self.stop) * dt / 3600.0
-            cols = []
-            for c in (np.ones(self.stop), t_h):
-                d = np.zeros((self.stop, P.n_y))
-                d[:, i] = c
-                cols.append(self.w(d))
-            d_w = np.column_stack(cols)
-            beta, *_ = np.linalg.lstsq(d_w, self.r_w, rcond=None)
-            gain = float(self.r_w @ d_w @ beta)
-            grid.append((gain, {"bias": float(beta[0]), "drift_per_h": float(beta[1])}, d_w @ beta))
-            n_par = 2
+            n_par = self._grid_bias_drift(grid, loc)
         elif name == "unmodelled_input":
-            signal, _, out = loc.partition("->")
-            hs = self.conv(self.H(out, "output"), self.ins[signal] - 0.0)
-            n_par = 3
-            for d in range(0, P.max_delay + 1):
-                shifted = np.zeros_like(hs)
-                shifted[d:] = hs[: self.stop - d]
-                for tau in taus:
-                    dw = self.w(lag_filter(shifted, tau))
-                    g, k = self.project(dw)
-                    grid.append((g, {"k": k, "tau_s": float(tau * dt), "delay_s": float(d * dt)}, k * dw))
+            n_par = self._grid_unmodelled(grid, loc, taus)
         elif name in ("gain", "dead_time", "extra_lag", "inverse_response", "operating_point_gain",
                       "saturation"):
-            v = self.v[loc]
-            H = self.H(loc, "output")
-            if name == "gain":
-                dw = self.w(self.conv(H, v))
-                g, beta = self.project(dw)
-                grid.append((g, {"factor": 1.0 + beta}, beta * dw))
-            elif name == "dead_time":
-                hv = self.conv(H, v)
-                for d in range(1, P.max_delay + 1):
-                    shifted = np.zeros_like(hv)
-                    shifted[d:] = hv[: self.stop - d]
-                    dw = self.w(shifted - hv)
-                    grid.append((self.fixed(dw), {"delay_s": float(d * dt)}, dw))
-            elif name == "extra_lag":
-                hv = self.conv(H, v)
-                for tau in taus:
-                    dw = self.w(lag_filter(hv, tau) - hv)
-                    grid.append((self.fixed(dw), {"tau_s": float(tau * dt)}, dw))
-            elif name == "inverse_response":
-                hv = self.conv(H, v)
-                n_par = 2
-                for tau in taus:
-                    dw = self.w(lag_filter(hv, tau) - hv)  # times (1 + magnitude)
-                    dd, dr = float(dw @ dw), float(dw @ self.r_w)
-                    c = max(dr / dd, 1.0) if dd > 0 else 1.0
-                    grid.append((2 * c * dr - c * c * dd,
-                                 {"tau_s": float(tau * dt), "magnitude": c - 1.0}, c * dw))
-            elif name == "operating_point_gain":
-                dw = self.w(self.conv(H, self.ins[signal] * v))
-                g, beta = self.project(dw)
-                grid.append((g, {"slope": beta, "signal": signal}, beta * dw))
-            else:  # saturation: limits as fractions of the signal's extremes (covariant)
-                n_par = 2
-                hi_v, lo_v = float(v.max()), float(v.min())
-                fractions = (0.35, 0.5, 0.65, 0.8, 0.92, None)
-                for fl in fractions:
-                    for fh in fractions:
-                        if fl is None and fh is None:
-                            continue
-                        low = -math.inf if fl is None else fl * lo_v
-                        high = math.inf if fh is None else fh * hi_v
-                        if not low < high:
-                            continue
-                        dv = np.clip(v, low, high) - v
-                        dw = self.w(self.conv(H, dv))
-                        grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
-                # A saturation inside a loop with integral action winds up: the first-
-                # order picture underestimates it badly, so the one-sided limit profiles
-                # are simulated exactly (:func:`saturation_profile`, cached) -- or, for
-                # a nonlinear nominal model, five limit pairs (quantiles of the signal).
-                profile = saturation_profile(P, self._h, loc, self.stop)
-                if profile is not None:
-                    p_lows, p_highs, y_corr = profile
-                    p_sse = batch_sse(P, y_corr, self.stop)
-                    rr = float(self.r_w @ self.r_w)
-                    for j in np.argsort(p_sse)[:3]:
-                        dw = self.w(y_corr[:, :, j])
-                        grid.append((rr - float(p_sse[j]),
-                                     {"low": float(p_lows[j]), "high": float(p_highs[j])}, dw))
-                pairs = () if profile is not None else (
-                    (0.05, 0.95), (0.12, 0.88), (0.25, 0.75), (0.0, 0.9), (0.1, 1.0))
-                for ql, qh in pairs:
-                    low, high = (float(x) for x in np.quantile(v, [ql, qh]))
-                    low = -math.inf if ql == 0.0 else low
-                    high = math.inf if qh == 1.0 else high
-                    if not low < high:
-                        continue
-                    y_exact = self.exact(Effect("saturation", loc, {"low": low, "high": high}))
-                    if y_exact is not None:
-                        dw = self.w(y_exact - self.P.y_nominal[: self.stop])
-                        grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
+            n_par = self._grid_block_output(grid, name, loc, signal, taus)
         elif name == "deadband":
-            u = self.block_input(loc)
-            H = self.H(loc, "input")
-            scale = float(np.max(np.abs(u)))
-            if scale > 0:
-                for frac in (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7):
-                    width = frac * scale
-                    du = -np.clip(u, -width / 2, width / 2)
-                    dw = self.w(self.conv(H, du))
-                    grid.append((self.fixed(dw), {"width": width}, dw))
+            self._grid_deadband(grid, loc)
         if not grid:
             return None
         grid.sort(key=lambda g: -g[0])
@@ -318,6 +224,133 @@ class Screener:
         starts = [g[1] for g in grid[:3]]
         return Screen(name=name, location=loc, score=best[0] - n_par * self.penalty,
                        n_parameters=n_par, starts=starts, direction=best[2], members=[loc])
+
+    def _grid_bias_drift(self, grid: list[_GridPoint], loc: str) -> int:
+        """sensor_bias_drift at output `loc`: the exact least-squares point; returns n_par."""
+        P, dt = self.P, self.P.dt_s
+        i = P.outputs.index(loc)
+        t_h = np.arange(self.stop) * dt / 3600.0
+        cols = []
+        for c in (np.ones(self.stop), t_h):
+            d = np.zeros((self.stop, P.n_y))
+            d[:, i] = c
+            cols.append(self.w(d))
+        d_w = np.column_stack(cols)
+        beta, *_ = np.linalg.lstsq(d_w, self.r_w, rcond=None)
+        gain = float(self.r_w @ d_w @ beta)
+        grid.append((gain, {"bias": float(beta[0]), "drift_per_h": float(beta[1])}, d_w @ beta))
+        return 2
+
+    def _grid_unmodelled(self, grid: list[_GridPoint], loc: str, taus: np.ndarray) -> int:
+        """unmodelled_input ``signal->output``: every delay and lag, k projected; returns n_par."""
+        P, dt = self.P, self.P.dt_s
+        signal, _, out = loc.partition("->")
+        hs = self.conv(self.H(out, "output"), self.ins[signal] - 0.0)
+        for d in range(0, P.max_delay + 1):
+            shifted = np.zeros_like(hs)
+            shifted[d:] = hs[: self.stop - d]
+            for tau in taus:
+                dw = self.w(lag_filter(shifted, tau))
+                g, k = self.project(dw)
+                grid.append((g, {"k": k, "tau_s": float(tau * dt), "delay_s": float(d * dt)}, k * dw))
+        return 3
+
+    def _grid_block_output(self, grid: list[_GridPoint], name: str, loc: str,
+                           signal: str | None, taus: np.ndarray) -> int:
+        """Effects acting on block `loc`'s output (gain, delay, lags, saturation); returns n_par."""
+        P, dt = self.P, self.P.dt_s
+        v = self.v[loc]
+        H = self.H(loc, "output")
+        n_par = 1
+        if name == "gain":
+            dw = self.w(self.conv(H, v))
+            g, beta = self.project(dw)
+            grid.append((g, {"factor": 1.0 + beta}, beta * dw))
+        elif name == "dead_time":
+            hv = self.conv(H, v)
+            for d in range(1, P.max_delay + 1):
+                shifted = np.zeros_like(hv)
+                shifted[d:] = hv[: self.stop - d]
+                dw = self.w(shifted - hv)
+                grid.append((self.fixed(dw), {"delay_s": float(d * dt)}, dw))
+        elif name == "extra_lag":
+            hv = self.conv(H, v)
+            for tau in taus:
+                dw = self.w(lag_filter(hv, tau) - hv)
+                grid.append((self.fixed(dw), {"tau_s": float(tau * dt)}, dw))
+        elif name == "inverse_response":
+            hv = self.conv(H, v)
+            n_par = 2
+            for tau in taus:
+                dw = self.w(lag_filter(hv, tau) - hv)  # times (1 + magnitude)
+                dd, dr = float(dw @ dw), float(dw @ self.r_w)
+                c = max(dr / dd, 1.0) if dd > 0 else 1.0
+                grid.append((2 * c * dr - c * c * dd,
+                             {"tau_s": float(tau * dt), "magnitude": c - 1.0}, c * dw))
+        elif name == "operating_point_gain":
+            dw = self.w(self.conv(H, self.ins[signal] * v))
+            g, beta = self.project(dw)
+            grid.append((g, {"slope": beta, "signal": signal}, beta * dw))
+        else:  # saturation
+            n_par = 2
+            self._grid_saturation(grid, loc, v, H)
+        return n_par
+
+    def _grid_saturation(self, grid: list[_GridPoint], loc: str, v: np.ndarray,
+                         H: np.ndarray) -> None:
+        """saturation at `loc`: limits as fractions of the signal's extremes (covariant),
+        plus exact one-sided profiles (or exact quantile pairs for a nonlinear model)."""
+        P = self.P
+        hi_v, lo_v = float(v.max()), float(v.min())
+        fractions = (0.35, 0.5, 0.65, 0.8, 0.92, None)
+        for fl in fractions:
+            for fh in fractions:
+                if fl is None and fh is None:
+                    continue
+                low = -math.inf if fl is None else fl * lo_v
+                high = math.inf if fh is None else fh * hi_v
+                if not low < high:
+                    continue
+                dv = np.clip(v, low, high) - v
+                dw = self.w(self.conv(H, dv))
+                grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
+        # A saturation inside a loop with integral action winds up: the first-
+        # order picture underestimates it badly, so the one-sided limit profiles
+        # are simulated exactly (:func:`saturation_profile`, cached) -- or, for
+        # a nonlinear nominal model, five limit pairs (quantiles of the signal).
+        profile = saturation_profile(P, self._h, loc, self.stop)
+        if profile is not None:
+            p_lows, p_highs, y_corr = profile
+            p_sse = batch_sse(P, y_corr, self.stop)
+            rr = float(self.r_w @ self.r_w)
+            for j in np.argsort(p_sse)[:3]:
+                dw = self.w(y_corr[:, :, j])
+                grid.append((rr - float(p_sse[j]),
+                             {"low": float(p_lows[j]), "high": float(p_highs[j])}, dw))
+        pairs = () if profile is not None else (
+            (0.05, 0.95), (0.12, 0.88), (0.25, 0.75), (0.0, 0.9), (0.1, 1.0))
+        for ql, qh in pairs:
+            low, high = (float(x) for x in np.quantile(v, [ql, qh]))
+            low = -math.inf if ql == 0.0 else low
+            high = math.inf if qh == 1.0 else high
+            if not low < high:
+                continue
+            y_exact = self.exact(Effect("saturation", loc, {"low": low, "high": high}))
+            if y_exact is not None:
+                dw = self.w(y_exact - self.P.y_nominal[: self.stop])
+                grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
+
+    def _grid_deadband(self, grid: list[_GridPoint], loc: str) -> None:
+        """deadband at the input of block `loc`: widths as fractions of the input's extreme."""
+        u = self.block_input(loc)
+        H = self.H(loc, "input")
+        scale = float(np.max(np.abs(u)))
+        if scale > 0:
+            for frac in (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7):
+                width = frac * scale
+                du = -np.clip(u, -width / 2, width / 2)
+                dw = self.w(self.conv(H, du))
+                grid.append((self.fixed(dw), {"width": width}, dw))
 
 
 class StaticMapPath:

@@ -39,7 +39,8 @@ import numpy as np
 import yaml
 
 from pipeline.adapters.progress import bar as progress_bar
-from pipeline.discrepancy import analyse_discrepancy, make_discrepancy_demo
+from pipeline.discrepancy import analyse_discrepancy
+from pipeline.synthetic import make_discrepancy_demo
 from pipeline.effects import EFFECT_NAMES, Effect, make_hidden_effect_trial
 from pipeline.model import Model, model_from_dict
 
@@ -218,8 +219,9 @@ def summarise(results: list[dict[str, Any]]) -> str:
 
 
 def timing_1e5() -> str:
-    inputs, measured, dt_s = make_discrepancy_demo(seed=3, hours=100_000 / 3600.0, dt_s=1.0)
     model = load_model("boiler_pressure")
+    inputs, measured, dt_s = make_discrepancy_demo(model, seed=3, hours=100_000 / 3600.0,
+                                                   dt_s=1.0)
     start = time.perf_counter()
     result = analyse_discrepancy(model, inputs=inputs, measured=measured, dt_s=dt_s,
                                  clock=time.perf_counter)

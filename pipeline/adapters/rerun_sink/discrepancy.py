@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,13 @@ from pipeline.adapters.rerun_sink.common import (
     send_series,
     with_fixed_ids,
     write_recording,
+)
+from pipeline.discrepancy.report import (
+    effect_text,
+    fmt_number,
+    json_number,
+    md_cell,
+    summary_markdown,
 )
 from pipeline.errors import DataQualityError
 
@@ -114,10 +122,43 @@ def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident:
     check_out_name(out_name)
     summary = _read_discrepancy_json(run_dir)
     series = _read_discrepancy_series(run_dir)
+    ident = _resolve_ident(run_dir, summary, ident)
+    view = _discrepancy_view(summary, series)
+    blueprint = _discrepancy_blueprint(ident, view.outputs, view.per_output, view.layout,
+                                       bool(view.candidates), view.first)
+    return write_recording(run_dir / out_name, ident, blueprint,
+                           lambda rec: _send_discrepancy(rec, ident, view))
+
+
+#: What the viewer adds to the run's summary page (report.md's text).
+_VIEWER_NOTE = ("\nIn this viewer: the split is marked by red vertical lines in the plots; all "
+                "candidates are on the tab *Candidates*.\n")
+
+
+@dataclass(frozen=True)
+class _DiscrepancyView:
+    """What a discrepancy recording shows, read from ``discrepancy.json`` and the series."""
+
+    summary: Mapping[str, Any]
+    localization: Mapping[str, Any]
+    outputs: list[str]
+    per_output: dict[str, pl.DataFrame]
+    splits: dict[str, tuple[float, float, float]]
+    candidates: list[Mapping[str, Any]]
+    layout: dict[str, dict[str, Any]]
+    first: tuple[float, float, float]
+    fit_start_json: float  # fit start of an output with localisation but no series
+
+
+def _resolve_ident(run_dir: Path, summary: Mapping[str, Any], ident: str | None) -> str:
+    """Recording id ``"<job>/<run_id>"``: `ident`, else from discrepancy.json, manifest.json, the folder."""
     if ident is None:
         ident = _ident_from(summary) or _ident_from(_read_json_or_none(run_dir / "manifest.json"))
-    ident = ident or run_dir.name
+    return ident or run_dir.name
 
+
+def _discrepancy_view(summary: Mapping[str, Any], series: pl.DataFrame) -> _DiscrepancyView:
+    """Outputs, per-output series and splits, candidates and localisation layout of a run."""
     localization = summary.get("localization") or {}
     outputs = list(dict.fromkeys([*series["output"].unique(maintain_order=True).to_list(),
                                   *[o for o in localization if isinstance(localization[o], Mapping)]]))
@@ -129,28 +170,30 @@ def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident:
     first = next(iter(splits.values()))
     # Fit start of an output that has localisation but no series (not written by the job).
     fit_samples = summary.get("fit_samples")
-    fit_start_json = (_num(fit_samples[0]) * _num(summary.get("dt_s")) if isinstance(fit_samples, list)
+    fit_start_json = (json_number(fit_samples[0]) * json_number(summary.get("dt_s")) if isinstance(fit_samples, list)
                       and fit_samples else first[0])
     if not math.isfinite(fit_start_json):
         fit_start_json = first[0]
-    blueprint = _discrepancy_blueprint(ident, outputs, per_output, layout, bool(candidates), first)
+    return _DiscrepancyView(summary, localization, outputs, per_output, splits, candidates, layout,
+                            first, fit_start_json)
 
-    def send(rec: rr.RecordingStream) -> None:
-        rec.log("discrepancy/summary", rr.TextDocument(_summary_markdown(ident, summary, outputs, splits),
-                                                       media_type=rr.MediaType.MARKDOWN), static=True, strict=True)
-        for output, df in per_output.items():
-            _send_discrepancy_series(rec, output, df, splits[output])
-        for output in outputs:
-            loc = localization.get(output)
-            if isinstance(loc, Mapping):
-                _send_localisation(rec, output, loc, splits[output][0] if output in splits else fit_start_json)
-        if candidates:
-            _send_candidates(rec, candidates)
-        rec.log("discrepancy/candidates/table", rr.TextDocument(_candidates_markdown(candidates),
-                                                                media_type=rr.MediaType.MARKDOWN),
-                static=True, strict=True)
 
-    return write_recording(run_dir / out_name, ident, blueprint, send)
+def _send_discrepancy(rec: rr.RecordingStream, ident: str, view: _DiscrepancyView) -> None:
+    """Log the summary, series, localisation and candidates of `view` to `rec`."""
+    summary, localization, outputs, splits = view.summary, view.localization, view.outputs, view.splits
+    rec.log("discrepancy/summary", rr.TextDocument(summary_markdown(summary) + _VIEWER_NOTE,
+                                                   media_type=rr.MediaType.MARKDOWN), static=True, strict=True)
+    for output, df in view.per_output.items():
+        _send_discrepancy_series(rec, output, df, splits[output])
+    for output in outputs:
+        loc = localization.get(output)
+        if isinstance(loc, Mapping):
+            _send_localisation(rec, output, loc, splits[output][0] if output in splits else view.fit_start_json)
+    if view.candidates:
+        _send_candidates(rec, view.candidates)
+    rec.log("discrepancy/candidates/table", rr.TextDocument(_candidates_markdown(view.candidates),
+                                                            media_type=rr.MediaType.MARKDOWN),
+            static=True, strict=True)
 
 
 def _read_json_or_none(path: Path) -> Any:
@@ -224,17 +267,6 @@ def _read_discrepancy_series(run_dir: Path) -> pl.DataFrame:
     if n_dup:
         raise DataQualityError(f"{path}: {n_dup} duplicate (output, time_s) row(s); each sample must appear once")
     return df
-
-
-def _num(value: Any) -> float:
-    """A JSON number as float; None and the strings 'nan'/'inf'/'-inf' (how
-    DiscrepancyResult.to_dict writes non-finite values) as NaN / ±inf."""
-    if value is None or isinstance(value, bool):
-        return float("nan")
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return float("nan")
 
 
 def _split_times(df: pl.DataFrame) -> tuple[float, float, float]:
@@ -324,7 +356,7 @@ def _block_rms_of(loc: Mapping[str, Any] | None) -> tuple[float, list[float]]:
     tw = loc.get("time_windows") if isinstance(loc, Mapping) else None
     if not isinstance(tw, Mapping) or not isinstance(tw.get("block_rms"), list):
         return float("nan"), []
-    return _num(tw.get("window_s")), [_num(v) for v in tw["block_rms"]]
+    return json_number(tw.get("window_s")), [json_number(v) for v in tw["block_rms"]]
 
 
 def _localisation_layout(loc: Any) -> dict[str, Any]:
@@ -343,18 +375,18 @@ def _send_localisation(rec: rr.RecordingStream, output: str, loc: Mapping[str, A
     signals = _signals_of(loc)
     for j, (name, entry) in enumerate(signals.items()):
         colour = WINDOW_COLOURS[j % len(WINDOW_COLOURS)]
-        _bars(rec, f"{base}/partial_r2/{path_part(name)}", [_num(entry.get("partial_r2"))], [j - 0.4], 0.8, colour)
-        p = _num(entry.get("p_value"))
+        _bars(rec, f"{base}/partial_r2/{path_part(name)}", [json_number(entry.get("partial_r2"))], [j - 0.4], 0.8, colour)
+        p = json_number(entry.get("p_value"))
         _bars(rec, f"{base}/neg_log10_p/{path_part(name)}", [-math.log10(p) if p > 0 else float("nan")], [j - 0.4],
               0.8, colour)
         bands = _bands_of(entry)
         if bands:
-            lo = np.array([_num(b.get("f_lo_hz")) for b in bands])
-            hi = np.array([_num(b.get("f_hi_hz")) for b in bands])
+            lo = np.array([json_number(b.get("f_lo_hz")) for b in bands])
+            hi = np.array([json_number(b.get("f_hi_hz")) for b in bands])
             with np.errstate(divide="ignore", invalid="ignore"):
                 left, width = np.log10(lo), np.log10(hi) - np.log10(lo)
             for key, shift, colour in (("model_gain", 0.05, _MODEL_COLOUR), ("data_gain", 0.5, _DATA_COLOUR)):
-                _bars(rec, f"{base}/frequency_bands/{path_part(name)}/{key}", [_num(b.get(key)) for b in bands],
+                _bars(rec, f"{base}/frequency_bands/{path_part(name)}/{key}", [json_number(b.get(key)) for b in bands],
                       left + shift * width, 0.45 * width, colour)
 
     window_s, block_rms = _block_rms_of(loc)
@@ -366,8 +398,8 @@ def _send_localisation(rec: rr.RecordingStream, output: str, loc: Mapping[str, A
         rec.send_columns(path, indexes=[_time_index(starts)],
                          columns=rr.Scalars.columns(scalars=np.array([*block_rms, block_rms[-1]])), strict=True)
         high = loc["time_windows"].get("high_rms_windows_s") or []
-        ks = [int(round((_num(w[0]) - fit_start_s) / window_s)) for w in high
-              if isinstance(w, list) and len(w) == 2 and math.isfinite(_num(w[0]))]
+        ks = [int(round((json_number(w[0]) - fit_start_s) / window_s)) for w in high
+              if isinstance(w, list) and len(w) == 2 and math.isfinite(json_number(w[0]))]
         ks = [k for k in ks if 0 <= k < len(block_rms)]
         if ks:
             path = f"{base}/time_windows/high_rms"
@@ -378,9 +410,9 @@ def _send_localisation(rec: rr.RecordingStream, output: str, loc: Mapping[str, A
 
     _, bins = _bins_of(loc)
     if bins:
-        lo = np.array([_num(b.get("load_lo")) for b in bins])
-        hi = np.array([_num(b.get("load_hi")) for b in bins])
-        _bars(rec, f"{base}/operating_range/rms", [_num(b.get("rms")) for b in bins], lo + 0.025 * (hi - lo),
+        lo = np.array([json_number(b.get("load_lo")) for b in bins])
+        hi = np.array([json_number(b.get("load_hi")) for b in bins])
+        _bars(rec, f"{base}/operating_range/rms", [json_number(b.get("rms")) for b in bins], lo + 0.025 * (hi - lo),
               0.95 * (hi - lo), _BLOCK_COLOUR)
     rec.log(f"{base}/report", rr.TextDocument(_localisation_markdown(output, loc), media_type=rr.MediaType.MARKDOWN),
             static=True, strict=True)
@@ -390,72 +422,13 @@ def _send_candidates(rec: rr.RecordingStream, candidates: Sequence[Mapping[str, 
     rank = np.arange(1, len(candidates) + 1, dtype=np.float64)
     passed = np.array([c.get("passed") is True for c in candidates])
     for key in ("delta_bic", "holdout_z"):
-        values = np.array([_num(c.get(key)) for c in candidates])
+        values = np.array([json_number(c.get(key)) for c in candidates])
         for group, sel, colour in (("passed", passed, _PASSED_COLOUR), ("failed", ~passed, _FAILED_COLOUR)):
             if sel.any():
                 _bars(rec, f"discrepancy/candidates/{key}/{group}", values[sel], rank[sel] - 0.4, 0.8, colour)
 
 
 # ---------------------------------------------------------------- markdown documents
-
-
-def _cell(value: Any) -> str:
-    return str(value).replace("|", "\\|").replace("\n", " ")
-
-
-def _g(value: Any, digits: int = 4) -> str:
-    x = _num(value)
-    return "–" if math.isnan(x) else f"{x:.{digits}g}"
-
-
-def _effect_text(effect: Mapping[str, Any]) -> str:
-    params = effect.get("parameters") or {}
-    text = f"`{_cell(effect.get('name'))}` at `{_cell(effect.get('location'))}`"
-    if isinstance(params, Mapping) and params:
-        text += " (" + ", ".join(f"{k} = {_g(v) if not isinstance(v, str) else v}" for k, v in params.items()) + ")"
-    eq = effect.get("equivalent_locations") or []
-    if eq:
-        text += f"; equivalent locations: {', '.join(map(str, eq))}"
-    return text
-
-
-def _summary_markdown(ident: str, doc: Mapping[str, Any], outputs: Sequence[str],
-                      splits: Mapping[str, tuple[float, float, float]]) -> str:
-    lines = [f"# Discrepancy: {doc.get('verdict')}", "",
-             f"Run `{ident}`" + (f", model `{doc['model']}`" if doc.get("model") else "")
-             + f", outputs {', '.join(f'`{o}`' for o in outputs)}.", ""]
-    effect = doc.get("effect")
-    if isinstance(effect, Mapping):
-        lines.append(f"**Effect found:** {_effect_text(effect)}.")
-    elif doc.get("verdict") == "inconclusive":
-        lines.append("**Inconclusive:** look-alike candidates fit about equally well:")
-        lines += [f"- {_effect_text(c)}" for c in doc.get("lookalikes") or [] if isinstance(c, Mapping)]
-    else:
-        lines.append("**No effect accepted**: the nominal model stays.")
-    gap = doc["gap"]
-    lines += ["", "## Held-out gap", "", "| output | RMS before | RMS after | reduction |", "|---|---|---|---|"]
-    per_output = gap.get("per_output") if isinstance(gap.get("per_output"), Mapping) else {}
-    for name, g in per_output.items():
-        if isinstance(g, Mapping):
-            lines.append(f"| {_cell(name)} | {_g(g.get('holdout_rms_before'))} | {_g(g.get('holdout_rms_after'))} "
-                         f"| {100 * _num(g.get('reduction')):.1f} % |")
-    lines.append(f"| **overall** | {_g(gap.get('holdout_rms_before'))} | {_g(gap.get('holdout_rms_after'))} "
-                 f"| {100 * _num(gap.get('reduction')):.1f} % |")
-    if gap.get("units"):
-        lines += ["", f"Units: {gap['units']}."]
-    if splits:
-        fit_s, hold_s, end_s = next(iter(splits.values()))
-        lines += ["", "## Split", "",
-                  f"Warm-up 0–{fit_s:g} s, fit {fit_s:g}–{hold_s:g} s, hold-out {hold_s:g}–{end_s:g} s "
-                  "(red vertical lines in the plots; the hold-out is the time panel's selection)."]
-    cands = [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
-    if cands:
-        lines += ["", "## Best candidates", "", "| # | effect | ΔBIC | held-out z | passed |", "|---|---|---|---|---|"]
-        lines += [f"| {k} | {_cell(c.get('name'))} @ {_cell(c.get('location'))} | {_g(c.get('delta_bic'))} "
-                  f"| {_g(c.get('holdout_z'), 3)} "
-                  f"| {'yes' if c.get('passed') is True else 'no'} |" for k, c in enumerate(cands[:5], 1)]
-        lines += ["", "All candidates: tab *Candidates*."]
-    return "\n".join(lines) + "\n"
 
 
 def _candidates_markdown(candidates: Sequence[Mapping[str, Any]]) -> str:
@@ -466,19 +439,19 @@ def _candidates_markdown(candidates: Sequence[Mapping[str, Any]]) -> str:
     head = ["#", "effect", "criterion (BIC)", "ΔBIC", "held-out z", *[f"held-out RMS {o}" for o in outs], "passed"]
     lines = ["# Candidates", "", "Ranked by the whitened BIC on the fit part (rank = x of the bar charts; "
              "ΔBIC = nominal − candidate, larger is better).", "",
-             "| " + " | ".join(map(_cell, head)) + " |", "|" + "---|" * len(head)]
+             "| " + " | ".join(map(md_cell, head)) + " |", "|" + "---|" * len(head)]
     for k, c in enumerate(candidates, 1):
         rms = c.get("holdout_rms") if isinstance(c.get("holdout_rms"), Mapping) else {}
-        row = [str(k), _effect_text(c), _g(c.get("criterion"), 6), _g(c.get("delta_bic"), 5),
-               _g(c.get("holdout_z"), 3), *[_g(rms.get(o)) for o in outs], "yes" if c.get("passed") is True else "no"]
+        row = [str(k), effect_text(c), fmt_number(c.get("criterion"), 6), fmt_number(c.get("delta_bic"), 5),
+               fmt_number(c.get("holdout_z"), 3), *[fmt_number(rms.get(o)) for o in outs], "yes" if c.get("passed") is True else "no"]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
 
 def _localisation_markdown(output: str, loc: Mapping[str, Any]) -> str:
     lines = [f"# Localisation: {output}", ""]
-    lines.append(f"Residual RMS {_g(loc.get('residual_rms'))}, mean {_g(loc.get('residual_mean'))}, "
-                 f"{100 * _num(loc.get('relative_residual')):.1f} % of the measured std; explained by: "
+    lines.append(f"Residual RMS {fmt_number(loc.get('residual_rms'))}, mean {fmt_number(loc.get('residual_mean'))}, "
+                 f"{100 * json_number(loc.get('relative_residual')):.1f} % of the measured std; explained by: "
                  f"{', '.join(map(str, loc.get('explained_by') or [])) or 'no signal (p < 0.05)'}.")
     signals = _signals_of(loc)
     if signals:
@@ -486,35 +459,35 @@ def _localisation_markdown(output: str, loc: Mapping[str, Any]) -> str:
                   "| x | signal | partial R² | p | significant | peak lag s | first significant lag s |",
                   "|---|---|---|---|---|---|---|"]
         for j, (name, e) in enumerate(signals.items()):
-            lines.append(f"| {j} | {_cell(name)} | {_g(e.get('partial_r2'))} | {_g(e.get('p_value'), 3)} | "
-                         f"{'yes' if e.get('significant') is True else 'no'} | {_g(e.get('peak_lag_s'))} | "
-                         f"{_g(e.get('first_significant_lag_s'))} |")
+            lines.append(f"| {j} | {md_cell(name)} | {fmt_number(e.get('partial_r2'))} | {fmt_number(e.get('p_value'), 3)} | "
+                         f"{'yes' if e.get('significant') is True else 'no'} | {fmt_number(e.get('peak_lag_s'))} | "
+                         f"{fmt_number(e.get('first_significant_lag_s'))} |")
         for name, e in signals.items():
             bands = _bands_of(e)
             if bands:
-                lines += ["", f"### Frequency bands, {_cell(name)} → {_cell(output)}", "",
+                lines += ["", f"### Frequency bands, {md_cell(name)} → {md_cell(output)}", "",
                           "| band Hz | model gain | data gain | relative difference |", "|---|---|---|---|"]
-                lines += [f"| {_g(b.get('f_lo_hz'), 3)}–{_g(b.get('f_hi_hz'), 3)} | {_g(b.get('model_gain'))} | "
-                          f"{_g(b.get('data_gain'))} | {_g(b.get('relative_difference'), 3)} |" for b in bands]
+                lines += [f"| {fmt_number(b.get('f_lo_hz'), 3)}–{fmt_number(b.get('f_hi_hz'), 3)} | {fmt_number(b.get('model_gain'))} | "
+                          f"{fmt_number(b.get('data_gain'))} | {fmt_number(b.get('relative_difference'), 3)} |" for b in bands]
     tw = loc.get("time_windows")
     if isinstance(tw, Mapping):
         def spans(key: str) -> str:
             items = tw.get(key) or []
-            text = ", ".join(f"{_g(w[0], 6)}–{_g(w[1], 6)}" if isinstance(w, list) else _g(w, 6) for w in items)
+            text = ", ".join(f"{fmt_number(w[0], 6)}–{fmt_number(w[1], 6)}" if isinstance(w, list) else fmt_number(w, 6) for w in items)
             return text or "none"
-        lines += ["", "## Time windows", "", f"Blocks of {_g(tw.get('window_s'))} s. High-RMS windows (s): "
+        lines += ["", "## Time windows", "", f"Blocks of {fmt_number(tw.get('window_s'))} s. High-RMS windows (s): "
                   f"{spans('high_rms_windows_s')}. Mean change points (s): {spans('mean_change_points_s')}. "
                   f"Level change points (s): {spans('level_change_points_s')}."]
     load_signal, bins = _bins_of(loc)
     if bins:
-        lines += ["", f"## Operating range (load signal {_cell(load_signal)})", "",
+        lines += ["", f"## Operating range (load signal {md_cell(load_signal)})", "",
                   "| bin | n | mean | RMS |", "|---|---|---|---|"]
-        lines += [f"| {_g(b.get('load_lo'))} – {_g(b.get('load_hi'))} | {b.get('n')} | {_g(b.get('mean'))} | "
-                  f"{_g(b.get('rms'))} |" for b in bins]
+        lines += [f"| {fmt_number(b.get('load_lo'))} – {fmt_number(b.get('load_hi'))} | {b.get('n')} | {fmt_number(b.get('mean'))} | "
+                  f"{fmt_number(b.get('rms'))} |" for b in bins]
     locations = [x for x in loc.get("locations") or [] if isinstance(x, Mapping)]
     if locations:
         lines += ["", "## Candidate locations (screening score)", "", "| effect | location | score |", "|---|---|---|"]
-        lines += [f"| {_cell(x.get('name'))} | {_cell(x.get('location'))} | {_g(x.get('score'))} |"
+        lines += [f"| {md_cell(x.get('name'))} | {md_cell(x.get('location'))} | {fmt_number(x.get('score'))} |"
                   for x in locations]
     return "\n".join(lines) + "\n"
 

@@ -168,7 +168,17 @@ class ResultStore:
             raise ConfigError(f"job name {job!r} resolves to {path}, outside the storage root {self.root}")
         return path
 
-    def _run_dir(self, job: str, run_id: str) -> Path:
+    def run_dir(self, job: str, run_id: str) -> Path:
+        """The folder of run ``run_id`` of ``job`` (the one place run paths are built;
+        names checked, the path kept inside the root).
+
+        Parameters
+        ----------
+        job : str
+            Job name.
+        run_id : str
+            Run id.
+        """
         check_name(run_id, what="run id")
         job_dir = self._job_dir(job)
         path = (job_dir / run_id).resolve()
@@ -216,7 +226,7 @@ class ResultStore:
         moment = dt.datetime.fromtimestamp(self._clock(), dt.UTC)
         if run_id is None:
             run_id = f"{moment.strftime(RUN_ID_TIME_FORMAT)}-{secrets.token_hex(3)}"
-        final = self._run_dir(job, run_id)
+        final = self.run_dir(job, run_id)
         if final.exists():
             raise ConfigError(f"run {job}/{run_id} already exists at {final}; run ids must be unique")
         if self.readonly:
@@ -476,7 +486,7 @@ class ResultStore:
         DataQualityError
             ``verify`` and a file is missing or its sha256 differs from the manifest.
         """
-        path = self._run_dir(job, run_id)
+        path = self.run_dir(job, run_id)
         manifest_path = path / MANIFEST_NAME
         if not manifest_path.is_file():
             raise ConfigError(f"no run {job}/{run_id} under {self.root}; list_runs({job!r}) shows the stored runs")

@@ -18,11 +18,13 @@ import polars as pl
 
 from pipeline.adapters.store.files import atomic_write_bytes, check_name, file_sha256, to_json_text
 from pipeline.adapters.store.schemas import (
-    MANIFEST_KEYS,
+    DOCUMENT_KEYS,
     FILE_NAME_RE,
     FRAME_SPECS,
+    MANIFEST_KEYS,
     MANIFEST_NAME,
     STATUS_RE,
+    validate_document,
     validate_frame,
 )
 from pipeline.errors import ConfigError, PipelineError
@@ -157,8 +159,12 @@ class RunWriter:
         name : str
             File name inside the run directory (as in :meth:`write_bytes`).
         obj : object
-            JSON-like data, converted by :func:`to_json_text`.
+            JSON-like data, converted by :func:`to_json_text`; the known result documents
+            (``discrepancy.json``) are checked with
+            :func:`validate_document` first.
         """
+        if name in DOCUMENT_KEYS:
+            validate_document(obj, name=name)
         return self.write_text(name, to_json_text(obj))
 
     def write_parquet(self, name: str, df: pl.DataFrame) -> Path:

@@ -6,6 +6,7 @@ import dataclasses
 import re
 import sqlite3
 from pathlib import Path
+from collections.abc import Mapping
 from typing import Any
 
 import polars as pl
@@ -71,6 +72,22 @@ RESIDUALS_SCHEMA = pl.Schema(
     }
 )
 
+#: ``discrepancy_series.parquet``: measured, nominal and augmented outputs of a
+#: discrepancy run, per output and sample, with the part of the record each sample is in.
+DISCREPANCY_SERIES_SCHEMA = pl.Schema(
+    {
+        "output": _STRING,
+        "time_s": _FLOAT64,
+        "part": _STRING,
+        "measured": _FLOAT64,
+        "nominal": _FLOAT64,
+        "augmented": _FLOAT64,
+        "residual_before": _FLOAT64,
+        "residual_after": _FLOAT64,
+        "rolling_rms": _FLOAT64,
+    }
+)
+
 
 @dataclasses.dataclass(frozen=True)
 class _FrameSpec:
@@ -107,7 +124,49 @@ FRAME_SPECS: dict[str, _FrameSpec] = {
         key=("window", "output", "time"),
         rules=(("window", pl.col("window").str.contains(_WINDOW_RE), "'all' or 'w<k>' (w0, w1, ...)"),),
     ),
+    "discrepancy_series.parquet": _FrameSpec(
+        schema=DISCREPANCY_SERIES_SCHEMA,
+        nullable=frozenset(),
+        key=("output", "time_s"),
+        rules=(("part", pl.col("part").is_in(["warmup", "fit", "holdout"]),
+                "'warmup', 'fit' or 'holdout'"),),
+    ),
 }
+
+#: JSON result files: the top-level keys each must have, and the allowed values of some.
+DOCUMENT_KEYS: dict[str, frozenset[str]] = {
+    "discrepancy.json": frozenset({"job", "run_id", "kind", "model", "inputs", "outputs",
+                                   "data", "verdict", "effect", "candidates", "gap",
+                                   "localization", "dt_s"}),
+}
+
+
+def validate_document(doc: Mapping[str, Any], *, name: str) -> None:
+    """Check a JSON result file's top-level keys (and a discrepancy run's verdict) before
+    it is written.
+
+    Parameters
+    ----------
+    doc : mapping
+        The document.
+    name : str
+        Its file name (a key of :data:`DOCUMENT_KEYS`).
+
+    Raises
+    ------
+    ResultSchemaError
+        A required key is missing, or the verdict is not one of the workflow's verdicts.
+    """
+    from pipeline.discrepancy.results import VERDICTS
+
+    if not isinstance(doc, Mapping):
+        raise ResultSchemaError(f"{name}: expected a JSON object, got {type(doc).__name__}")
+    missing = sorted(DOCUMENT_KEYS[name] - set(doc))
+    if missing:
+        raise ResultSchemaError(f"{name}: missing top-level key(s) {missing}; a {name} has "
+                                f"{sorted(DOCUMENT_KEYS[name])}")
+    if name == "discrepancy.json" and doc["verdict"] not in VERDICTS:
+        raise ResultSchemaError(f"{name}: verdict {doc['verdict']!r} is not one of {VERDICTS}")
 
 CATALOG_DDL = (
     """CREATE TABLE IF NOT EXISTS runs (
@@ -284,6 +343,7 @@ def schema_description() -> dict[str, Any]:
     return {
         "format_version": FORMAT_VERSION,
         "parquet": tables,
+        "json": {name: sorted(keys) for name, keys in DOCUMENT_KEYS.items()},
         "manifest_keys": sorted(MANIFEST_KEYS),
         "catalog": catalog,
     }

@@ -1,0 +1,192 @@
+"""The one text rendering of a discrepancy run: ``report.md``, the Prefect artifact and the
+Rerun summary panel are all :func:`summary_markdown` of the ``discrepancy.json`` document
+(pure: a mapping in, Markdown out; missing keys are left out, never guessed)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+__all__ = ["effect_text", "fmt_number", "json_number", "md_cell", "summary_markdown"]
+
+
+def json_number(value: Any) -> float:
+    """A JSON number as float; None and the strings 'nan'/'inf'/'-inf' (how
+    ``DiscrepancyResult.to_dict`` writes non-finite values) as NaN / ±inf.
+
+    Parameters
+    ----------
+    value : object
+        A value read from ``discrepancy.json``.
+    """
+    if value is None or isinstance(value, bool):
+        return float("nan")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def fmt_number(value: Any, digits: int = 4) -> str:
+    """``value`` to ``digits`` significant figures, ``–`` when missing or NaN.
+
+    Parameters
+    ----------
+    value : object
+        A JSON number (as :func:`json_number` reads it).
+    digits : int
+        Significant figures.
+    """
+    x = json_number(value)
+    return "–" if math.isnan(x) else f"{x:.{digits}g}"
+
+
+def md_cell(value: Any) -> str:
+    """``value`` as text for a Markdown table cell (pipes escaped, one line).
+
+    Parameters
+    ----------
+    value : object
+        Any value.
+    """
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def effect_text(effect: Mapping[str, Any]) -> str:
+    """An effect as Markdown: ``\\`gain\\` at \\`controller\\` (factor = 1.2)``.
+
+    Parameters
+    ----------
+    effect : mapping
+        ``name``, ``location`` and ``parameters`` (and optionally
+        ``equivalent_locations``), as in ``discrepancy.json``.
+    """
+    params = effect.get("parameters") or {}
+    text = f"`{md_cell(effect.get('name'))}` at `{md_cell(effect.get('location'))}`"
+    if isinstance(params, Mapping) and params:
+        text += " (" + ", ".join(f"{k} = {fmt_number(v) if not isinstance(v, str) else v}"
+                                 for k, v in params.items()) + ")"
+    eq = effect.get("equivalent_locations") or []
+    if eq:
+        text += f"; equivalent locations: {', '.join(map(str, eq))}"
+    return text
+
+
+def _header(doc: Mapping[str, Any]) -> list[str]:
+    lines = [f"# Discrepancy: {doc.get('verdict')}", ""]
+    who = [f"Run `{doc['job']}/{doc['run_id']}`" if doc.get("job") and doc.get("run_id")
+           else "Run"]
+    if doc.get("model"):
+        kind = ("external simulator outputs" if doc.get("model_source") == "external_simulator"
+                else "block diagram")
+        who.append(f"model `{doc['model']}` ({kind})")
+    data = doc.get("data") if isinstance(doc.get("data"), Mapping) else {}
+    if data:
+        who.append(f"{data.get('analysed_samples')} samples at {fmt_number(doc.get('dt_s'))} s "
+                   f"({data.get('start_utc')} to {data.get('end_utc')})")
+    lines += [", ".join(who) + ".", ""]
+    effect = doc.get("effect")
+    if isinstance(effect, Mapping):
+        lines.append(f"**Effect found:** {effect_text(effect)} — added to `model_augmented.yaml`.")
+    elif doc.get("verdict") == "inconclusive":
+        lines.append("**Inconclusive:** look-alike candidates fit about equally well:")
+    else:
+        lines.append("**No effect accepted**: the nominal model stays.")
+    looks = [c for c in doc.get("lookalikes") or [] if isinstance(c, Mapping)]
+    if looks:
+        if isinstance(effect, Mapping):
+            lines.append("Look-alike candidates (too close to tell apart on this record):")
+        lines += [f"- {effect_text(c)} (ΔBIC {fmt_number(c.get('delta_bic'), 3)})" for c in looks]
+    return lines
+
+
+def _gap(doc: Mapping[str, Any]) -> list[str]:
+    gap = doc.get("gap") if isinstance(doc.get("gap"), Mapping) else {}
+    lines = ["", "## Held-out gap", "", "| output | RMS before | RMS after | reduction |",
+             "|---|---|---|---|"]
+    per_output = gap.get("per_output") if isinstance(gap.get("per_output"), Mapping) else {}
+    for name, g in per_output.items():
+        if isinstance(g, Mapping):
+            lines.append(f"| {md_cell(name)} | {fmt_number(g.get('holdout_rms_before'))} | "
+                         f"{fmt_number(g.get('holdout_rms_after'))} "
+                         f"| {100 * json_number(g.get('reduction')):.1f} % |")
+    lines.append(f"| **overall** | {fmt_number(gap.get('holdout_rms_before'))} | "
+                 f"{fmt_number(gap.get('holdout_rms_after'))} "
+                 f"| {100 * json_number(gap.get('reduction')):.1f} % |")
+    if gap.get("units"):
+        lines += ["", f"Units: {gap['units']}."]
+    fit, hold, n, dt = (doc.get("fit_samples"), doc.get("holdout_samples"),
+                        doc.get("n_samples"), json_number(doc.get("dt_s")))
+    if fit and hold and n and not math.isnan(dt):
+        lines += ["", f"Warm-up 0–{fit[0] * dt:g} s, fit {fit[0] * dt:g}–{hold[0] * dt:g} s, "
+                      f"hold-out {hold[0] * dt:g}–{(n - 1) * dt:g} s."]
+    return lines
+
+
+def _candidates(doc: Mapping[str, Any]) -> list[str]:
+    cands = [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
+    if not cands:
+        return []
+    cfg = doc.get("config") if isinstance(doc.get("config"), Mapping) else {}
+    lines = ["", "## Candidates (best first)", ""]
+    if cfg:
+        lines += [f"Accepted: ΔBIC ≥ {fmt_number(cfg.get('bic_margin'))}, held-out z ≥ "
+                  f"{fmt_number(cfg.get('holdout_z_min'))} and a held-out gap below the nominal "
+                  f"{fmt_number((doc.get('gap') or {}).get('holdout_rms_before'))}.", ""]
+    lines += ["| # | effect | ΔBIC | held-out z | held-out gap | passed |",
+              "|---|---|---|---|---|---|"]
+    lines += [f"| {k} | {effect_text(c)} | {fmt_number(c.get('delta_bic'))} | "
+              f"{fmt_number(c.get('holdout_z'), 3)} | {fmt_number(c.get('holdout_gap'))} "
+              f"| {'yes' if c.get('passed') is True else 'no'} |"
+              for k, c in enumerate(cands[:8], 1)]
+    return lines
+
+
+def _localisation(doc: Mapping[str, Any]) -> list[str]:
+    locs = doc.get("localization") if isinstance(doc.get("localization"), Mapping) else {}
+    lines = ["", "## Localisation", ""] if locs else []
+    for o, loc in locs.items():
+        if not isinstance(loc, Mapping):
+            continue
+        lines.append(f"**{md_cell(o)}**: residual RMS {fmt_number(loc.get('residual_rms'))} "
+                     f"({100 * json_number(loc.get('relative_residual')):.1f} % of the measured "
+                     f"std), explained by {loc.get('explained_by') or 'no input'}.")
+        for sname, sig in (loc.get("signals") or {}).items():
+            if not sig.get("significant"):
+                continue
+            text = (f"- `{sname}`: partial R² {json_number(sig.get('partial_r2')):.3f}, "
+                    f"p = {json_number(sig.get('p_value')):.3g}, peak lag {fmt_number(sig.get('peak_lag_s'))} s")
+            band = sig.get("band_of_largest_discrepancy_hz")
+            if band:
+                text += (f", largest model-vs-data difference in {json_number(band[0]):.3g}–"
+                         f"{json_number(band[1]):.3g} Hz")
+            lines.append(text)
+        tw = loc.get("time_windows") or {}
+        if tw.get("mean_change_points_s") or tw.get("level_change_points_s"):
+            lines.append(f"- change points (s): mean {tw.get('mean_change_points_s')}, "
+                         f"level {tw.get('level_change_points_s')}")
+        orr = loc.get("operating_range")
+        if orr:
+            lines.append(f"- by {orr['load_signal']}: residual RMS spread over bins "
+                         f"{fmt_number(orr.get('rms_spread'))}")
+        lines.append("")
+    return lines
+
+
+def summary_markdown(doc: Mapping[str, Any]) -> str:
+    """A discrepancy run in a page: verdict and effect, the held-out gap and the split,
+    the best candidates, the localisation.
+
+    Parameters
+    ----------
+    doc : mapping
+        The run's ``discrepancy.json`` document (``DiscrepancyResult.to_dict()`` plus the
+        workflow's ``job``, ``run_id``, ``model``, ``model_source``, ``data``); keys that
+        are absent are left out of the page.
+    """
+    lines = _header(doc) + _gap(doc) + _candidates(doc) + _localisation(doc)
+    lines += ["", "Files: `discrepancy.json` (everything above, machine-readable), "
+              "`model_augmented.yaml`, `discrepancy_series.parquet` (measured, nominal, "
+              "augmented, residuals), `recording.rrd` (open with `rerun`)."]
+    return "\n".join(lines) + "\n"
