@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import scipy.optimize
@@ -179,6 +180,21 @@ class IntegratingCharacteristics:
 
 
 # ------------------------------------------------------------------------- helpers
+class _Response(NamedTuple):
+    """A checked step response: values, stds (or None), lag times and the tail slice."""
+
+    h: np.ndarray
+    s: np.ndarray | None
+    t: np.ndarray
+    tail: slice
+
+
+def _response(step, step_std, dt_s: float, tail_fraction: float) -> _Response:
+    """The stage both read-offs start with: check the response, times, the tail."""
+    h, s, t = _prepare(step, step_std, dt_s)
+    return _Response(h, s, t, _tail(h.size, tail_fraction))
+
+
 def _prepare(step, step_std, dt_s: float) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     h = np.asarray(step, dtype=float)
     if h.ndim != 1 or h.size < 3:
@@ -268,8 +284,45 @@ def self_regulating_characteristics(
         Times are NaN when the gain is zero or indistinguishable from noise
         (``|gain| <= threshold_std·gain_std``).
     """
-    h, s, t = _prepare(step, step_std, dt_s)
-    tail = _tail(h.size, tail_fraction)
+    r = _response(step, step_std, dt_s, tail_fraction)
+    gain, gain_std = _gain(r, gain, gain_std)
+    if gain == 0 or abs(gain) <= threshold_std * gain_std:
+        return _no_response(gain, gain_std, threshold_std)
+    sign = 1.0 if gain > 0 else -1.0
+    k_abs = abs(gain)
+    dead_time = _dead_time(r, sign, k_abs, threshold_rel, threshold_std)
+    t63 = _first_crossing_up(sign * r.h, r.t, ONE_MINUS_INV_E * k_abs)
+    tau = t63 - dead_time
+    settling, settled = _settling(r, gain, k_abs, settling_band, threshold_std)
+    overshoot, peak_time = _overshoot(r, sign, k_abs, threshold_std)
+    undefined = {}
+    if math.isnan(dead_time):
+        undefined["dead_time_s"] = "the response never reaches half its gain"
+    peak_ratio = float(np.max(sign * r.h)) / k_abs
+    if peak_ratio > 2.0:
+        why = (f"the response peaks at {peak_ratio:.3g} times its final value and returns "
+               "towards it: it is not a settling response with an overshoot (read the "
+               "peak off the step response)")
+        undefined.update({"overshoot_pct": why, "peak_time_s": why, "time_constant_s": why})
+        nan = float("nan")
+        overshoot, peak_time, tau = nan, nan, nan
+    return SelfRegulatingCharacteristics(
+        gain=gain,
+        gain_std=gain_std,
+        dead_time_s=dead_time,
+        time_constant_s=float(tau),
+        settling_time_s=settling,
+        overshoot_pct=overshoot,
+        peak_time_s=peak_time,
+        settled=settled,
+        threshold=threshold_rel * k_abs,
+        undefined=undefined,
+    )
+
+
+def _gain(r: _Response, gain: float | None, gain_std: float | None) -> tuple[float, float]:
+    """The static gain and its std: given, or the tail mean (module notes)."""
+    h, s, tail = r.h, r.s, r.tail
     if gain is None:
         gain = float(h[tail].mean())
         if s is not None:
@@ -279,39 +332,52 @@ def self_regulating_characteristics(
     else:
         gain = float(gain)
         gain_std = float("nan") if gain_std is None else float(gain_std)
+    return gain, gain_std
+
+
+def _no_response(gain: float, gain_std: float,
+                 threshold_std: float) -> SelfRegulatingCharacteristics:
+    """The result for a gain indistinguishable from zero: every time undefined."""
     nan = float("nan")
-    if gain == 0 or abs(gain) <= threshold_std * gain_std:
-        why = (f"the gain {gain:.3g} is within {threshold_std:g} standard deviations "
-               f"({gain_std:.2g}) of zero: there is no response to time")
-        undefined = dict.fromkeys(("dead_time_s", "time_constant_s", "settling_time_s",
-                                   "overshoot_pct", "peak_time_s"), why)
-        return SelfRegulatingCharacteristics(gain, gain_std, nan, nan, nan, nan, nan, False,
-                                             nan, undefined)
-    sign = 1.0 if gain > 0 else -1.0
-    k_abs = abs(gain)
+    why = (f"the gain {gain:.3g} is within {threshold_std:g} standard deviations "
+           f"({gain_std:.2g}) of zero: there is no response to time")
+    undefined = dict.fromkeys(("dead_time_s", "time_constant_s", "settling_time_s",
+                               "overshoot_pct", "peak_time_s"), why)
+    return SelfRegulatingCharacteristics(gain, gain_std, nan, nan, nan, nan, nan, False,
+                                         nan, undefined)
+
+
+def _dead_time(r: _Response, sign: float, k_abs: float, threshold_rel: float,
+               threshold_std: float) -> float:
+    """The dead time: walk back from the first half-gain point (module notes); NaN if none."""
+    h, s, t = r.h, r.s, r.t
     thr = np.full(h.size, threshold_rel * k_abs)
     if s is not None:
         thr = np.maximum(thr, threshold_std * s)
     half = np.flatnonzero(sign * h >= 0.5 * k_abs)
     if not half.size:
-        dead_time = nan
-    else:
-        quiet = np.abs(h) <= thr
-        wrong = sign * h < -thr
-        # a dip: two wrong-way samples in a row (one is a 2-std noise spike 2 % of the time)
-        dip_before = np.zeros(h.size, bool)
-        dip_before[2:] = wrong[1:-1] & wrong[:-2]
-        # Walk back from the first half-gain point to the last quiet sample, so noise
-        # spikes before the rise are not the start (a short Python loop over at most
-        # n_p samples: the rule is sequential).  A quiet sample right after a wrong-way
-        # dip is an inverse response swinging back through zero: keep walking.
-        k = int(half[0]) - 1
-        while k >= 0 and (not quiet[k] or dip_before[k]):
-            k -= 1
-        k_start = k + 1
-        dead_time = _start_time(h, t, k_start)
-    t63 = _first_crossing_up(sign * h, t, ONE_MINUS_INV_E * k_abs)
-    tau = t63 - dead_time
+        return float("nan")
+    quiet = np.abs(h) <= thr
+    wrong = sign * h < -thr
+    # a dip: two wrong-way samples in a row (one is a 2-std noise spike 2 % of the time)
+    dip_before = np.zeros(h.size, bool)
+    dip_before[2:] = wrong[1:-1] & wrong[:-2]
+    # Walk back from the first half-gain point to the last quiet sample, so noise
+    # spikes before the rise are not the start (a short Python loop over at most
+    # n_p samples: the rule is sequential).  A quiet sample right after a wrong-way
+    # dip is an inverse response swinging back through zero: keep walking.
+    k = int(half[0]) - 1
+    while k >= 0 and (not quiet[k] or dip_before[k]):
+        k -= 1
+    k_start = k + 1
+    return _start_time(h, t, k_start)
+
+
+def _settling(r: _Response, gain: float, k_abs: float, settling_band: float,
+              threshold_std: float) -> tuple[float, bool]:
+    """The settling time (last exit from the band, interpolated) and whether it is before
+    the tail."""
+    h, s, t, tail = r
     dev = np.abs(h - gain)
     band = np.full(h.size, settling_band * k_abs)
     if s is not None:  # a band narrower than the noise would never be entered
@@ -328,35 +394,21 @@ def self_regulating_characteristics(
             g0, g1 = dev[k] - band[k], dev[k + 1] - band[k + 1]
             settling = float(t[k] + g0 / (g0 - g1) * (t[k + 1] - t[k]))
     settled = bool(outside.size == 0 or outside[-1] < tail.start)
+    return settling, settled
+
+
+def _overshoot(r: _Response, sign: float, k_abs: float,
+               threshold_std: float) -> tuple[float, float]:
+    """The overshoot (%) and the time of its peak (NaN without overshoot)."""
+    h, s, t, tail = r
     # Overshoot: a peak before the tail, beyond the gain by more than the noise.  A
     # maximum inside the tail is the tail's own spread around its mean, not overshoot.
     k_peak = int(np.argmax(sign * h[: tail.start])) if tail.start > 0 else 0
     excess = sign * h[k_peak] - k_abs
     noise = 0.0 if s is None else threshold_std * float(s[k_peak])
     overshoot = float(excess / k_abs * 100.0) if excess > noise and tail.start > 0 else 0.0
-    peak_time = float(t[k_peak]) if overshoot > 0 else nan
-    undefined = {}
-    if math.isnan(dead_time):
-        undefined["dead_time_s"] = "the response never reaches half its gain"
-    peak_ratio = float(np.max(sign * h)) / k_abs
-    if peak_ratio > 2.0:
-        why = (f"the response peaks at {peak_ratio:.3g} times its final value and returns "
-               "towards it: it is not a settling response with an overshoot (read the "
-               "peak off the step response)")
-        undefined.update({"overshoot_pct": why, "peak_time_s": why, "time_constant_s": why})
-        overshoot, peak_time, tau = nan, nan, nan
-    return SelfRegulatingCharacteristics(
-        gain=gain,
-        gain_std=gain_std,
-        dead_time_s=dead_time,
-        time_constant_s=float(tau),
-        settling_time_s=settling,
-        overshoot_pct=overshoot,
-        peak_time_s=peak_time,
-        settled=settled,
-        threshold=threshold_rel * k_abs,
-        undefined=undefined,
-    )
+    peak_time = float(t[k_peak]) if overshoot > 0 else float("nan")
+    return overshoot, peak_time
 
 
 # ------------------------------------------------------------------- integrating
@@ -442,8 +494,42 @@ def integrating_characteristics(
     DataQualityError
         The response does not ramp (rate zero).
     """
-    h, s, t = _prepare(step, step_std, dt_s)
-    tail = _tail(h.size, tail_fraction)
+    r = _response(step, step_std, dt_s, tail_fraction)
+    h, t, tail = r.h, r.t, r.tail
+    k_rate = _rate(r, rate)
+    sign = 1.0 if k_rate > 0 else -1.0
+    peak, peak_t = _wrong_way_peak(r, sign, threshold_std)
+    # apparent delay of the final asymptote K (t - t_a) over the tail
+    t_a = float(np.mean(t[tail]) - np.mean(h[tail]) / k_rate)
+    span = float(t[-1])
+    t_a = min(max(t_a, dt_s), span)
+    # T_a is fitted only when the data show a wrong-way move: any T_a > 0 makes the
+    # continuous response dip, but a dip faster than dt is invisible in the samples and
+    # the grid then admits spurious (T_d, T_a, tiny T_1, T_2) solutions.
+    fit_ta = peak > 0
+    td, t1, t2, ta = _fit_integrating(r, k_rate, t_a, span, dt_s, fit_ta)
+    model_r = integrating_model_step(t, rate=k_rate, dead_time_s=td, t1_s=t1, t2_s=t2, ta_s=ta) - h
+    fine = np.linspace(0.0, span, 20 * (h.size - 1) + 1)
+    model_fine = integrating_model_step(fine, rate=k_rate, dead_time_s=td, t1_s=t1, t2_s=t2,
+                                        ta_s=ta)
+    return IntegratingCharacteristics(
+        rate=k_rate,
+        rate_std=float(rate_std),
+        dead_time_s=td,
+        time_constant_1_s=t1,
+        time_constant_2_s=t2,
+        zero_time_constant_s=ta,
+        apparent_delay_s=td + t1 + t2 + ta,
+        inverse_peak=peak,
+        inverse_peak_time_s=peak_t,
+        inverse_peak_model=max(float(np.max(-sign * model_fine)), 0.0),
+        fit_rms=float(np.sqrt(np.mean(model_r**2))),
+    )
+
+
+def _rate(r: _Response, rate: float | None) -> float:
+    """The rate ``K``: given, or the tail slope; an error when the response does not ramp."""
+    h, t, tail = r.h, r.t, r.tail
     if rate is None:
         k_rate, _ = _tail_slope(h, t, tail)
     else:
@@ -453,25 +539,26 @@ def integrating_characteristics(
             f"integrating response has rate K = {k_rate!r}; it does not ramp — treat the "
             "output as self-regulating or lengthen n_p so the final slope is visible"
         )
-    sign = 1.0 if k_rate > 0 else -1.0
-    # wrong-way excursion in the data
+    return k_rate
+
+
+def _wrong_way_peak(r: _Response, sign: float, threshold_std: float) -> tuple[float, float]:
+    """The wrong-way excursion in the data and its time (0 and NaN within the noise)."""
+    h, s, t = r.h, r.s, r.t
     wrong = -sign * h
     floor = 1e-12 * max(float(np.max(np.abs(h))), 1e-300)
     thr = np.full(h.size, floor) if s is None else np.maximum(threshold_std * s, floor)
     k_w = int(np.argmax(wrong))
     if wrong[k_w] > thr[k_w]:
-        peak, peak_t = float(wrong[k_w]), float(t[k_w])
-    else:
-        peak, peak_t = 0.0, float("nan")
-    # apparent delay of the final asymptote K (t - t_a) over the tail
-    t_a = float(np.mean(t[tail]) - np.mean(h[tail]) / k_rate)
-    span = float(t[-1])
-    t_a = min(max(t_a, dt_s), span)
+        return float(wrong[k_w]), float(t[k_w])
+    return 0.0, float("nan")
+
+
+def _fit_integrating(resp: _Response, k_rate: float, t_a: float, span: float, dt_s: float,
+                     fit_ta: bool) -> tuple[float, float, float, float]:
+    """Multi-start least-squares fit of ``T_d, T_1 >= T_2, T_a`` with ``K`` fixed."""
+    h, s, t = resp.h, resp.s, resp.t
     weights = None if s is None else 1.0 / np.maximum(s, 1e-9 * max(float(s.max()), 1e-300))
-    # T_a is fitted only when the data show a wrong-way move: any T_a > 0 makes the
-    # continuous response dip, but a dip faster than dt is invisible in the samples and
-    # the grid then admits spurious (T_d, T_a, tiny T_1, T_2) solutions.
-    fit_ta = peak > 0
 
     def model(p):
         return integrating_model_step(t, rate=k_rate, dead_time_s=p[0], t1_s=p[1], t2_s=p[2],
@@ -503,20 +590,4 @@ def integrating_characteristics(
     params = np.append(best.x, 0.0) if not fit_ta else best.x
     td, ta_1, ta_2, ta = (float(v) for v in params)
     t1, t2 = max(ta_1, ta_2), min(ta_1, ta_2)
-    model_r = integrating_model_step(t, rate=k_rate, dead_time_s=td, t1_s=t1, t2_s=t2, ta_s=ta) - h
-    fine = np.linspace(0.0, span, 20 * (h.size - 1) + 1)
-    model_fine = integrating_model_step(fine, rate=k_rate, dead_time_s=td, t1_s=t1, t2_s=t2,
-                                        ta_s=ta)
-    return IntegratingCharacteristics(
-        rate=k_rate,
-        rate_std=float(rate_std),
-        dead_time_s=td,
-        time_constant_1_s=t1,
-        time_constant_2_s=t2,
-        zero_time_constant_s=ta,
-        apparent_delay_s=td + t1 + t2 + ta,
-        inverse_peak=peak,
-        inverse_peak_time_s=peak_t,
-        inverse_peak_model=max(float(np.max(-sign * model_fine)), 0.0),
-        fit_rms=float(np.sqrt(np.mean(model_r**2))),
-    )
+    return td, t1, t2, ta

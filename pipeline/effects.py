@@ -286,28 +286,40 @@ def apply_effect(model: Model, effect: Effect, *, dt_s: float | None = None) -> 
             )
         return dataclasses.replace(model, description=description)
     if name == "unmodelled_input":
-        signal, sep, output = loc.partition("->")
-        if not sep or output not in model.outputs:
-            raise ModelError(
-                f"unmodelled_input: location {loc!r} must be 'signal->output' with output in "
-                f"{list(model.outputs)}"
-            )
-        if signal in model.block_names:
-            raise ModelError(
-                f"unmodelled_input: {signal!r} is a block of the model, not a measured signal"
-            )
-        inputs = model.inputs if signal in model.inputs else (*model.inputs, signal)
-        path = _unique_name(model, f"{signal}__to__{output}")
-        augmented = dataclasses.replace(model, inputs=inputs).with_block(
-            _lag_block(path, signal, k=float(p["k"]), tau_s=float(p["tau_s"]),
-                       delay_s=float(p["delay_s"]), dt_s=dt_s)
-        )
-        augmented = _after(
-            augmented, output, "unmodelled_input",
-            lambda up: Sum(name=output, inputs=(Term(up), Term(path))),
-        )
-        return dataclasses.replace(augmented, description=description)
+        augmented = _with_unmodelled_input(model, loc, p, dt_s)
+    else:
+        augmented = _with_block_effect(model, name, loc, p, dt_s)
+    return dataclasses.replace(augmented, description=description)
 
+
+def _with_unmodelled_input(model: Model, loc: str, p: Mapping[str, Any],
+                           dt_s: float | None) -> Model:
+    """`model` with a lag from the measured signal added to the output (``signal->output``)."""
+    signal, sep, output = loc.partition("->")
+    if not sep or output not in model.outputs:
+        raise ModelError(
+            f"unmodelled_input: location {loc!r} must be 'signal->output' with output in "
+            f"{list(model.outputs)}"
+        )
+    if signal in model.block_names:
+        raise ModelError(
+            f"unmodelled_input: {signal!r} is a block of the model, not a measured signal"
+        )
+    inputs = model.inputs if signal in model.inputs else (*model.inputs, signal)
+    path = _unique_name(model, f"{signal}__to__{output}")
+    augmented = dataclasses.replace(model, inputs=inputs).with_block(
+        _lag_block(path, signal, k=float(p["k"]), tau_s=float(p["tau_s"]),
+                   delay_s=float(p["delay_s"]), dt_s=dt_s)
+    )
+    return _after(
+        augmented, output, "unmodelled_input",
+        lambda up: Sum(name=output, inputs=(Term(up), Term(path))),
+    )
+
+
+def _with_block_effect(model: Model, name: str, loc: str, p: Mapping[str, Any],
+                       dt_s: float | None) -> Model:
+    """`model` with effect `name` at block `loc` (every effect but the two above)."""
     block = model.block(loc)
     if name == "gain":
         augmented = model.with_block(scale_gain(block, float(p["factor"])))
@@ -354,7 +366,7 @@ def apply_effect(model: Model, effect: Effect, *, dt_s: float | None = None) -> 
         )
     else:  # pragma: no cover - Effect validates the name
         raise ConfigError(f"effect {name!r} is not in the catalogue")
-    return dataclasses.replace(augmented, description=description)
+    return augmented
 
 
 def output_offsets(effect: Effect | None, *, n: int, dt_s: float,
@@ -645,6 +657,28 @@ def make_hidden_effect_trial(
     inputs = trial_inputs(model.name, n=n, dt_s=dt_s, rng=rng)
     drive = {name: inputs[name] for name in model.inputs}
     nominal = simulate(model, drive, dt_s=dt_s)
+    kind, phi, rel, noise_unit = _unit_noise(model, n, noise_kind, rng)
+    effect, truth, redraws, visibility = None, None, 0, float("nan")
+    if effect_name is None:
+        truth = {name: nominal.signals[name] for name in model.outputs}
+    else:
+        effect, truth, redraws, visibility = _visible_effect(
+            model, effect_name, nominal, inputs, dt_s=dt_s, rel=rel, n=n, seed=seed,
+            max_redraws=max_redraws, rng=rng)
+    measured = {
+        name: truth[name] + rel * float(np.std(truth[name])) * noise_unit[name]
+        for name in model.outputs
+    }
+    return HiddenEffectTrial(
+        model=model, inputs=inputs, measured=measured, dt_s=dt_s, effect=effect,
+        truth=truth, noise={"kind": kind, "phi": phi, "relative_std": rel},
+        redraws=redraws, seed=seed, visibility=visibility,
+    )
+
+
+def _unit_noise(model: Model, n: int, noise_kind: str | None, rng: np.random.Generator
+                ) -> tuple[str, float, float, dict[str, np.ndarray]]:
+    """The noise kind, AR(1) ``phi``, relative std and unit-variance noise per output."""
     kind = noise_kind or ("white" if rng.random() < 0.5 else "ar1")
     phi = 0.0 if kind == "white" else float(rng.uniform(0.5, 0.9))
     rel = float(rng.uniform(0.1, 0.3))
@@ -655,43 +689,44 @@ def make_hidden_effect_trial(
             e, _ = scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
                                         zi=[phi * rng.standard_normal()])
         noise_unit[name] = e
-    effect, truth, redraws, visibility = None, None, 0, float("nan")
-    if effect_name is None:
-        truth = {name: nominal.signals[name] for name in model.outputs}
-    else:
-        for redraws in range(max_redraws):
-            candidate = _draw_effect(effect_name, model, nominal, inputs, dt_s, rng)
-            augmented = apply_effect(model, candidate, dt_s=dt_s)
-            if not _stable(augmented, dt_s):
-                continue
-            with np.errstate(all="ignore"):
-                out = predict_outputs(model, candidate, inputs, dt_s=dt_s)
-            if not all(np.all(np.isfinite(v)) and np.std(v) < 20 * np.std(nominal.signals[k]) + 1e-12
-                       for k, v in out.items()):
-                continue
-            vis, vis_held = [], []
-            held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
-            for name in model.outputs:
-                sigma = rel * float(np.std(out[name]))
-                diff = out[name] - nominal.signals[name]
-                vis.append(float(np.sqrt(np.mean(diff ** 2))) / sigma)
-                vis_held.append(float(np.sqrt(np.mean(diff[held] ** 2))) / sigma)
-            visibility = max(vis)
-            if visibility < MIN_VISIBILITY or max(vis_held) < MIN_VISIBILITY:
-                continue
-            effect, truth = candidate, out
-            break
-        else:
-            raise ConfigError(
-                f"make_hidden_effect_trial: no stable, visible {effect_name} effect in "
-                f"{max_redraws} draws for model {model.name!r} (seed {seed})"
-            )
-    measured = {
-        name: truth[name] + rel * float(np.std(truth[name])) * noise_unit[name]
-        for name in model.outputs
-    }
-    return HiddenEffectTrial(
-        model=model, inputs=inputs, measured=measured, dt_s=dt_s, effect=effect,
-        truth=truth, noise={"kind": kind, "phi": phi, "relative_std": rel},
-        redraws=redraws, seed=seed, visibility=visibility,
+    return kind, phi, rel, noise_unit
+
+
+def _visible_effect(model: Model, effect_name: str, nominal: Any,
+                    inputs: Mapping[str, np.ndarray], *, dt_s: float, rel: float, n: int,
+                    seed: int, max_redraws: int, rng: np.random.Generator
+                    ) -> tuple[Effect, dict[str, np.ndarray], int, float]:
+    """Draw effects until one is stable and visible: the effect, the true outputs, the
+    index of the accepted draw and its visibility."""
+    for redraws in range(max_redraws):
+        candidate = _draw_effect(effect_name, model, nominal, inputs, dt_s, rng)
+        augmented = apply_effect(model, candidate, dt_s=dt_s)
+        if not _stable(augmented, dt_s):
+            continue
+        with np.errstate(all="ignore"):
+            out = predict_outputs(model, candidate, inputs, dt_s=dt_s)
+        if not all(np.all(np.isfinite(v)) and np.std(v) < 20 * np.std(nominal.signals[k]) + 1e-12
+                   for k, v in out.items()):
+            continue
+        visibility, held_visibility = _visibility(model, out, nominal, rel, n)
+        if visibility < MIN_VISIBILITY or held_visibility < MIN_VISIBILITY:
+            continue
+        return candidate, out, redraws, visibility
+    raise ConfigError(
+        f"make_hidden_effect_trial: no stable, visible {effect_name} effect in "
+        f"{max_redraws} draws for model {model.name!r} (seed {seed})"
     )
+
+
+def _visibility(model: Model, out: Mapping[str, np.ndarray], nominal: Any, rel: float,
+                n: int) -> tuple[float, float]:
+    """RMS of the effect's contribution over the noise std, on the output where it shows
+    most: over the whole record and over its held-out last part."""
+    vis, vis_held = [], []
+    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
+    for name in model.outputs:
+        sigma = rel * float(np.std(out[name]))
+        diff = out[name] - nominal.signals[name]
+        vis.append(float(np.sqrt(np.mean(diff ** 2))) / sigma)
+        vis_held.append(float(np.sqrt(np.mean(diff[held] ** 2))) / sigma)
+    return max(vis), max(vis_held)

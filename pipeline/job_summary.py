@@ -105,16 +105,28 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
     window_results : list of StepResponseEstimate or WindowFailure
         One per ``sr.windows``, in order.
     """
-    from pipeline.verdicts import end_jump_z, pair_warnings
-
     ins, outs = prep.inputs, prep.outputs
     window_status, labelled = _window_table(sr, window_results)
     window_ests = [e for _, e in labelled]
     steps = _step_table([("all", all_est)] + labelled, outs, ins)
     agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
         [[None] * len(ins) for _ in outs]
-    # residuals and one-step prediction errors of the all-data estimate; NaN where any
-    # sample they need is masked
+    x0, res, innov = _residual_series(prep, all_est)
+    pairs, metrics, whiteness, xcorr = _pairs(cfg, prep, sr, all_est, agreement,
+                                              len(window_ests), x0, innov)
+    checks = _checks(cfg, prep, sr, all_est, window_status, pairs, whiteness, xcorr)
+    status = "ok"
+    if any(p["agreement"]["verdict"] == "fail" for p in pairs):
+        status = "windows_disagree"
+    sig = _signals_table(prep)
+    rtab = _residuals_table(prep, res)
+    report = _report_md(cfg, prep, sr, pairs, checks, status)
+    return Summary(steps, sig, rtab, checks, metrics, report, status)
+
+
+def _residual_series(prep: Prepared, all_est: StepResponseEstimate):
+    """The gap-filled inputs, and the residuals and one-step prediction errors of the
+    all-data estimate (NaN where any sample they need is masked)."""
     x0, y0 = np.nan_to_num(prep.x), np.nan_to_num(prep.y)
     bad = ~prep.good_xy.all(axis=1)
     P = int(all_est.n_p.max())
@@ -122,6 +134,16 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
     res = residuals(all_est, x0, y0)
     res[touched] = np.nan
     innov = innovations(all_est, x0, y0, good=~touched)
+    return x0, res, innov
+
+
+def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
+           agreement: list, n_windows: int, x0: np.ndarray, innov: np.ndarray):
+    """Per pair its results, warnings and metric rows; per output the whiteness of its
+    prediction errors; per pair the input cross-correlation check."""
+    from pipeline.verdicts import end_jump_z, pair_warnings
+
+    ins, outs = prep.inputs, prep.outputs
     tags = cfg.tags()
     pairs = []
     metrics = []
@@ -138,7 +160,7 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
             a = agreement[i][j]
             agr = a.to_dict() if a is not None else {
                 "statistic": None, "p_value": None, "verdict": "insufficient_data",
-                "n_windows": len(window_ests)}
+                "n_windows": n_windows}
             xc = cross_correlation_check(x0[:, j], innov[:, i],
                                          max_lag=cfg.checks.xcorr_max_lag or n)
             xcorr[f"{o}<-{u}"] = {k: xc[k] for k in ("band", "fraction_outside", "max_abs_r",
@@ -165,8 +187,16 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
                 agreement=agr)
             pairs.append(pair)
             metrics += _pair_metrics(o, u, pair)
+    return pairs, metrics, whiteness, xcorr
+
+
+def _checks(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
+            window_status: list, pairs: list, whiteness: dict, xcorr: dict) -> dict:
+    """The run's checks.json document."""
+    ins, outs = prep.inputs, prep.outputs
+    tags = cfg.tags()
     d = all_est.diagnostics
-    checks = {
+    return {
         "dt_s": prep.dt_s,
         "sampling": prep.sampling,
         "conditioning": prep.conditioning,
@@ -217,19 +247,18 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
             "ingest": prep.recording.ingest,
         },
     }
-    status = "ok"
-    if any(p["agreement"]["verdict"] == "fail" for p in pairs):
-        status = "windows_disagree"
-    sig = _signals_table(prep)
-    rtab = pl.DataFrame({
+
+
+def _residuals_table(prep: Prepared, res: np.ndarray) -> pl.DataFrame:
+    """The residuals table (long form; rows where lags touch a gap left out)."""
+    outs = prep.outputs
+    return pl.DataFrame({
         "window": ["all"] * (res.shape[0] * len(outs)),
         "time": np.concatenate([prep.time] * len(outs)),
         "output": np.repeat(outs, res.shape[0]),
         "residual": res.T.ravel()}).with_columns(
             pl.col("time").cast(pl.Datetime("us", "UTC"))).filter(
                 pl.col("residual").is_not_nan())  # undefined where lags touch a gap
-    report = _report_md(cfg, prep, sr, pairs, checks, status)
-    return Summary(steps, sig, rtab, checks, metrics, report, status)
 
 
 def _settling_increments(est: StepResponseEstimate, i: int, j: int):

@@ -431,11 +431,7 @@ def choose_sample_period(
     DataQualityError
         A signal is non-finite, too short or constant after detrending.
     """
-    if not (np.isfinite(dt_s) and dt_s > 0):
-        raise ConfigError(f"dt_s must be a positive number of seconds; got {dt_s!r}")
-    for label, tgt in (("target_input", target_input), ("target_output", target_output)):
-        if not (0 < tgt < 1):
-            raise ConfigError(f"{label} must lie in (0, 1) (a fraction, 0.05 = 5 %); got {tgt!r}")
+    _check_period_and_targets(dt_s, target_input, target_output)
     sig = _signals_dict(signals, names)
     role = _roles_dict(roles, list(sig))
     n = next(iter(sig.values())).size
@@ -447,9 +443,38 @@ def choose_sample_period(
     max_hold = n // 20 if max_hold_samples is None else _check_hold(max_hold_samples, n)
     max_hold = max(max_hold, 2)
     targets = {k: (target_input if role[k] == "input" else target_output) for k in sig}
+    notes: list[str] = []
+    prepared, preferred = _preferred_periods(sig, targets, max_hold, dt_s, detrend, notes)
+    limiting, decimation = _decimation(preferred, targets, max_hold, dt_s, notes)
+    return SamplePeriodChoice(
+        dt_s=decimation * float(dt_s),
+        decimation=decimation,
+        record_dt_s=float(dt_s),
+        alpha_t=_alpha_at_decimation(prepared, decimation, n),
+        preferred_dt_s=preferred,
+        targets=targets,
+        roles=role,
+        limiting_signal=limiting,
+        notes=tuple(notes),
+    )
+
+
+def _check_period_and_targets(dt_s, target_input, target_output) -> None:
+    """Reject a non-positive record period or a target outside (0, 1)."""
+    if not (np.isfinite(dt_s) and dt_s > 0):
+        raise ConfigError(f"dt_s must be a positive number of seconds; got {dt_s!r}")
+    for label, tgt in (("target_input", target_input), ("target_output", target_output)):
+        if not (0 < tgt < 1):
+            raise ConfigError(f"{label} must lie in (0, 1) (a fraction, 0.05 = 5 %); got {tgt!r}")
+
+
+def _preferred_periods(sig: dict[str, np.ndarray], targets: dict[str, float], max_hold: int,
+                       dt_s: float, detrend: bool, notes: list[str]
+                       ) -> tuple[dict[str, tuple[np.ndarray, float]], dict[str, float]]:
+    """Per signal, the detrended signal with its sum of squares and the preferred ``T``
+    (``inf`` with a note when the target is not reached)."""
     prepared: dict[str, tuple[np.ndarray, float]] = {}
     preferred: dict[str, float] = {}
-    notes: list[str] = []
     for name, raw in sig.items():
         x = _as_signal(raw, name)
         x = scipy.signal.detrend(x, type="linear") if detrend else x - x.mean()
@@ -471,6 +496,13 @@ def choose_sample_period(
                 f"{max_hold} samples (T up to {2 * (max_hold - 1) * dt_s:g} s); it does not "
                 "limit T"
             )
+    return prepared, preferred
+
+
+def _decimation(preferred: dict[str, float], targets: dict[str, float], max_hold: int,
+                dt_s: float, notes: list[str]) -> tuple[str, int]:
+    """The limiting signal and the decimation: its preferred ``T`` rounded down to whole
+    record samples, at least 1 (notes when no target is reached or the record is slow)."""
     limiting = min(preferred, key=preferred.get)
     t_pref = preferred[limiting]
     if not np.isfinite(t_pref):
@@ -488,6 +520,12 @@ def choose_sample_period(
             f"needs T = {t_pref:.4g} s but the record has dt_s = {dt_s:g} s; T = dt_s "
             "(the record's own period) is used and α_T there exceeds the target"
         )
+    return limiting, decimation
+
+
+def _alpha_at_decimation(prepared: dict[str, tuple[np.ndarray, float]], decimation: int,
+                         n: int) -> dict[str, float]:
+    """Per signal, α_T at the chosen ``T`` (hold ``T/2``, interpolated between integer holds)."""
     t_hold = 0.5 * decimation  # T' = T/2 in record samples, i.e. m - 1
     alpha_chosen = {}
     for name, (x, sum_sq) in prepared.items():
@@ -499,17 +537,7 @@ def choose_sample_period(
             alpha_chosen[name] = float(a_lo + frac * (a_hi - a_lo))
         else:
             alpha_chosen[name] = float(a_lo)
-    return SamplePeriodChoice(
-        dt_s=decimation * float(dt_s),
-        decimation=decimation,
-        record_dt_s=float(dt_s),
-        alpha_t=alpha_chosen,
-        preferred_dt_s=preferred,
-        targets=targets,
-        roles=role,
-        limiting_signal=limiting,
-        notes=tuple(notes),
-    )
+    return alpha_chosen
 
 
 # -------------------------------------------------------------------- resampling

@@ -42,6 +42,17 @@ feedback gets ``n_k >= 1`` (its same-sample term is not identifiable under feedb
 
 Every trial is recorded in the returned :class:`SearchResult` so a person can see why a
 value was chosen.
+
+Options of :func:`search`:
+
+* ``n_p_max`` defaults to ``N // (22 * n_x)`` capped at 300, so that two disjoint windows
+  of ``10 * N_p`` observations (plus ``N_p - 1`` lead-in samples each) still fit — with
+  ``N // 20`` a record whose response needs the largest order could not be judged at all.
+* ``feedback="auto"``: test every pair and give pairs with detected feedback
+  ``n_k >= 1`` when there are no instruments; ``"report"``: test, change nothing;
+  ``"off"`` (the default, the thesis' search): no test.  Jobs default to ``auto``.
+* ``tick`` counts steps: the fit at ``n_p_max``, each stage-1 candidate fit and each
+  stage-2 window trial; the total grows when the refinement or longer windows need more.
 """
 
 from __future__ import annotations
@@ -467,10 +478,7 @@ def search(
     mask : bool array (N,) or (N, n_x+n_y), optional
         Good samples.
     n_p_max : int, optional
-        Largest order tried; default ``N // (22 * n_x)`` capped at 300, so that two
-        disjoint windows of ``10 * N_p`` observations (plus ``N_p - 1`` lead-in samples
-        each) still fit — with ``N // 20`` a record whose response needs the largest
-        order could not be judged at all.
+        Largest order tried; default ``N // (22 * n_x)`` capped at 300 (module notes).
     n_p_min : int
         Smallest order tried.
     n_p : int or int array (n_y, n_x), optional
@@ -489,18 +497,11 @@ def search(
     instruments : array (N, n_r), optional
         Instruments for the estimates (stage 1 judges orders with the direct fit).
     feedback : ``"off"``, ``"auto"`` or ``"report"``
-        ``auto``: test every pair and give pairs with detected feedback ``n_k >= 1``
-        when there are no instruments; ``report``: test, change nothing; ``off`` (the
-        default, the thesis' search): no test.  Jobs default to ``auto``.
+        The feedback test (module notes); default ``off``, jobs default to ``auto``.
     tick : callable (done, total), optional
-        Progress in steps (:mod:`pipeline.progress`): the fit at ``n_p_max``, each
-        stage-1 candidate fit and each stage-2 window trial; the total grows when the
-        refinement or longer windows need more.
+        Progress in steps (:mod:`pipeline.progress`; module notes).
     """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    x = x[:, None] if x.ndim == 1 else x
-    y = y[:, None] if y.ndim == 1 else y
+    x, y = _as_columns(x), _as_columns(y)
     n, n_x = x.shape
     n_y = y.shape[1]
     order, n_p_max, fixed, P0, extra = _checked_setup(
@@ -511,38 +512,27 @@ def search(
     # candidates and ~16 refinements; white: one nested solve), stage 2 its window
     # lengths (doublings)
     stage2 = _window_trials(n, 10 * max(n_p_min, 1), max(n_p_min, 1), extra)  # a guess
-    steps = [0, (1 if fixed is not None or order == 0 else 34) + stage2]
-
-    def step() -> None:
-        steps[0] += 1
-        steps[1] = max(steps[1], steps[0] + 1)
-        tick(steps[0], steps[1])
-
-    tick(0, steps[1])
+    steps = _Steps(tick, (1 if fixed is not None or order == 0 else 34) + stage2)
     ctx, est_max, fb = None, None, []
     if order != 0 or feedback != "off":
         ctx, est_max, fb = _at_n_p_max(x, y, integrating=integrating, mask=mask, P0=P0,
                                        fixed=fixed, nk=nk, dt=dt, noise=noise, order=order,
                                        feedback=feedback, instruments=instruments)
     noise_models = est_max.noise_model if est_max is not None else ()
-    if fixed is None:
-        npm, settled, order_trace, bic_order = _stage1_orders(
-            x, y, ctx, est_max, order=order, n_p_max=n_p_max, P0=P0, dt=dt,
-            n_p_min=max(n_p_min, int(np.max(n_k)) + 1), nk=nk, integrating=integrating,
-            mask=mask, fit_cap=(n // 2 + 1 - extra) // 11, step=step)
-    else:
-        npm, settled = fixed, np.ones((n_y, n_x), dtype=bool)
-        order_trace, bic_order = [], None
+    npm, settled, order_trace, bic_order = _orders(
+        x, y, ctx, est_max, fixed=fixed, n_p_min=n_p_min, n_k=n_k, order=order,
+        n_p_max=n_p_max, P0=P0, dt=dt, nk=nk, integrating=integrating, mask=mask,
+        fit_cap=(n // 2 + 1 - extra) // 11, step=steps.step)
     nk = np.minimum(nk, npm - 1)
     P = int(npm.max())
     n_d = int(n_d_start or 10 * P)
     kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    steps[1] = steps[0] + _window_trials(n, n_d, P, extra) + 1
+    steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
     chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d, P=P,
-                                      extra=extra, step=step)
+                                      extra=extra, step=steps.step)
     if chosen is None:
         _too_short(n, P, extra)
-    tick(steps[1], steps[1])
+    tick(steps.total, steps.total)
     n_d, length = chosen
     wins = split_windows_by_length(n, length, max_windows)
     agreement = []
@@ -552,6 +542,35 @@ def search(
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
                         bic_order, wins, nk, fb, noise_models, noise,
                         instruments is not None)
+
+
+def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
+    """Stage 1's ``(n_p, settled, order_trace, bic_order)``, or the fixed orders (all
+    settled, no trace); stage 1 starts above every known delay ``n_k``."""
+    if fixed is not None:
+        return fixed, np.ones((y.shape[1], x.shape[1]), dtype=bool), [], None
+    return _stage1_orders(x, y, ctx, est_max, n_p_min=max(n_p_min, int(np.max(n_k)) + 1),
+                          **stage1)
+
+
+def _as_columns(a) -> np.ndarray:
+    """`a` as a float array of columns (a 1-D signal becomes one column)."""
+    a = np.asarray(a, dtype=float)
+    return a[:, None] if a.ndim == 1 else a
+
+
+class _Steps:
+    """Progress in steps, ``tick(done, total)``: the total grows when more steps are needed."""
+
+    def __init__(self, tick: Tick, total: int) -> None:
+        self.tick, self.done, self.total = tick, 0, total
+        tick(0, total)
+
+    def step(self) -> None:
+        """One more step done."""
+        self.done += 1
+        self.total = max(self.total, self.done + 1)
+        self.tick(self.done, self.total)
 
 
 def _checked_setup(x, y, *, n_p, n_p_max, n_p_min: int, noise, feedback: str, integrating,

@@ -391,6 +391,36 @@ def _lifted_response(
 
 
 # -- per-sample path -----------------------------------------------------------------
+class _ProgramText:
+    """The constants of a generated per-sample program and its expression builders."""
+
+    def __init__(self) -> None:
+        self.consts: list[float] = []
+
+    def const(self, value: float) -> str:
+        """Name of a new constant holding `value`."""
+        self.consts.append(float(value))
+        return f"c{len(self.consts) - 1}"
+
+    def weighted(self, pairs: Sequence[tuple[str, float]]) -> str:
+        """The expression ``sum k * var`` (``0.0`` for no terms)."""
+        parts = []
+        for var, k in pairs:
+            if k == 1.0:
+                parts.append(var)
+            elif k == -1.0:
+                parts.append(f"-{var}")
+            else:
+                parts.append(f"{self.const(k)}*{var}")
+        return " + ".join(parts) if parts else "0.0"
+
+    @staticmethod
+    def nonzero(coefficients: np.ndarray, variables: Sequence[str]) -> list[tuple[str, float]]:
+        """The ``(variable, coefficient)`` pairs with a nonzero coefficient."""
+        # Skipping exact zeros (companion forms are sparse) changes no result.
+        return [(v, float(k)) for k, v in zip(coefficients, variables, strict=True) if k != 0.0]
+
+
 def _per_sample_program(model: Model, blocks: Sequence[_DiscreteBlock]) -> tuple[str, list[float]]:
     """Python source of ``run(rows, states, queues, consts)`` for `model`, and constants.
 
@@ -401,27 +431,7 @@ def _per_sample_program(model: Model, blocks: Sequence[_DiscreteBlock]) -> tuple
     feedthrough order (delayed and strictly proper blocks from their state only);
     phase 2 updates states and dead-time queues once all inputs are known.
     """
-    consts: list[float] = []
-
-    def const(value: float) -> str:
-        consts.append(float(value))
-        return f"c{len(consts) - 1}"
-
-    def weighted(pairs: Sequence[tuple[str, float]]) -> str:
-        parts = []
-        for var, k in pairs:
-            if k == 1.0:
-                parts.append(var)
-            elif k == -1.0:
-                parts.append(f"-{var}")
-            else:
-                parts.append(f"{const(k)}*{var}")
-        return " + ".join(parts) if parts else "0.0"
-
-    def nonzero(coefficients: np.ndarray, variables: Sequence[str]) -> list[tuple[str, float]]:
-        # Skipping exact zeros (companion forms are sparse) changes no result.
-        return [(v, float(k)) for k, v in zip(coefficients, variables, strict=True) if k != 0.0]
-
+    text = _ProgramText()
     signal_var = {db.block.name: f"s{i}" for i, db in enumerate(blocks)}
     signal_var.update({name: f"i{j}" for j, name in enumerate(model.inputs)})
     index = {db.block.name: i for i, db in enumerate(blocks)}
@@ -429,52 +439,63 @@ def _per_sample_program(model: Model, blocks: Sequence[_DiscreteBlock]) -> tuple
     phase2: list[str] = []
     for name in _evaluation_order(model):
         i = index[name]
-        db = blocks[i]
-        block = db.block
-        s, u = f"s{i}", f"u{i}"
-        xs = [f"x{i}_{j}" for j in range(len(db.b))]
-        u_expr = weighted([(signal_var[t.signal], t.k) for t in block.inputs])
-        if isinstance(block, Deadband):
-            half = const(block.width / 2.0)
-            phase1.append(f"{u} = {u_expr}")
-            phase1.append(
-                f"{s} = {u} - {half} if {u} > {half} else ({u} + {half} if {u} < -{half} else 0.0)"
-            )
-            continue
-        if isinstance(block, Saturation):
-            lo, hi = const(block.low), const(block.high)
-            phase1.append(f"{u} = {u_expr}")
-            phase1.append(f"{s} = {lo} if {u} < {lo} else ({hi} if {u} > {hi} else {u})")
-            continue
-        if isinstance(block, OperatingPointGain):
-            phase1.append(f"{u} = {u_expr}")
-            phase1.append(f"{s} = {u} * (1.0 + {const(block.slope)} * {signal_var[block.signal]})")
-            continue
-        # Linear: z = c x + d u (undelayed output), x+ = a x + b u, s = z delayed.
-        z_pairs = nonzero(db.c, xs)
-        if db.d != 0.0:
-            z_pairs.append((u, db.d))
-        z_expr = weighted(z_pairs)
-        if db.n_delay > 0:
-            phase1.append(f"{s} = q{i}[0]")
-            phase2.append(f"{u} = {u_expr}")
-            phase2.append(f"q{i}.append({z_expr})")  # maxlen drops the sample just read
-        elif db.d != 0.0:
-            phase1.append(f"{u} = {u_expr}")
-            phase1.append(f"{s} = {z_expr}")
-        else:
-            phase1.append(f"{s} = {z_expr}")
-            if xs:
-                phase2.append(f"{u} = {u_expr}")
+        _block_lines(text, blocks[i], i, signal_var, phase1, phase2)
+    return _program_source(model, blocks, text.consts, phase1 + phase2), text.consts
+
+
+def _block_lines(text: _ProgramText, db: _DiscreteBlock, i: int, signal_var: dict[str, str],
+                 phase1: list[str], phase2: list[str]) -> None:
+    """Append block `i`'s output (phase 1) and state-update (phase 2) lines."""
+    block = db.block
+    s, u = f"s{i}", f"u{i}"
+    xs = [f"x{i}_{j}" for j in range(len(db.b))]
+    u_expr = text.weighted([(signal_var[t.signal], t.k) for t in block.inputs])
+    if isinstance(block, Deadband):
+        half = text.const(block.width / 2.0)
+        phase1.append(f"{u} = {u_expr}")
+        phase1.append(
+            f"{s} = {u} - {half} if {u} > {half} else ({u} + {half} if {u} < -{half} else 0.0)"
+        )
+        return
+    if isinstance(block, Saturation):
+        lo, hi = text.const(block.low), text.const(block.high)
+        phase1.append(f"{u} = {u_expr}")
+        phase1.append(f"{s} = {lo} if {u} < {lo} else ({hi} if {u} > {hi} else {u})")
+        return
+    if isinstance(block, OperatingPointGain):
+        phase1.append(f"{u} = {u_expr}")
+        phase1.append(f"{s} = {u} * (1.0 + {text.const(block.slope)} * {signal_var[block.signal]})")
+        return
+    # Linear: z = c x + d u (undelayed output), x+ = a x + b u, s = z delayed.
+    z_pairs = text.nonzero(db.c, xs)
+    if db.d != 0.0:
+        z_pairs.append((u, db.d))
+    z_expr = text.weighted(z_pairs)
+    if db.n_delay > 0:
+        phase1.append(f"{s} = q{i}[0]")
+        phase2.append(f"{u} = {u_expr}")
+        phase2.append(f"q{i}.append({z_expr})")  # maxlen drops the sample just read
+    elif db.d != 0.0:
+        phase1.append(f"{u} = {u_expr}")
+        phase1.append(f"{s} = {z_expr}")
+    else:
+        phase1.append(f"{s} = {z_expr}")
         if xs:
-            rhs = []
-            for j in range(len(xs)):
-                row = nonzero(db.a[j], xs)
-                if db.b[j] != 0.0:
-                    row.append((u, float(db.b[j])))
-                rhs.append(weighted(row))
-            # Tuple assignment: the right side is evaluated with the old state.
-            phase2.append(f"{', '.join(xs)}, = ({', '.join(rhs)},)")
+            phase2.append(f"{u} = {u_expr}")
+    if xs:
+        rhs = []
+        for j in range(len(xs)):
+            row = text.nonzero(db.a[j], xs)
+            if db.b[j] != 0.0:
+                row.append((u, float(db.b[j])))
+            rhs.append(text.weighted(row))
+        # Tuple assignment: the right side is evaluated with the old state.
+        phase2.append(f"{', '.join(xs)}, = ({', '.join(rhs)},)")
+
+
+def _program_source(model: Model, blocks: Sequence[_DiscreteBlock], consts: list[float],
+                    lines: list[str]) -> str:
+    """The ``run`` function around the per-sample `lines` (phase 1 then phase 2)."""
     state_vars = [f"x{i}_{j}" for i, db in enumerate(blocks) for j in range(len(db.b))]
     delayed = [i for i, db in enumerate(blocks) if db.n_delay > 0]
     inputs = [f"i{j}" for j in range(len(model.inputs))]
@@ -488,10 +509,10 @@ def _per_sample_program(model: Model, blocks: Sequence[_DiscreteBlock]) -> tuple
     body.append("    out = []")
     body.append("    append = out.append")
     body.append(f"    for {', '.join(inputs) + ',' if inputs else '_'} in rows:")
-    body += [f"        {line}" for line in phase1 + phase2]
+    body += [f"        {line}" for line in lines]
     body.append(f"        append(({', '.join(signals)},))")
     body.append("    return out")
-    return "\n".join(body) + "\n", consts
+    return "\n".join(body) + "\n"
 
 
 def _evaluation_order(model: Model) -> list[str]:

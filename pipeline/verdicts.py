@@ -114,6 +114,16 @@ def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str |
         The pair's disjoint-window verdict (:meth:`AgreementResult.to_dict` or an
         ``insufficient_data`` stand-in).
     """
+    return [*_whiteness_warnings(out, noise, noise_model, whiteness_p),
+            *_feedback_warnings(inp, out, tag_in, tag_out, noise, feedback, feedback_mode,
+                                instruments, n_k),
+            *_order_warnings(inp, out, n_p, n_p_min, settled, significant, dt_s, end_jump),
+            *_agreement_warnings(agreement)]
+
+
+def _whiteness_warnings(out: str, noise: str | int, noise_model: dict,
+                        whiteness_p: float | None) -> list[dict]:
+    """The ``coloured_residuals`` warning, if the prediction errors are not white."""
     w = []
     if whiteness_p is not None and whiteness_p < WHITENESS_ALPHA:
         if noise == "white":
@@ -126,6 +136,14 @@ def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str |
                    "±σ may be optimistic; check for nonlinearity or a changing plant, or "
                    "raise estimation.noise to a higher AR order")
         w.append({"code": "coloured_residuals", "message": msg})
+    return w
+
+
+def _feedback_warnings(inp: str, out: str, tag_in: str, tag_out: str, noise: str | int,
+                       feedback: dict | None, feedback_mode: str, instruments: list[str],
+                       n_k: int) -> list[dict]:
+    """The ``feedback`` warning, if feedback was detected."""
+    w = []
     if feedback is not None and feedback.get("detected"):
         base = feedback_sentence(inp, out, tag_in, tag_out) + \
             f" (feedback test p = {feedback['p_value']:.2g})"
@@ -144,6 +162,13 @@ def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str |
             msg += ("; with estimation.noise: white the direct estimate is biased under "
                     "feedback even with n_k >= 1 — use estimation.noise: auto")
         w.append({"code": "feedback", "message": msg})
+    return w
+
+
+def _order_warnings(inp: str, out: str, n_p: int, n_p_min: int, settled: bool,
+                    significant: bool, dt_s: float, end_jump: float | None) -> list[dict]:
+    """The ``n_p_at_bound`` and ``end_jump`` warnings of the chosen order."""
+    w = []
     if not settled:
         w.append({"code": "n_p_at_bound", "message":
                   f"N_p stopped at search.n_p_max = {n_p} (N_p·T = {n_p * dt_s:g} s): the "
@@ -160,6 +185,12 @@ def pair_warnings(*, inp: str, out: str, tag_in: str, tag_out: str, noise: str |
                   "tail before it is flat: the last coefficient absorbs the response beyond "
                   f"N_p = {n_p} (or a drift of {inp}); the final value is not a settled gain "
                   "— raise search.n_p_min above N_p, or use conditioning: highpass"})
+    return w
+
+
+def _agreement_warnings(agreement: dict) -> list[dict]:
+    """The ``insufficient_data`` / ``windows_disagree`` warning of the window verdict."""
+    w = []
     verdict = agreement.get("verdict")
     if verdict == "insufficient_data":
         w.append({"code": "insufficient_data", "message":
