@@ -139,3 +139,21 @@ def test_source_sections_are_the_ingest_options_with_their_defaults():
             assert field.default == defaults[key], (section.__name__, key)
         # and a YAML section reaches the reader as those options
         assert options(**section().model_dump()) == options()
+
+
+def test_no_module_over_800_lines_and_no_function_over_100():
+    """The size goals of the layout (README "Layout"): a module owns one concept, a
+    function reads in one screen or two (lines counted with the docstring)."""
+    long_modules, long_functions = [], []
+    for folder in ("pipeline", "flows"):
+        for path in (ROOT / folder).rglob("*.py"):
+            text = path.read_text()
+            if text.count("\n") > 800:
+                long_modules.append((path.name, text.count("\n")))
+            for node in ast.walk(ast.parse(text)):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    size = node.end_lineno - node.lineno + 1
+                    if size > 100:
+                        long_functions.append((f"{path.name}:{node.name}", size))
+    assert not long_modules, long_modules
+    assert not long_functions, long_functions
