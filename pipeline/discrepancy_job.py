@@ -304,9 +304,14 @@ def analyse(cfg, model: Model, data: DiscrepancyData, *,
         Called at the start of each stage of the core.
     """
     seed = cfg.discrepancy.seed if cfg.discrepancy is not None else 0
+    op_mode = cfg.discrepancy.operating_point if cfg.discrepancy is not None else "mean"
+    # outputs measured from their mean: their constant follows the model
+    free = () if op_mode == "none" else tuple(
+        o for o in data.measured if not (isinstance(op_mode, dict) and o in op_mode))
     return analyse_discrepancy(model, inputs=data.inputs, measured=data.measured,
                                dt_s=data.dt_s, config=_core_config(cfg), seed=seed,
-                               progress=progress, clock=time.perf_counter)
+                               progress=progress, clock=time.perf_counter,
+                               free_offsets=free)
 
 
 def series_table(result: DiscrepancyResult) -> pl.DataFrame:
@@ -347,15 +352,18 @@ def augmented_model_document(result: DiscrepancyResult) -> dict:
     Parameters
     ----------
     result : DiscrepancyResult
-        The core's outcome (its augmented model and accepted effect).
+        The core's outcome (its augmented model and accepted effects).
     """
     doc = model_to_dict(result.augmented_model)
-    eff = result.effect
-    if eff is not None and eff.name == "sensor_bias_drift":
-        doc["measurement"] = {eff.location: {
-            "bias": float(eff.parameters["bias"]),
-            "drift_per_h": float(eff.parameters["drift_per_h"]),
-        }}
+    measurement: dict[str, dict[str, float]] = {}
+    for step in result.effects:  # every accepted effect's measurement-side part
+        eff = step.candidate.effect
+        if eff.name == "sensor_bias_drift":
+            m = measurement.setdefault(eff.location, {"bias": 0.0, "drift_per_h": 0.0})
+            m["bias"] += float(eff.parameters["bias"])
+            m["drift_per_h"] += float(eff.parameters["drift_per_h"])
+    if measurement:
+        doc["measurement"] = measurement
     return doc
 
 
@@ -386,7 +394,9 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
     for o, p in meas.items():
         offsets[o] = p["bias"] + p["drift_per_h"] * np.arange(n) * data.dt_s / 3600.0
     h = result.series.holdout_start
-    return {o: float(np.sqrt(np.mean((data.measured[o][h:] - sim[o][h:] - offsets[o][h:]) ** 2)))
+    shift = result.operating_point_shift
+    return {o: float(np.sqrt(np.mean((data.measured[o][h:] - shift.get(o, 0.0) - sim[o][h:]
+                                      - offsets[o][h:]) ** 2)))
             for o in data.measured}
 
 

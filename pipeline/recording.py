@@ -104,7 +104,7 @@ def load_recording(cfg, files: list[Path] | None = None, tick: Tick = silent) ->
                 values[flag, k] = np.nan
                 good[flag, k] = False
     quality = {}
-    ing = _report_dict(report)
+    ing = report.to_dict()
     tag_name = {s.tag: n for n, (_, s) in sig.items()}
     ing["grid"] = {"islands": grid.islands,
                    "stray_samples": [{**d, "signal": tag_name.get(d["signal"], d["signal"]),
@@ -141,13 +141,6 @@ def _check_time_order(report) -> None:
             f"duplicate times: {detail}; fix the export, or set source.time_order: fix to "
             "resolve them (last value wins, rows sorted) and count them in checks.json"
         )
-
-
-def _report_dict(report) -> dict:
-    for attr in ("to_dict", "as_dict"):
-        if hasattr(report, attr):
-            return getattr(report, attr)()
-    return {}
 
 
 def _median_spacing_s(table: pl.DataFrame) -> float:

@@ -259,3 +259,98 @@ def write_loop_export(path, *, hours: float, seed: int):
     """The historian loop's SP, OP and PV as an exception-reported PI-style CSV."""
     sig = historian_loop_signals(hours, seed)
     return write_export(path, {LOOP_TAGS[k]: sig[k] for k in ("SP", "OP", "PV")}, seed=seed)
+
+
+# ------------------------------------------------------- boiler with nuisance mismatch
+#: The boiler pressure loop of ../shared/design.md ("Model YAML"), written out here as
+#: equations: feedforward 0.019 on steam flow, PI (kp -0.554, ti 60 s) on the measured
+#: pressure, fuel 65 x demand after 8 s, drum integrator 0.000883 (fuel - steam), pressure
+#: drum - 0.045 steam.
+BOILER = {"k_ff": 0.019, "kp": -0.554, "ti_s": 60.0, "k_fuel": 65.0, "delay_s": 8.0,
+          "k_drum": 0.000883, "k_direct": -0.045}
+
+
+def _boiler_loop(steam_fine, dist_fine, sensor_s, fine_dt, per_s, *, kp, delay_s, lag_s,
+                 quantum):
+    """Euler/exact-lag integration at ``fine_dt`` with a DCS that scans once per second
+    and acts on the previous scan's measured pressure (true + ``sensor_s``)."""
+    b = BOILER
+    n_fine = steam_fine.size
+    n_s = n_fine // per_s
+    delay = int(round(delay_s / fine_dt))
+    buf = np.zeros(delay + 1)
+    pos = 0
+    a_lag = np.exp(-fine_dt / lag_s) if lag_s > 0 else 0.0
+    lagged = 0.0
+    drum = 0.0
+    integral = 0.0
+    demand = 0.0
+    p_meas_prev = 0.0
+    pressure = np.empty(n_s)
+    for kf in range(n_fine):
+        ks = kf // per_s
+        if kf % per_s == 0:  # DCS scan: the previous scan's measurement
+            integral += p_meas_prev * 1.0
+            u_c = kp * (p_meas_prev + integral / b["ti_s"])
+            demand = u_c + b["k_ff"] * steam_fine[kf]
+            demand = round(demand / quantum) * quantum  # actuator resolution
+        buf[pos] = b["k_fuel"] * demand
+        pos = (pos + 1) % (delay + 1)
+        fuel = buf[pos]  # written `delay` fine steps ago
+        if lag_s > 0:
+            lagged = a_lag * lagged + (1.0 - a_lag) * fuel
+            fuel = lagged
+        drum += fine_dt * b["k_drum"] * (fuel - steam_fine[kf] + dist_fine[kf])
+        if kf % per_s == per_s - 1:
+            p = drum + b["k_direct"] * steam_fine[kf]
+            pressure[ks] = p
+            p_meas_prev = p + sensor_s[ks]
+    return pressure
+
+
+def boiler_nuisance_record(hours: float, seed: int, *, kp_factor: float = 1.0,
+                           extra_fuel_delay_s: float = 0.0, extra_fuel_lag_s: float = 0.0,
+                           sensor_frac: float = 0.05, input_frac: float = 0.02,
+                           fine_dt: float = 0.05) -> tuple[dict, dict]:
+    """The boiler loop as a plant, not as the model: independent of ``pipeline.simulate``.
+
+    Nuisances a real plant has and the nominal model does not: Euler integration of the
+    drum at ``fine_dt`` with the fuel path's dead time and lag in continuous time; a DCS
+    that scans once per second and acts on the *previous* scan's measurement (a
+    one-sample controller delay); fuel demand quantised to 1e-4; a slow unmeasured
+    disturbance on the drum's energy balance (AR, time constant 30 min, 0.15 kg/s);
+    white sensor noise of ``sensor_frac`` of the pressure's std; noise of ``input_frac``
+    of its std on the *measured* steam flow.  Hidden effects: the controller's gain
+    times ``kp_factor``, an extra fuel dead time, an extra first-order lag on the fuel
+    path.  Returns ``(inputs, measured)`` as deviations at 1 s snapshots:
+    ``{"steam_flow"}``, ``{"turbine_pressure"}``.
+    """
+    rng = np.random.default_rng(seed)
+    n_s = int(hours * 3600)
+    per_s = int(round(1.0 / fine_dt))
+    slow = ss.lfilter([1.0], [1.0, -np.exp(-1 / 1200.0)], rng.standard_normal(n_s))
+    fast = ss.lfilter([1.0], [1.0, -np.exp(-1 / 40.0)], rng.standard_normal(n_s))
+    steps = np.zeros(n_s)
+    k = int(rng.uniform(600, 1800))
+    while k < n_s:
+        steps[k:] += rng.choice([-1, 1]) * rng.uniform(1.0, 3.0)
+        k += int(rng.uniform(900, 2400))
+    steam = 3.0 * slow / slow.std() + 0.5 * fast / fast.std() + steps - steps.mean()
+    dist = ss.lfilter([1.0], [1.0, -np.exp(-1 / 1800.0)], rng.standard_normal(n_s))
+    dist *= 0.15 / dist.std()
+    t = np.arange(n_s, dtype=float)
+    t_fine = np.arange(n_s * per_s) * fine_dt
+    steam_fine = np.interp(t_fine, t, steam)
+    dist_fine = np.interp(t_fine, t, dist)
+    unit_sensor = rng.standard_normal(n_s)
+    kw = {"kp": BOILER["kp"] * kp_factor, "delay_s": BOILER["delay_s"] + extra_fuel_delay_s,
+          "lag_s": extra_fuel_lag_s, "quantum": 1e-4}
+    # the sensor noise is a fraction of the pressure's own std: one noise-free pass sets it
+    scale = float(np.std(_boiler_loop(steam_fine, dist_fine, np.zeros(n_s), fine_dt, per_s,
+                                      **kw)))
+    pressure = _boiler_loop(steam_fine, dist_fine, sensor_frac * scale * unit_sensor,
+                            fine_dt, per_s, **kw)
+    measured_p = pressure + sensor_frac * scale * unit_sensor
+    measured_steam = steam + input_frac * steam.std() * rng.standard_normal(n_s)
+    return ({"steam_flow": measured_steam - measured_steam.mean()},
+            {"turbine_pressure": measured_p - measured_p.mean()})

@@ -343,7 +343,8 @@ def test_discrepancy_files_are_schema_checked_and_a_bad_one_leaves_no_run(tmp_pa
 
     store = ResultStore(tmp_path / "storage")
     good = {k: None for k in ("job", "run_id", "kind", "model", "inputs", "outputs", "data",
-                              "effect", "candidates", "gap", "localization", "dt_s")}
+                              "effect", "candidates", "gap", "localization", "dt_s",
+                              "effects", "minor_effects")}
     with pytest.raises(ResultSchemaError, match=r"missing top-level key\(s\) \['verdict'\]"):
         with store.new_run("disc", run_id="r1", config={}, inputs=[]) as run:
             run.write_json("discrepancy.json", good)

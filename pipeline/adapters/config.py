@@ -312,6 +312,9 @@ class DiscrepancySection(_Strict):
     load_signal: str | None = None
     n_load_bins: int | None = None
     max_nfev: int | None = None
+    max_effects: int | None = None
+    min_gap_reduction: float | None = None
+    lookalike_gap: float | None = None
 
     WORKFLOW_KEYS: ClassVar[tuple[str, ...]] = ("simulator_outputs", "operating_point", "seed")
 

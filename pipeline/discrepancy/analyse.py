@@ -14,7 +14,12 @@ from pipeline.discrepancy.fit import Fit, Fitter, refit_nested_lags
 from pipeline.discrepancy.localise import localise
 from pipeline.discrepancy.noise import fit_ar
 from pipeline.discrepancy.problem import Problem, settling_time, sigma_floor, validate_signals
-from pipeline.discrepancy.results import Candidate, DiscrepancyResult, DiscrepancySeries
+from pipeline.discrepancy.results import (
+    Candidate,
+    DiscrepancyResult,
+    DiscrepancySeries,
+    EffectStep,
+)
 from pipeline.discrepancy.screen import class_key, kept_classes, nested_partners, screen_all
 from pipeline.discrepancy.select import criteria, holdout_z_score, pooled_rms, rms_of, same_class
 from pipeline.effects import Effect, apply_effect, output_offsets
@@ -34,6 +39,7 @@ def analyse_discrepancy(
     seed: int = 0,
     progress: Callable[[str, str], None] | None = None,
     clock: Callable[[], float] | None = None,
+    free_offsets: tuple[str, ...] = (),
 ) -> DiscrepancyResult:
     """Find which catalogue effect explains the gap between `model` and the plant.
 
@@ -57,6 +63,12 @@ def analyse_discrepancy(
     clock : callable () -> float, optional
         A monotonic clock in seconds (e.g. ``time.perf_counter``) for the per-stage
         ``timings_s``; None records none (the core reads no clock of its own).
+    free_offsets : tuple of str
+        Measured outputs whose constant is not known (deviations from a mean, not from
+        a given operating point): before each later step of the chain their constant is
+        re-estimated so that the augmented model's fit-part residual has zero mean -- as
+        the nominal model's has -- instead of leaving the change of mean for a spurious
+        sensor bias (:attr:`DiscrepancyResult.operating_point_shift`).
 
     Returns
     -------
@@ -74,16 +86,84 @@ def analyse_discrepancy(
     # thousands of small vector operations: BLAS single-threaded (pipeline._threads)
     return single_threaded_blas(_analyse)(model, inputs=inputs, measured=measured,
                                           dt_s=dt_s, config=config, seed=seed,
-                                          progress=progress, clock=clock)
+                                          progress=progress, clock=clock,
+                                          free_offsets=tuple(free_offsets))
 
 
 def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, Any],
              dt_s: float, config: DiscrepancyConfig | None, seed: int,
              progress: Callable[[str, str], None] | None,
-             clock: Callable[[], float] | None = None) -> DiscrepancyResult:
-    """:func:`analyse_discrepancy` (BLAS thread limits already set): the stages in order."""
+             clock: Callable[[], float] | None = None,
+             free_offsets: tuple[str, ...] = ()) -> DiscrepancyResult:
+    """:func:`analyse_discrepancy` (BLAS thread limits already set): one search on the
+    nominal model, then -- while an effect is found, up to ``max_effects`` -- the same
+    search, held to the same tests, on the model augmented so far."""
     config = config or DiscrepancyConfig()
     say = progress or quiet
+    steps = [_step(model, inputs, measured, dt_s, config, seed, say, clock)]
+    offsets = {o: np.asarray(v, dtype=float) for o, v in steps[0].output_offsets.items()}
+    shift = {o: 0.0 for o in offsets}
+    while steps[-1].verdict == "effect_found" and len(steps) < config.max_effects:
+        say("chain", f"effect {len(steps)} accepted; searching again on the augmented model")
+        last = steps[-1].series
+        for o in free_offsets:  # their constant follows the model (operating point "mean")
+            shift[o] += float(np.mean(last.residual_after[o][last.fit_start:last.holdout_start]))
+        adjusted = {o: np.asarray(v, dtype=float) - offsets[o] - shift[o]
+                    for o, v in measured.items()}
+        nxt = _step(steps[-1].augmented_model, inputs, adjusted, dt_s, config, seed, say, clock)
+        if nxt.effect is not None and any(same_class(nxt.effect, s.effect) for s in steps):
+            nxt = dataclasses.replace(nxt, verdict="no_significant_effect", effect=None)
+        steps.append(nxt)
+        if nxt.effect is not None:
+            offsets = {o: offsets[o] + nxt.output_offsets[o] for o in offsets}
+    return _chain(steps, offsets, shift)
+
+
+def _step_of(result: DiscrepancyResult) -> EffectStep:
+    """The accepted effect of one step with the gap before and after it."""
+    cand = next(c for c in result.candidates if c.effect is result.effect)
+    return EffectStep(cand, result.gap["holdout_rms_before"], result.gap["holdout_rms_after"],
+                      {o: g["holdout_rms_after"] for o, g in result.gap["per_output"].items()})
+
+
+def _chain(steps: list[DiscrepancyResult], offsets: dict[str, np.ndarray],
+           shift: dict[str, float]) -> DiscrepancyResult:
+    """One result for the chain: the first step's verdict, candidates and localisation;
+    every accepted effect in order; the final augmented model and series; the gap from
+    the nominal model to the last augmented one (with the re-centred operating point of
+    the free outputs); the last step's minor effects."""
+    first = steps[0]
+    accepted = [s for s in steps if s.verdict == "effect_found"]
+    effects = tuple(_step_of(s) for s in accepted)
+    timings = dict(first.timings_s)
+    for k, s in enumerate(steps[1:], 2):
+        timings.update({f"step{k}/{key}": v for key, v in s.timings_s.items()})
+    n_sims = sum(s.n_fit_simulations for s in steps)
+    if len(accepted) <= 1:
+        return dataclasses.replace(first, effects=effects, timings_s=timings,
+                                   n_fit_simulations=n_sims,
+                                   minor_effects=steps[-1].minor_effects)
+    last = accepted[-1]
+    s0, outputs = first.series, list(first.series.measured)
+    # the last step's prediction is of the measured outputs less the earlier offsets
+    earlier = {o: offsets[o] - last.output_offsets[o] + shift[o] for o in outputs}
+    aug = {o: last.series.augmented[o] + earlier[o] for o in outputs}
+    y = np.column_stack([s0.measured[o] for o in outputs])
+    y_nom = np.column_stack([s0.nominal[o] for o in outputs])
+    y_aug = np.column_stack([aug[o] for o in outputs])
+    series = dataclasses.replace(
+        s0, augmented=aug, residual_after={o: s0.measured[o] - aug[o] for o in outputs})
+    return dataclasses.replace(
+        first, gap=_gap(y, outputs, s0.holdout_start, y - y_nom, y_aug),
+        augmented_model=last.augmented_model, output_offsets=offsets, series=series,
+        timings_s=timings, n_fit_simulations=n_sims,
+        effects=effects, minor_effects=steps[-1].minor_effects, operating_point_shift=shift)
+
+
+def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], dt_s: float,
+          config: DiscrepancyConfig, seed: int, say: Callable[[str, str], None],
+          clock: Callable[[], float] | None) -> DiscrepancyResult:
+    """One search: localise, screen, fit and select the best effect for ``model``."""
     timings: dict[str, float] = {}
     last = clock() if clock else 0.0
 
@@ -117,11 +197,11 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
                        holdout_z_score(hold_nom, hold), hold))
     lap("search")
     say("select", "held-out comparison")
-    candidates, verdict, effect, lookalikes = _select(P, fitted, bic_nom, resid)
+    candidates, verdict, effect, lookalikes, minor = _select(P, fitted, bic_nom, resid)
     y_aug = {id(f.effect): f.y_pred for f, *_ in fitted}.get(id(effect), P.y_nominal)
     augmented = apply_effect(model, effect, dt_s=P.dt_s) if effect is not None else model
-    gap = _gap(P, resid, y_aug)
     y, outputs = P.y, P.outputs
+    gap = _gap(y, outputs, P.holdout_start, resid, y_aug)
     series = DiscrepancySeries(
         t_s=nominal.t_s,
         measured={o: y[:, i] for i, o in enumerate(outputs)},
@@ -138,7 +218,7 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
         augmented_model=augmented,
         output_offsets=output_offsets(effect, n=P.n, dt_s=P.dt_s, outputs=outputs),
         noise=noise, screening=screening, series=series, dt_s=P.dt_s, config=config,
-        timings_s=timings, n_fit_simulations=int(fits_total),
+        timings_s=timings, n_fit_simulations=int(fits_total), minor_effects=minor,
     )
 
 
@@ -312,7 +392,7 @@ def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray
 
 def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray):
     """Held-out comparison of the fitted candidates: the sorted unique candidates, the
-    verdict, the effect found (or None) and the look-alikes."""
+    verdict, the effect found (or None), the look-alikes and the minor effects."""
     config, y, outputs = P.config, P.y, P.outputs
     candidates = []
     hold_slice = slice(P.holdout_start, P.n)
@@ -328,7 +408,8 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray):
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,
-            screening_score=fit.screening_score, passed=passed))
+            screening_score=fit.screening_score, passed=passed,
+            gap_reduction=1.0 - gap_c / gap_nom if gap_nom > 0 else 0.0))
     order = np.argsort([c.criterion for c in candidates], kind="stable")
     candidates = [candidates[i] for i in order]
     # the same class can be fitted twice (screened under both noise weightings): keep
@@ -339,26 +420,66 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray):
             unique.append(c)
     candidates = unique
     passed = [c for c in candidates if c.passed]
-    effect, lookalikes, verdict = None, (), "no_significant_effect"
-    if passed:
-        best = passed[0]
-        close = [c for c in passed[1:] if c.criterion - best.criterion < config.lookalike_margin
-                 and not same_class(c.effect, best.effect)]
-        if close:
-            verdict, lookalikes = "inconclusive", (best, *close)
-        elif candidates[0] is not best:
-            # a candidate with a better fit failed the held-out test: the data do not
-            # single out one effect
-            verdict, lookalikes = "inconclusive", (candidates[0], best)
-        else:
-            verdict, effect = "effect_found", best.effect
-    return candidates, verdict, effect, lookalikes
+    # practical significance: a finding must close a worthwhile part of the gap
+    findings = [c for c in passed if c.gap_reduction >= config.min_gap_reduction]
+    minor = tuple(c for c in passed if c.gap_reduction < config.min_gap_reduction)
+    if not findings:
+        return candidates, "no_significant_effect", None, (), minor
+    verdict, effect, lookalikes = _decide(candidates, findings, config)
+    return candidates, verdict, effect, lookalikes, minor
 
 
-def _gap(P: Problem, resid: np.ndarray, y_aug: np.ndarray) -> dict[str, Any]:
-    """Held-out RMS gap before and after the augmented model, per output and pooled."""
-    y, outputs = P.y, P.outputs
-    hold_slice = slice(P.holdout_start, P.n)
+#: Parsimony needs the simpler candidate's BIC improvement within this share of the best
+#: one's as well: misspecification makes the look-alikes' BIC differences a small share
+#: of the improvement (the nuisance dead time: 205 of 14 262, 1.4 %; 311 of 13 775,
+#: 2.3 %), while on a plant
+#: that is its model a remaining gap at the noise level says nothing and BIC is sharp.
+_BIC_SHARE = 0.03
+
+
+def _decide(candidates: list, findings: list, config: DiscrepancyConfig):
+    """The finding among practically significant candidates (BIC order).
+
+    Parsimony on held-out data first: a candidate with fewer parameters whose remaining
+    held-out gap is at most ``1 + lookalike_gap`` times the best one's predicts as well
+    and is taken instead (relative to what remains, so the tolerance grows with the
+    misspecification the best candidate leaves and vanishes on a plant that is its
+    model).  Misspecification scales BIC differences with the record -- the first-order
+    Padé approximant of a delay (an inverse response of magnitude ~1, 2 parameters) beat
+    the exact dead time (1 parameter) by 81 whitened BIC on a scale of 39 000 while both
+    closed 85 % of the gap.  Then look-alikes of another class within ``lookalike_margin``
+    of BIC: fewer parameters wins, a tie is ``inconclusive``.  (Equal parameter counts
+    with close held-out gaps are left to BIC: ``gain`` at the controller and at the drum
+    of the demo predict within 3 % of each other, yet BIC separates them by 168.)"""
+    best = findings[0]
+    simpler = [c for c in findings[1:] if c.n_parameters < best.n_parameters
+               and not same_class(c.effect, best.effect)
+               and c.holdout_gap <= (1.0 + config.lookalike_gap) * best.holdout_gap
+               and c.delta_bic >= (1.0 - _BIC_SHARE) * best.delta_bic]
+    if simpler:
+        best = min(simpler, key=lambda c: (c.n_parameters, c.criterion))
+    group = [best] + [c for c in findings if c is not best
+                      and not same_class(c.effect, best.effect)
+                      and abs(c.criterion - best.criterion) < config.lookalike_margin]
+    if len(group) > 1:
+        k_min = min(c.n_parameters for c in group)
+        simplest = [c for c in group if c.n_parameters == k_min]
+        if len(simplest) > 1:
+            return "inconclusive", None, tuple(simplest)
+        best = simplest[0]
+    better = candidates[0]
+    if better is not best and not better.passed and better.criterion < best.criterion:
+        # a candidate with a better fit failed the held-out test: the data do not
+        # single out one effect
+        return "inconclusive", None, (better, best)
+    return "effect_found", best.effect, ()
+
+
+def _gap(y: np.ndarray, outputs: list[str], holdout_start: int, resid: np.ndarray,
+         y_aug: np.ndarray) -> dict[str, Any]:
+    """Held-out RMS gap before (``resid``) and after the augmented model, per output and
+    pooled."""
+    hold_slice = slice(holdout_start, y.shape[0])
     hold_std = [float(np.std(y[hold_slice, i])) or 1.0 for i in range(len(outputs))]
     per_output = {}
     for i, o in enumerate(outputs):

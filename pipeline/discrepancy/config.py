@@ -52,6 +52,24 @@ class DiscrepancyConfig:
         Quantile bins of the load signal.
     max_nfev : int
         Function evaluations per least-squares start.
+    max_effects : int
+        Effects accepted one after the other at most: after each, the search runs again
+        on the augmented model (1 = the single best effect only).
+    min_gap_reduction : float
+        Fraction by which an effect must shrink the held-out gap (of the model it is
+        added to) to be a finding; a statistically significant but smaller one is
+        reported under ``minor_effects``.  Default 0.05: under realistic nuisance
+        mismatch (a plant simulated independently of the model, DCS delay, input noise)
+        spurious one-sample delays and 1 % gain changes pass every statistical test
+        while shrinking the gap by 1–2 %; a real missing effect of engineering interest
+        shrinks it by far more (controller gain +25 %: ~40 %).
+    lookalike_gap : float
+        A candidate with fewer parameters whose remaining held-out gap is at most
+        ``1 + lookalike_gap`` times the best candidate's predicts as well and is
+        preferred (parsimony on held-out data: an inverse response of magnitude ~1 is a
+        delay's Padé approximant; under nuisance mismatch it left 29.1 % of the gap, the
+        exact 10 s dead time 30.4 %, 4.5 % more).  Relative to what remains, so a plant
+        that is its model (remaining gap ~ the noise) keeps the better candidate.
     """
 
     effects: tuple[str, ...] = EFFECT_NAMES
@@ -68,6 +86,9 @@ class DiscrepancyConfig:
     load_signal: str | None = None
     n_load_bins: int = 5
     max_nfev: int = 40
+    max_effects: int = 3
+    min_gap_reduction: float = 0.05
+    lookalike_gap: float = 0.10
 
     def __post_init__(self) -> None:
         effects = tuple(self.effects)
@@ -88,6 +109,9 @@ class DiscrepancyConfig:
             ("n_bootstrap", self.n_bootstrap >= 9, ">= 9"),
             ("n_load_bins", self.n_load_bins >= 2, ">= 2"),
             ("max_nfev", self.max_nfev >= 5, ">= 5"),
+            ("max_effects", 1 <= self.max_effects <= 10, "an integer 1..10"),
+            ("min_gap_reduction", 0.0 <= self.min_gap_reduction < 1.0, "in [0, 1)"),
+            ("lookalike_gap", 0.0 <= self.lookalike_gap < 1.0, "in [0, 1)"),
             ("initial", self.initial in ("rest", "steady"), "'rest' or 'steady'"),
             ("warmup_s", self.warmup_s is None or self.warmup_s >= 0, "None or >= 0"),
             ("max_delay_s", self.max_delay_s is None or self.max_delay_s > 0, "None or > 0"),

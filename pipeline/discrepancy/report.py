@@ -87,10 +87,18 @@ def _header(doc: Mapping[str, Any]) -> list[str]:
                    f"({data.get('start_utc')} to {data.get('end_utc')})")
     lines += [", ".join(who) + ".", ""]
     effect = doc.get("effect")
-    if isinstance(effect, Mapping):
+    chain = [e for e in doc.get("effects") or [] if isinstance(e, Mapping)]
+    if len(chain) > 1:
+        lines.append(f"**{len(chain)} effects found**, in order: "
+                     + "; ".join(effect_text(e) for e in chain)
+                     + " — all added to `model_augmented.yaml`.")
+    elif isinstance(effect, Mapping):
         lines.append(f"**Effect found:** {effect_text(effect)} — added to `model_augmented.yaml`.")
     elif doc.get("verdict") == "inconclusive":
         lines.append("**Inconclusive:** look-alike candidates fit about equally well:")
+    elif doc.get("minor_effects"):
+        lines.append("**No significant effect**: what the tests detect closes too little of "
+                     "the gap to matter (see *Minor effects*); the nominal model stays.")
     else:
         lines.append("**No effect accepted**: the nominal model stays.")
     looks = [c for c in doc.get("lookalikes") or [] if isinstance(c, Mapping)]
@@ -121,6 +129,33 @@ def _gap(doc: Mapping[str, Any]) -> list[str]:
     if fit and hold and n and not math.isnan(dt):
         lines += ["", f"Warm-up 0–{fit[0] * dt:g} s, fit {fit[0] * dt:g}–{hold[0] * dt:g} s, "
                       f"hold-out {hold[0] * dt:g}–{(n - 1) * dt:g} s."]
+    return lines
+
+
+def _effects(doc: Mapping[str, Any]) -> list[str]:
+    chain = [e for e in doc.get("effects") or [] if isinstance(e, Mapping)]
+    minor = [e for e in doc.get("minor_effects") or [] if isinstance(e, Mapping)]
+    lines = []
+    if len(chain) > 1:
+        lines += ["", "## Effects, step by step", "",
+                  "Each effect was found on the model augmented by the ones before it, held "
+                  "to the same tests.", "",
+                  "| step | effect | held-out gap before | after | reduction |",
+                  "|---|---|---|---|---|"]
+        lines += [f"| {k} | {effect_text(e)} | {fmt_number(e.get('gap_before'))} | "
+                  f"{fmt_number(e.get('gap_after'))} | "
+                  f"{100 * json_number(e.get('gap_reduction')):.1f} % |"
+                  for k, e in enumerate(chain, 1)]
+    if minor:
+        cfg = doc.get("config") if isinstance(doc.get("config"), Mapping) else {}
+        lines += ["", "## Minor effects", "",
+                  "Statistically significant, but each closes less than "
+                  f"{100 * json_number(cfg.get('min_gap_reduction')):.0f} % of the held-out "
+                  "gap: not a finding.", ""]
+        lines += [f"- {effect_text(e)}: gap reduction "
+                  f"{100 * json_number(e.get('gap_reduction')):.1f} %, ΔBIC "
+                  f"{fmt_number(e.get('delta_bic'))}, held-out z {fmt_number(e.get('holdout_z'), 3)}"
+                  for e in minor]
     return lines
 
 
@@ -185,7 +220,7 @@ def summary_markdown(doc: Mapping[str, Any]) -> str:
         workflow's ``job``, ``run_id``, ``model``, ``model_source``, ``data``); keys that
         are absent are left out of the page.
     """
-    lines = _header(doc) + _gap(doc) + _candidates(doc) + _localisation(doc)
+    lines = _header(doc) + _gap(doc) + _effects(doc) + _candidates(doc) + _localisation(doc)
     lines += ["", "Files: `discrepancy.json` (everything above, machine-readable), "
               "`model_augmented.yaml`, `discrepancy_series.parquet` (measured, nominal, "
               "augmented, residuals), `recording.rrd` (open with `rerun`)."]

@@ -43,7 +43,11 @@ class Candidate:
     screening_score : float
         Approximate whitened sum of squares explained at screening, minus the BIC penalty.
     passed : bool
-        Every acceptance test passed.
+        Every statistical acceptance test passed.
+    gap_reduction : float
+        ``1 - holdout_gap / (the model's held-out gap)``: how much of the gap of the model
+        it was added to the candidate closes on held-out data (practical significance:
+        at least ``min_gap_reduction`` for a finding).
     """
 
     effect: Effect
@@ -55,6 +59,7 @@ class Candidate:
     holdout_gap: float
     screening_score: float
     passed: bool
+    gap_reduction: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
@@ -68,8 +73,36 @@ class Candidate:
             holdout_gap=json_float(self.holdout_gap),
             screening_score=json_float(self.screening_score),
             passed=self.passed,
+            gap_reduction=json_float(self.gap_reduction),
         )
         return out
+
+
+@dataclass(frozen=True)
+class EffectStep:
+    """One accepted effect of the chain (:attr:`DiscrepancyResult.effects`).
+
+    Attributes
+    ----------
+    candidate : Candidate
+        The effect as fitted and tested on the model it was added to.
+    gap_before, gap_after : float
+        Held-out gap (units of ``DiscrepancyResult.gap``) of that model and of the model
+        with the effect.
+    holdout_rms_after : dict of str -> float
+        Held-out RMS per output after the effect (engineering units).
+    """
+
+    candidate: Candidate
+    gap_before: float
+    gap_after: float
+    holdout_rms_after: dict[str, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the candidate's fields plus the gap before and after this step."""
+        return {**self.candidate.to_dict(), "gap_before": json_float(self.gap_before),
+                "gap_after": json_float(self.gap_after),
+                "holdout_rms_after": {k: json_float(v) for k, v in self.holdout_rms_after.items()}}
 
 
 @dataclass(frozen=True)
@@ -110,9 +143,10 @@ class DiscrepancyResult:
     Attributes
     ----------
     verdict : str
-        ``"effect_found"``, ``"inconclusive"`` or ``"no_significant_effect"``.
+        ``"effect_found"``, ``"inconclusive"`` or ``"no_significant_effect"`` (of the
+        first step: the nominal model).
     effect : Effect or None
-        The accepted effect (None unless ``effect_found``).
+        The first accepted effect (None unless ``effect_found``).
     candidates : tuple of Candidate
         Every exactly fitted candidate, best (lowest criterion) first.
     lookalikes : tuple of Candidate
@@ -142,6 +176,16 @@ class DiscrepancyResult:
         Wall time per stage.
     n_fit_simulations : int
         Exact simulations run by the fits (a cost measure).
+    effects : tuple of EffectStep
+        The accepted chain in order (the first is :attr:`effect`), each with the held-out
+        gap after it; :attr:`augmented_model` holds all of them.
+    minor_effects : tuple of Candidate
+        Candidates that passed every statistical test but shrink the held-out gap by less
+        than ``min_gap_reduction`` (at the step where the chain stopped).
+    operating_point_shift : dict of str -> float
+        With two or more effects: the constant by which each free output's operating
+        point moved for the final augmented model (``free_offsets``); :attr:`series`
+        ``.augmented`` includes it.  Empty otherwise.
     """
 
     verdict: str
@@ -159,6 +203,9 @@ class DiscrepancyResult:
     config: DiscrepancyConfig
     timings_s: dict[str, float] = field(default_factory=dict)
     n_fit_simulations: int = 0
+    effects: tuple[EffectStep, ...] = ()
+    minor_effects: tuple[Candidate, ...] = ()
+    operating_point_shift: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no long arrays): what ``discrepancy.json`` holds."""
@@ -181,6 +228,9 @@ class DiscrepancyResult:
             },
             "timings_s": {k: round(v, 4) for k, v in self.timings_s.items()},
             "n_fit_simulations": self.n_fit_simulations,
+            "effects": [e.to_dict() for e in self.effects],
+            "minor_effects": [c.to_dict() for c in self.minor_effects],
+            "operating_point_shift": {k: float(v) for k, v in self.operating_point_shift.items()},
         }
 
     def __str__(self) -> str:

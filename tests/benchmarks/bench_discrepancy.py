@@ -111,6 +111,7 @@ def run_trial(effect: str | None, seed: int, n: int = 10_000) -> dict[str, Any]:
         "noise": trial.noise, "visibility": trial.visibility, "time_s": elapsed,
         "param_error": float("nan"), "noise_free_removed": float("nan"),
         "lookalikes": [c.effect.describe() for c in result.lookalikes],
+        "n_effects": len(result.effects),
     }
     if trial.effect is not None and found is not None and out["correct"]:
         if trial.effect.name == "saturation" and trial.effect.location != found.location:

@@ -137,7 +137,7 @@ FRAME_SPECS: dict[str, _FrameSpec] = {
 DOCUMENT_KEYS: dict[str, frozenset[str]] = {
     "discrepancy.json": frozenset({"job", "run_id", "kind", "model", "inputs", "outputs",
                                    "data", "verdict", "effect", "candidates", "gap",
-                                   "localization", "dt_s"}),
+                                   "localization", "dt_s", "effects", "minor_effects"}),
 }
 
 
