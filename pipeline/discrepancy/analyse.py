@@ -432,8 +432,9 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray):
 #: Parsimony needs the simpler candidate's BIC improvement within this share of the best
 #: one's as well: misspecification makes the look-alikes' BIC differences a small share
 #: of the improvement (the nuisance dead time: 205 of 14 262, 1.4 %; 311 of 13 775,
-#: 2.3 %), while on a plant
-#: that is its model a remaining gap at the noise level says nothing and BIC is sharp.
+#: 2.3 %), while on a plant that is its model a remaining gap at the noise level says
+#: nothing and BIC is sharp (clean-suite inverse responses were renamed dead times
+#: without this condition).
 _BIC_SHARE = 0.03
 
 
