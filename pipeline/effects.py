@@ -42,22 +42,20 @@ Locations: a block name; an output name (``sensor_bias_drift``); ``"signal->outp
 (``unmodelled_input``).
 
 This module is core (numpy/scipy and :mod:`pipeline.model`/:mod:`pipeline.simulate`).
-It also holds the hidden-effect trial generator used by the test suite and the demo
-(:func:`make_hidden_effect_trial`): data simulated from a shipped model with one hidden
-effect, which the discrepancy workflow must find seeing only the data and the nominal
-model.
+The hidden-effect trial generator (data from a shipped model with hidden effects) is
+:mod:`pipeline.effect_trials`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.signal
 
 from pipeline.errors import ConfigError, ModelError
 from pipeline.blocks import (
@@ -72,19 +70,18 @@ from pipeline.blocks import (
     Transfer,
 )
 from pipeline.model import Model, insert_after, insert_before, scale_gain
-from pipeline.simulate import discrete_state_space, simulate
+from pipeline.simulate import simulate
 
 __all__ = [
     "EFFECT_NAMES",
     "EFFECT_PARAMETERS",
+    "MIN_GAP_REDUCTION",
     "Effect",
-    "HiddenEffectTrial",
     "apply_effect",
     "applicable_locations",
-    "make_hidden_effect_trial",
+    "original_location",
     "output_offsets",
     "predict_outputs",
-    "trial_inputs",
 ]
 
 #: The catalogue (design.md), in the order candidates are listed.
@@ -116,6 +113,12 @@ EFFECT_PARAMETERS: dict[str, dict[str, Any]] = {
 #: Below this time constant (as a fraction of a sample) a lag is simulated as a gain: its
 #: ZOH discretisation differs from 1 by less than exp(-1/1e-3).
 _TAU_AS_GAIN_FRACTION = 1e-3
+
+#: The practical-significance bar of the discrepancy workflow: an effect that shrinks
+#: the held-out gap by less than this fraction is a minor effect, never the finding
+#: (:class:`pipeline.discrepancy.DiscrepancyConfig` ``min_gap_reduction`` defaults to
+#: it).  Defined here, with the catalogue, because the hidden-effect trials use it too.
+MIN_GAP_REDUCTION = 0.05
 
 
 @dataclass(frozen=True)
@@ -225,6 +228,28 @@ def applicable_locations(
     if name == "unmodelled_input":
         return [f"{s}->{o}" for s in signals if s not in model.inputs for o in outputs]
     raise ConfigError(f"effect {name!r} is not in the catalogue; allowed: {', '.join(EFFECT_NAMES)}")
+
+
+def original_location(location: str, names: Sequence[str]) -> str | None:
+    """The location in the model before any effect was added (by :func:`apply_effect`'s
+    naming), or None when it has none.
+
+    An effect inserted after block ``X`` renames the original ``X__<effect>_upstream``
+    (the new block takes the name ``X``): that original maps to ``X``.  A deadband
+    inserted before ``X`` (``X__deadband``) and an unmodelled input's path
+    (``signal__to__output``) are blocks of the effect itself: None.
+
+    Parameters
+    ----------
+    location : str
+        A block name, output name or ``signal->output`` of an augmented model.
+    names : sequence of str
+        The original model's block and output names.
+    """
+    if location in names or "->" in location:
+        return location
+    match = re.fullmatch(r"(.+?)__[a-z_]+_upstream\d*", location)
+    return match.group(1) if match and match.group(1) in names else None
 
 
 def _unique_name(model: Model, base: str) -> str:
@@ -439,294 +464,3 @@ def predict_outputs(
     names = list(augmented.outputs if outputs is None else outputs)
     offsets = output_offsets(effect, n=sim.t_s.size, dt_s=dt_s, outputs=names)
     return {name: sim.signals[name] + offsets[name] for name in names}
-
-
-# -- hidden-effect trials ------------------------------------------------------------
-@dataclass(frozen=True)
-class HiddenEffectTrial:
-    """Data simulated from a nominal model with one hidden effect (or none).
-
-    Attributes
-    ----------
-    model : Model
-        The nominal model (what the workflow is given).
-    inputs : dict of str -> ndarray (N,)
-        Measured signals: the model inputs plus an extra measured signal ``aux_flow``
-        that the model does not use (source of ``unmodelled_input``; a null trial has
-        it too).
-    measured : dict of str -> ndarray (N,)
-        Measured outputs (noisy).
-    dt_s : float
-        Sample period, s.
-    effect : Effect or None
-        The hidden truth (None: null trial).
-    truth : dict of str -> ndarray (N,)
-        Noise-free outputs of the true plant.
-    noise : dict
-        ``{"kind": "white"|"ar1", "phi": float, "relative_std": float}``; the noise std
-        per output is ``relative_std`` times the std of that output's noise-free signal.
-    redraws : int
-        How many effect draws were rejected (unstable loop, or an effect whose output
-        contribution is below :data:`MIN_VISIBILITY` of the noise std, over the whole
-        record or over its last :data:`HOLDOUT_FRACTION`).
-    seed : int
-    visibility : float
-        RMS of the effect's contribution over the noise std, on the output where it
-        shows most (NaN for a null trial).
-    """
-
-    model: Model
-    inputs: dict[str, np.ndarray]
-    measured: dict[str, np.ndarray]
-    dt_s: float
-    effect: Effect | None
-    truth: dict[str, np.ndarray]
-    noise: dict[str, Any]
-    redraws: int
-    seed: int
-    visibility: float = field(default=float("nan"))
-
-
-#: A drawn effect is redrawn when the RMS of its contribution to the outputs (truth minus
-#: nominal, relative to that output's noise std, on the output where it shows most) is
-#: below this.  At 0.25 an effect changes the outputs by a quarter of the sensor noise:
-#: smaller "effects" are not discrepancies an engineer would act on.
-MIN_VISIBILITY = 0.25
-#: ... and also when it is below MIN_VISIBILITY on the last third of the record alone
-#: (the discrepancy workflow's default held-out part).  An effect can vanish there: a
-#: deadband inside a loop with integral action acts only while the block's input
-#: crosses zero; once the input stays on one side the deadband is a constant offset
-#: that the integrator absorbs *exactly* (truth - nominal ~ 1e-14 for the rest of the
-#: record).  No held-out selection can judge such a trial; 4 of the first published
-#: run's 50 deadband trials were of this kind, so the generator redraws them.
-HOLDOUT_FRACTION = 1.0 / 3.0
-
-
-def _ar1(rng: np.random.Generator, n: int, tau_samples: float) -> np.ndarray:
-    """Unit-variance AR(1) with correlation time `tau_samples` (stationary start)."""
-    a = math.exp(-1.0 / tau_samples)
-    e = rng.standard_normal(n) * math.sqrt(1 - a * a)
-    x, _ = scipy.signal.lfilter([1.0], [1.0, -a], e, zi=[a * rng.standard_normal()])
-    return x
-
-
-def _steps(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
-    """Piecewise constant signal with `count` random steps (unit size scale)."""
-    out = np.zeros(n)
-    for k in np.sort(rng.integers(n // 20, n, count)):
-        out[k:] += rng.normal()
-    return out - out.mean()
-
-
-def trial_inputs(model_name: str, *, n: int, dt_s: float,
-                 rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Realistic excitation for the shipped models (deviation units).
-
-    Load (steam flow, kg/s): slow wander (correlation time 20 min) + turbulence (40 s)
-    + a few load steps.  Level set point (drum, mm): a few steps.  ``aux_flow``: an
-    extra measured signal (e.g. a blowdown or attemperator flow) with its own slow
-    wander, turbulence and steps, independent of the load.
-
-    Parameters
-    ----------
-    model_name : str
-        Name of the shipped model; ``"drum_level"`` also gets a ``level_setpoint``.
-    n : int
-        Number of samples.
-    dt_s : float
-        Sample period (s); sets the correlation times in samples.
-    rng : numpy.random.Generator
-        Source of the random wander, turbulence and steps.
-    """
-    n_tau = lambda s: max(s / dt_s, 1.0)  # noqa: E731 - correlation time in samples
-    load = 4.0 * _ar1(rng, n, n_tau(1200)) + 1.0 * _ar1(rng, n, n_tau(40)) + 2.0 * _steps(rng, n, 4)
-    aux = 2.0 * _ar1(rng, n, n_tau(600)) + 0.7 * _ar1(rng, n, n_tau(30)) + 1.0 * _steps(rng, n, 3)
-    signals = {"steam_flow": load - load[0], "aux_flow": aux - aux[0]}
-    if model_name == "drum_level":
-        sp = 20.0 * _steps(rng, n, 6) + 3.0 * _ar1(rng, n, n_tau(300))
-        signals["level_setpoint"] = sp - sp[0]
-    return signals
-
-
-def _stable(model: Model, dt_s: float) -> bool:
-    if not model.is_linear:
-        return True  # checked on the simulated trajectory instead
-    try:
-        system = discrete_state_space(model, dt_s=dt_s)
-    except ModelError:
-        return False
-    return bool(np.max(np.abs(np.linalg.eigvals(system.a)), initial=0.0) < 0.998)
-
-
-def _draw_effect(name: str, model: Model, nominal: Any, inputs: Mapping[str, np.ndarray],
-                 dt_s: float, rng: np.random.Generator) -> Effect:
-    """One random effect of catalogue entry `name` (sizes documented in the suite)."""
-    measured_outputs = list(model.outputs)
-    locations = applicable_locations(model, name, measured_outputs=measured_outputs,
-                                     signals=[s for s in inputs if s not in model.inputs])
-    loc = str(rng.choice(locations))
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    sig = nominal.signals
-    n = next(iter(inputs.values())).size
-    if name == "gain":
-        return Effect(name, loc, {"factor": math.exp(sign * rng.uniform(math.log(1.15), math.log(1.6)))})
-    if name == "dead_time":
-        return Effect(name, loc, {"delay_s": float(rng.integers(2, 16)) * dt_s})
-    if name == "extra_lag":
-        return Effect(name, loc, {"tau_s": math.exp(rng.uniform(math.log(3 * dt_s), math.log(40 * dt_s)))})
-    if name == "inverse_response":
-        return Effect(name, loc, {"tau_s": math.exp(rng.uniform(math.log(4 * dt_s), math.log(30 * dt_s))),
-                                  "magnitude": rng.uniform(0.4, 2.0)})
-    if name == "sensor_bias_drift":
-        std = float(np.std(sig[loc]))
-        hours = n * dt_s / 3600.0
-        return Effect(name, loc, {"bias": sign * rng.uniform(0.2, 1.0) * std,
-                                  "drift_per_h": (1 if rng.random() < 0.5 else -1)
-                                  * rng.uniform(0.2, 1.0) * std / hours})
-    if name == "operating_point_gain":
-        # the gain varies by 20-60 % at the signal's extreme: never changes sign
-        signal = str(rng.choice(list(inputs)))
-        extreme = float(np.max(np.abs(inputs[signal])))
-        return Effect(name, loc, {"slope": sign * rng.uniform(0.2, 0.6) / extreme, "signal": signal})
-    if name == "deadband":
-        block = model.block(loc)
-        u = sum(t.k * (sig[t.signal] if t.signal in sig else inputs[t.signal]) for t in block.inputs)
-        return Effect(name, loc, {"width": rng.uniform(0.3, 1.5) * float(np.std(u))})
-    if name == "saturation":
-        v = sig[loc]
-        return Effect(name, loc, {"low": float(np.quantile(v, rng.uniform(0.03, 0.15))),
-                                  "high": float(np.quantile(v, rng.uniform(0.85, 0.97)))})
-    if name == "unmodelled_input":
-        signal, _, output = loc.partition("->")
-        std_y = float(np.std(sig[output]))
-        return Effect(name, loc, {"k": sign * rng.uniform(0.3, 1.0) * std_y / float(np.std(inputs[signal])),
-                                  "tau_s": math.exp(rng.uniform(math.log(2 * dt_s), math.log(30 * dt_s))),
-                                  "delay_s": float(rng.integers(1, 11)) * dt_s})
-    raise ConfigError(f"effect {name!r} is not in the catalogue")
-
-
-def make_hidden_effect_trial(
-    model: Model,
-    effect_name: str | None,
-    *,
-    seed: int,
-    n: int = 10_000,
-    dt_s: float = 2.0,
-    noise_kind: str | None = None,
-    max_redraws: int = 50,
-) -> HiddenEffectTrial:
-    """Simulate a plant = `model` + one random hidden effect, with sensor noise.
-
-    Parameters
-    ----------
-    model : Model
-        A shipped model (``boiler_pressure`` or ``drum_level``: input names matter).
-    effect_name : str or None
-        Catalogue effect to hide (random location and size); None for a null trial.
-    seed : int
-        Seeds everything (inputs, effect, noise).
-    n : int
-        Samples.
-    dt_s : float
-        Sample period, s (divides every delay of the shipped models).
-    noise_kind : {"white", "ar1"}, optional
-        Default: drawn 50/50.  AR(1) has ``phi ~ U(0.5, 0.9)``.  The noise std is
-        ``U(0.1, 0.3)`` times the std of each noise-free output.
-    max_redraws : int
-        Effects drawn until the loop is stable and the effect visible
-        (:data:`MIN_VISIBILITY`, on the whole record and on its held-out last third).
-
-    Notes
-    -----
-    Effect sizes (uniform, random sign where it has one; location uniform over
-    :func:`applicable_locations`): gain factor ``exp(±U(ln 1.15, ln 1.6))``; dead time
-    2-15 samples; extra lag ``tau_s`` log-uniform 3-40 samples; inverse response
-    ``tau_s`` log-uniform 4-30 samples, ``magnitude`` U(0.4, 2); sensor bias
-    U(0.2, 1) output std and drift U(0.2, 1) output std per record length;
-    operating-point gain: the gain changes by U(0.2, 0.6) at the signal's extreme;
-    deadband width U(0.3, 1.5) std of the block's input; saturation limits at the
-    U(0.03, 0.15) and U(0.85, 0.97) quantiles of the block's nominal output; unmodelled
-    input from ``aux_flow`` with a contribution of U(0.3, 1) output std per signal std,
-    ``tau_s`` log-uniform 2-30 samples, delay 1-10 samples.
-
-    Returns
-    -------
-    HiddenEffectTrial
-    """
-    rng = np.random.default_rng(seed)
-    inputs = trial_inputs(model.name, n=n, dt_s=dt_s, rng=rng)
-    drive = {name: inputs[name] for name in model.inputs}
-    nominal = simulate(model, drive, dt_s=dt_s)
-    kind, phi, rel, noise_unit = _unit_noise(model, n, noise_kind, rng)
-    effect, truth, redraws, visibility = None, None, 0, float("nan")
-    if effect_name is None:
-        truth = {name: nominal.signals[name] for name in model.outputs}
-    else:
-        effect, truth, redraws, visibility = _visible_effect(
-            model, effect_name, nominal, inputs, dt_s=dt_s, rel=rel, n=n, seed=seed,
-            max_redraws=max_redraws, rng=rng)
-    measured = {
-        name: truth[name] + rel * float(np.std(truth[name])) * noise_unit[name]
-        for name in model.outputs
-    }
-    return HiddenEffectTrial(
-        model=model, inputs=inputs, measured=measured, dt_s=dt_s, effect=effect,
-        truth=truth, noise={"kind": kind, "phi": phi, "relative_std": rel},
-        redraws=redraws, seed=seed, visibility=visibility,
-    )
-
-
-def _unit_noise(model: Model, n: int, noise_kind: str | None, rng: np.random.Generator
-                ) -> tuple[str, float, float, dict[str, np.ndarray]]:
-    """The noise kind, AR(1) ``phi``, relative std and unit-variance noise per output."""
-    kind = noise_kind or ("white" if rng.random() < 0.5 else "ar1")
-    phi = 0.0 if kind == "white" else float(rng.uniform(0.5, 0.9))
-    rel = float(rng.uniform(0.1, 0.3))
-    noise_unit = {}
-    for name in model.outputs:
-        e = rng.standard_normal(n)
-        if phi:
-            e, _ = scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
-                                        zi=[phi * rng.standard_normal()])
-        noise_unit[name] = e
-    return kind, phi, rel, noise_unit
-
-
-def _visible_effect(model: Model, effect_name: str, nominal: Any,
-                    inputs: Mapping[str, np.ndarray], *, dt_s: float, rel: float, n: int,
-                    seed: int, max_redraws: int, rng: np.random.Generator
-                    ) -> tuple[Effect, dict[str, np.ndarray], int, float]:
-    """Draw effects until one is stable and visible: the effect, the true outputs, the
-    index of the accepted draw and its visibility."""
-    for redraws in range(max_redraws):
-        candidate = _draw_effect(effect_name, model, nominal, inputs, dt_s, rng)
-        augmented = apply_effect(model, candidate, dt_s=dt_s)
-        if not _stable(augmented, dt_s):
-            continue
-        with np.errstate(all="ignore"):
-            out = predict_outputs(model, candidate, inputs, dt_s=dt_s)
-        if not all(np.all(np.isfinite(v)) and np.std(v) < 20 * np.std(nominal.signals[k]) + 1e-12
-                   for k, v in out.items()):
-            continue
-        visibility, held_visibility = _visibility(model, out, nominal, rel, n)
-        if visibility < MIN_VISIBILITY or held_visibility < MIN_VISIBILITY:
-            continue
-        return candidate, out, redraws, visibility
-    raise ConfigError(
-        f"make_hidden_effect_trial: no stable, visible {effect_name} effect in "
-        f"{max_redraws} draws for model {model.name!r} (seed {seed})"
-    )
-
-
-def _visibility(model: Model, out: Mapping[str, np.ndarray], nominal: Any, rel: float,
-                n: int) -> tuple[float, float]:
-    """RMS of the effect's contribution over the noise std, on the output where it shows
-    most: over the whole record and over its held-out last part."""
-    vis, vis_held = [], []
-    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
-    for name in model.outputs:
-        sigma = rel * float(np.std(out[name]))
-        diff = out[name] - nominal.signals[name]
-        vis.append(float(np.sqrt(np.mean(diff ** 2))) / sigma)
-        vis_held.append(float(np.sqrt(np.mean(diff[held] ** 2))) / sigma)
-    return max(vis), max(vis_held)

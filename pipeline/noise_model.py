@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["NoiseModel", "levinson", "ar_order_by_bic", "DEFAULT_AR_ORDER_MAX",
+__all__ = ["NoiseModel", "levinson", "ar_order_by_bic", "fit_ar", "DEFAULT_AR_ORDER_MAX",
            "is_minimum_phase"]
 
 DEFAULT_AR_ORDER_MAX = 20
@@ -129,6 +129,45 @@ def ar_order_by_bic(r: np.ndarray, n: int, p_max: int) -> tuple[int, np.ndarray,
     bic = n * np.log(err / err[0]) + np.arange(err.size) * np.log(n)
     p = int(np.argmin(bic))
     return p, coefs[p], {int(k): float(v) for k, v in enumerate(bic)}
+
+
+def fit_ar(e: np.ndarray, p_max: int) -> tuple[np.ndarray, float, int]:
+    """AR noise model of a residual series: order by BIC from its autocovariances.
+
+    The same Yule–Walker/Levinson fit and BIC as the estimator's noise models
+    (:func:`ar_order_by_bic`), for a series that is already at hand (the discrepancy
+    workflow's simulation residuals) rather than lag products.
+
+    Parameters
+    ----------
+    e : ndarray (M,)
+        Residual series (its mean is removed first).
+    p_max : int
+        Highest AR order tried (also capped at ``M // 20``).
+
+    Returns
+    -------
+    d : ndarray (p + 1,)
+        The whitening filter ``[1, d_1, .., d_p]`` (``D(q) e`` is white).
+    innovation_std : float
+        Standard deviation of the whitened series, in the units of ``e``.
+    p : int
+        The chosen order.
+    """
+    e = np.asarray(e, dtype=float)
+    e = e - e.mean()
+    m = e.size
+    n_lags = int(min(p_max, max(m // 20, 0))) + 1
+    # biased autocovariances (divided by m) by FFT: they keep the Toeplitz matrix
+    # positive definite, so every Levinson order is a stable, minimum-phase filter
+    nfft = 1 << int(np.ceil(np.log2(max(2 * m, 2))))
+    spec = np.fft.rfft(e, nfft)
+    r = np.fft.irfft(spec * np.conj(spec), nfft)[:n_lags] / max(m, 1)
+    if r[0] <= 0.0:
+        return np.array([1.0]), 0.0, 0
+    p, coef, _ = ar_order_by_bic(r, m, p_max)
+    _, err = levinson(r, p)
+    return np.concatenate([[1.0], coef]), float(np.sqrt(max(err[p], 0.0))), p
 
 
 def is_minimum_phase(d: np.ndarray, margin: float = 1e-6) -> bool:

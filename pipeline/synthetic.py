@@ -12,7 +12,8 @@ import math
 import numpy as np
 import scipy.signal
 
-from pipeline.effects import Effect, apply_effect, trial_inputs
+from pipeline.effect_trials import trial_inputs
+from pipeline.effects import Effect, apply_effect
 from pipeline.model import Model
 from pipeline.simulate import simulate
 

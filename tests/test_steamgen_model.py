@@ -136,9 +136,14 @@ def test_a_flattening_o2_clip_is_rejected_on_the_held_out_gap(model, deviations)
     assert any(c.delta_bic >= 10 and c.holdout_z >= 2 and c.holdout_gap > gap_nominal
                for c in result.candidates), "the case this test guards against did not arise"
     for c in result.candidates:
-        assert c.passed == (c.delta_bic >= 10 and c.holdout_z >= 2
-                            and c.holdout_gap < gap_nominal)
+        whitened = c.delta_bic >= 10 and c.holdout_z >= 2 and c.holdout_gap < gap_nominal
+        plain = c.holdout_rms_p <= 0.01 and c.holdout_gap < gap_nominal
+        assert c.passed == (whitened or plain)
+        if c.holdout_gap > gap_nominal:
+            assert not c.passed  # the flattening clip: neither way lets it through
+    # what passes (a clip at the analyser's 0 % reading) closes < 5 % of the gap: minor
     assert result.verdict == "no_significant_effect"
+    assert all(c.gap_reduction < 0.05 for c in result.minor_effects)
     assert result.gap["holdout_rms_after"] == gap_nominal
 
 
@@ -163,8 +168,19 @@ def test_discrepancy_job_runs_end_to_end_on_the_real_record(tmp_path, capsys):
     for c in d["candidates"]:
         if c["passed"]:
             assert c["holdout_gap"] < before
-    if d["verdict"] == "effect_found":
-        assert d["gap"]["holdout_rms_after"] < before
+    # Issue 12 build 5: the whitened criteria take slow O2 errors for noise (the AR
+    # noise model is near a unit root); the held-out RMS test (block bootstrap) lets the
+    # air-scheduled combustion gain through -- the 25 % what-if below -- while the
+    # whitened winners (an O2 lag / dead time) close ~1 % and are minor.
+    assert d["verdict"] == "effect_found"
+    effect = d["effects"][0]
+    assert (effect["name"], effect["location"], effect["parameters"]["signal"]) == (
+        "operating_point_gain", "combustion", "air")
+    assert effect["passed_by"] in ("held-out RMS", "both") and effect["holdout_rms_p"] <= 0.01
+    o2 = d["gap"]["per_output"]["o2"]
+    assert o2["reduction"] > 0.2  # measured 3.625 -> 2.715 (25.1 %)
+    assert d["gap"]["holdout_rms_after"] < before
+    assert all(m["gap_reduction"] < 0.05 for m in d["minor_effects"])
     # the localisation names, per output, which inputs explain the residual
     assert set(d["localization"]) == {"pressure", "o2", "level", "steam"}
     assert "fuel" in d["localization"]["steam"]["explained_by"]

@@ -305,6 +305,7 @@ class DiscrepancySection(_Strict):
     ar_order_max: int | None = None
     bic_margin: float | None = None
     holdout_z_min: float | None = None
+    holdout_rms_alpha: float | None = None
     lookalike_margin: float | None = None
     n_fit_candidates: int | None = None
     max_delay_s: float | None = None

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pipeline.effects import EFFECT_NAMES
+from pipeline.effects import EFFECT_NAMES, MIN_GAP_REDUCTION
 from pipeline.errors import ConfigError
 
 
@@ -35,6 +35,13 @@ class DiscrepancyConfig:
         "very strong" evidence on the Kass-Raftery scale).
     holdout_z_min : float
         Minimum held-out z statistic (whitened SSE drop over its null std).
+    holdout_rms_alpha : float
+        Level of the plain held-out RMS test (block bootstrap,
+        :func:`pipeline.discrepancy.select.holdout_rms_test`), the second way a candidate
+        passes: when the noise model absorbs slow errors the whitened tests undervalue a
+        large, held-out confirmed improvement.  0.01: about ten candidates are tested per
+        search, so the chance that any one passes by luck stays near 10 % -- and a lucky
+        pass must still shrink the gap by ``min_gap_reduction`` to be a finding.
     lookalike_margin : float
         BIC distance under which two accepted candidates of different classes are
         indistinguishable (verdict ``inconclusive``).
@@ -56,8 +63,9 @@ class DiscrepancyConfig:
         Effects accepted one after the other at most: after each, the search runs again
         on the augmented model (1 = the single best effect only).
     min_gap_reduction : float
-        Fraction by which an effect must shrink the held-out gap (of the model it is
-        added to) to be a finding; a statistically significant but smaller one is
+        Fraction of the NOMINAL model's held-out gap an effect must close to be a
+        finding (later effects of the chain too: otherwise the chain grows by ever
+        smaller corrections once the remaining gap is near the noise floor); a statistically significant but smaller one is
         reported under ``minor_effects``.  Default 0.05: under realistic nuisance
         mismatch (a plant simulated independently of the model, DCS delay, input noise)
         spurious one-sample delays and 1 % gain changes pass every statistical test
@@ -79,6 +87,7 @@ class DiscrepancyConfig:
     ar_order_max: int = 4
     bic_margin: float = 10.0
     holdout_z_min: float = 2.0
+    holdout_rms_alpha: float = 0.01
     lookalike_margin: float = 3.0
     n_fit_candidates: int = 5
     max_delay_s: float | None = None
@@ -87,7 +96,7 @@ class DiscrepancyConfig:
     n_load_bins: int = 5
     max_nfev: int = 40
     max_effects: int = 3
-    min_gap_reduction: float = 0.05
+    min_gap_reduction: float = MIN_GAP_REDUCTION
     lookalike_gap: float = 0.10
 
     def __post_init__(self) -> None:
@@ -104,6 +113,7 @@ class DiscrepancyConfig:
             ("ar_order_max", 0 <= self.ar_order_max <= 20, "an integer 0..20"),
             ("bic_margin", self.bic_margin >= 0, ">= 0"),
             ("holdout_z_min", math.isfinite(self.holdout_z_min), "finite"),
+            ("holdout_rms_alpha", 0.0 <= self.holdout_rms_alpha < 0.5, "in [0, 0.5)"),
             ("lookalike_margin", self.lookalike_margin >= 0, ">= 0"),
             ("n_fit_candidates", self.n_fit_candidates >= 1, ">= 1"),
             ("n_bootstrap", self.n_bootstrap >= 9, ">= 9"),

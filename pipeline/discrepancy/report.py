@@ -166,14 +166,20 @@ def _candidates(doc: Mapping[str, Any]) -> list[str]:
     cfg = doc.get("config") if isinstance(doc.get("config"), Mapping) else {}
     lines = ["", "## Candidates (best first)", ""]
     if cfg:
-        lines += [f"Accepted: ΔBIC ≥ {fmt_number(cfg.get('bic_margin'))}, held-out z ≥ "
+        lines += [f"Passed: ΔBIC ≥ {fmt_number(cfg.get('bic_margin'))}, held-out z ≥ "
                   f"{fmt_number(cfg.get('holdout_z_min'))} and a held-out gap below the nominal "
-                  f"{fmt_number((doc.get('gap') or {}).get('holdout_rms_before'))}.", ""]
-    lines += ["| # | effect | ΔBIC | held-out z | held-out gap | passed |",
-              "|---|---|---|---|---|---|"]
+                  f"{fmt_number((doc.get('gap') or {}).get('holdout_rms_before'))} (whitened), "
+                  "or a held-out RMS reduction with block-bootstrap p ≤ "
+                  f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
+                  f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
+                  "the gap.", ""]
+    lines += ["| # | effect | ΔBIC | held-out z | held-out gap | gap reduction | RMS p | passed |",
+              "|---|---|---|---|---|---|---|---|"]
     lines += [f"| {k} | {effect_text(c)} | {fmt_number(c.get('delta_bic'))} | "
-              f"{fmt_number(c.get('holdout_z'), 3)} | {fmt_number(c.get('holdout_gap'))} "
-              f"| {'yes' if c.get('passed') is True else 'no'} |"
+              f"{fmt_number(c.get('holdout_z'), 3)} | {fmt_number(c.get('holdout_gap'))} | "
+              f"{100 * json_number(c.get('gap_reduction')):.1f} % | "
+              f"{fmt_number(c.get('holdout_rms_p'), 2)} | "
+              f"{md_cell(c.get('passed_by')) if c.get('passed') is True else 'no'} |"
               for k, c in enumerate(cands[:8], 1)]
     return lines
 

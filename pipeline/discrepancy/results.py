@@ -43,11 +43,17 @@ class Candidate:
     screening_score : float
         Approximate whitened sum of squares explained at screening, minus the BIC penalty.
     passed : bool
-        Every statistical acceptance test passed.
+        The statistical acceptance passed: the whitened tests (BIC margin, held-out z,
+        held-out gap below the model's) or the plain held-out RMS test.
     gap_reduction : float
         ``1 - holdout_gap / (the model's held-out gap)``: how much of the gap of the model
         it was added to the candidate closes on held-out data (practical significance:
         at least ``min_gap_reduction`` for a finding).
+    holdout_rms_p : float
+        Block-bootstrap p-value of "no held-out RMS reduction"
+        (:func:`pipeline.discrepancy.select.holdout_rms_test`).
+    passed_by : str
+        Which acceptance passed: ``"whitened"``, ``"held-out RMS"``, ``"both"`` or ``""``.
     """
 
     effect: Effect
@@ -60,6 +66,8 @@ class Candidate:
     screening_score: float
     passed: bool
     gap_reduction: float = math.nan
+    holdout_rms_p: float = math.nan
+    passed_by: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
@@ -74,6 +82,8 @@ class Candidate:
             screening_score=json_float(self.screening_score),
             passed=self.passed,
             gap_reduction=json_float(self.gap_reduction),
+            holdout_rms_p=json_float(self.holdout_rms_p),
+            passed_by=self.passed_by,
         )
         return out
 
@@ -186,6 +196,10 @@ class DiscrepancyResult:
         With two or more effects: the constant by which each free output's operating
         point moved for the final augmented model (``free_offsets``); :attr:`series`
         ``.augmented`` includes it.  Empty otherwise.
+    revised_prior : tuple of Effect
+        Internal to the chain: for a search on a model that already holds effects, those
+        effects as refitted jointly with this search's :attr:`effect` (unchanged when it
+        was not a joint refit).
     """
 
     verdict: str
@@ -206,6 +220,7 @@ class DiscrepancyResult:
     effects: tuple[EffectStep, ...] = ()
     minor_effects: tuple[Candidate, ...] = ()
     operating_point_shift: dict[str, float] = field(default_factory=dict)
+    revised_prior: tuple[Effect, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no long arrays): what ``discrepancy.json`` holds."""

@@ -11,11 +11,10 @@ from typing import Any
 import numpy as np
 import scipy.fft
 import scipy.optimize
-import scipy.signal
 
 from pipeline.discrepancy.localise import lag_filter
-from pipeline.discrepancy.problem import Problem
-from pipeline.effects import Effect, applicable_locations, predict_outputs
+from pipeline.discrepancy.problem import Problem, fir_from
+from pipeline.effects import Effect, applicable_locations, original_location, predict_outputs
 from pipeline.errors import ModelError, PipelineError
 from pipeline.blocks import Sum, Term
 from pipeline.model import Model, insert_after, insert_before
@@ -450,7 +449,7 @@ def batch_sse(P: Problem, y_corr: np.ndarray, stop: int) -> np.ndarray:
     total = np.zeros(y_corr.shape[2])
     for i in range(P.n_y):
         e = (P.y[:stop, i] - P.y_nominal[:stop, i])[:, None] - y_corr[:, i, :]
-        w = scipy.signal.lfilter(P.ar[i], [1.0], e, axis=0)[first:stop] / P.sigma[i]
+        w = fir_from(P.ar[i], e, first)[: stop - first] / P.sigma[i]
         total += np.einsum("ij,ij->j", w, w)
     return np.where(np.isfinite(total), total, np.inf)
 
@@ -611,6 +610,9 @@ def screen_all(P: Problem, resid: np.ndarray,
     for name in P.config.effects:
         locations = applicable_locations(P.model, name, measured_outputs=P.outputs,
                                          signals=P.extra_signals)
+        if P.location_names is not None:
+            locations = [loc for loc in locations
+                         if original_location(loc, P.location_names) is not None]
         # operating_point_gain: one candidate per scheduling signal (part of its identity)
         signals = list(P.inputs) if name == "operating_point_gain" else [None]
         for loc in locations:

@@ -83,6 +83,18 @@ def main(argv: list[str] | None = None) -> None:
     u = rng.standard_normal((n, 1))
     t_nl, _ = _best_of(lambda: simulate(model, u, dt_s=dt_s))
     print(f"{'boiler+sat+db':16s} nonlinear, per-sample path {t_nl * 1e3:7.1f} ms")
+    # the test suite's independent plant (tests/plant_sim.py: continuous time, Heun at
+    # dt/10, DCS controllers) on the same record, beside the pipeline's simulator
+    from tests.plant_sim import simulate_plant
+
+    for name in ("boiler_pressure", "drum_level"):
+        model = _load(name)
+        u = {k: np.cumsum(rng.standard_normal(n)) * 0.01 for k in model.inputs}
+        t_sim, _ = _best_of(lambda m=model, u=u: simulate(m, u, dt_s=dt_s), repeats=3)
+        t_ind, _ = _best_of(lambda m=model, u=u: simulate_plant(
+            m, u, dt_s=dt_s, substeps=10, dcs_scan_s=0.5), repeats=1)
+        print(f"{name:16s} independent plant (10 substeps, DCS) {t_ind * 1e3:7.1f} ms "
+              f"= {t_ind / t_sim:5.1f}x pipeline.simulate")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,136 @@
+"""Joint refits for the chain: a later candidate refitted together with the earlier effects.
+
+When a plant misses two effects, the first accepted effect is fitted alone and absorbs
+part of the second (a saturation's limits narrow to mimic an extra lag; a lag moves to
+mimic a gain).  The second effect, fitted on top of that compromise with the first held
+fixed, then closes too little of the remaining gap to pass.  So the best candidates of a
+later search are refitted *jointly* with the continuous parameters of every earlier
+effect (the earlier ones start where they are; least squares moves all of them), and
+judged by the same tests as any candidate.  Integer and structural parameters (dead
+times in whole samples, scheduling signals, a sensor bias that lives outside the model)
+stay fixed -- the backfitting sweeps of :mod:`pipeline.discrepancy.chain` revisit those.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.optimize
+import scipy.signal
+
+from pipeline.discrepancy.problem import Problem
+from pipeline.effects import Effect, apply_effect
+from pipeline.errors import PipelineError
+from pipeline.model import Model
+from pipeline.simulate import simulate
+
+#: Parameters refitted jointly, and whether they are positive (fitted in log).
+_FREE: dict[str, dict[str, bool]] = {
+    "gain": {"factor": True},
+    "extra_lag": {"tau_s": True},
+    "inverse_response": {"tau_s": True, "magnitude": False},
+    "operating_point_gain": {"slope": False},
+    "deadband": {"width": True},
+    "saturation": {"low": False, "high": False},
+    "unmodelled_input": {"k": False, "tau_s": True},
+}
+#: Candidates of a later search refitted jointly with the earlier effects.
+N_JOINT = 3
+#: Least-squares evaluations per joint refit, per free parameter.
+_NFEV_PER_PARAMETER = 8
+
+
+def _free(effects: Sequence[Effect]) -> list[tuple[int, str, bool]]:
+    """(effect index, parameter, positive) of every jointly refitted parameter."""
+    out = []
+    for i, e in enumerate(effects):
+        for key, positive in _FREE.get(e.name, {}).items():
+            value = e.parameters.get(key)
+            if isinstance(value, (int, float)) and math.isfinite(value) and (
+                    not positive or value > 0):
+                out.append((i, key, positive))
+    return out
+
+
+def _with(effects: Sequence[Effect], free: list[tuple[int, str, bool]], x: np.ndarray
+          ) -> list[Effect]:
+    params = [dict(e.parameters) for e in effects]
+    for (i, key, positive), v in zip(free, x, strict=True):
+        params[i][key] = float(math.exp(v) if positive else v)
+    return [dataclasses.replace(e, parameters=p) for e, p in zip(effects, params, strict=True)]
+
+
+def joint_refit(P: Problem, nominal: Model, prior: Sequence[Effect], candidate: Effect
+                ) -> tuple[list[Effect], Effect, np.ndarray] | None:
+    """Refit `candidate` together with the earlier effects `prior`.
+
+    Parameters
+    ----------
+    P : Problem
+        The search's problem: its model is `nominal` with `prior`; its measured outputs,
+        split and noise model weight the fit (whitened fit part, as every fit).
+    nominal : Model
+        The nominal model (the chain's effects have its location names).
+    prior : sequence of Effect
+        The chain's effects so far, in order.
+    candidate : Effect
+        A candidate of this search (locations of ``P.model``).
+
+    Returns
+    -------
+    (prior refitted, candidate refitted, predicted outputs (N, n_y)) or None when no
+    parameter is free or the refit fails.
+    """
+    effects = [*prior, candidate]
+    free = _free(effects)
+    if not free or not _free([candidate]):
+        return None
+    x0 = np.array([math.log(effects[i].parameters[k]) if pos else effects[i].parameters[k]
+                   for i, k, pos in free])
+
+    def predict(x: np.ndarray, stop: int) -> np.ndarray | None:
+        trial = _with(effects, free, x)
+        model = nominal
+        for e in trial[:-1]:
+            model = apply_effect(model, e, dt_s=P.dt_s)
+        try:
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", scipy.signal.BadCoefficients)
+                model = apply_effect(model, trial[-1], dt_s=P.dt_s)
+                sim = simulate(model, {k: v[:stop] for k, v in P.inputs.items()
+                                       if k in model.inputs},
+                               dt_s=P.dt_s, initial=P.config.initial)
+        except (PipelineError, ValueError):
+            return None
+        y = np.column_stack([sim.signals[o] for o in P.outputs])
+        return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
+
+    stop = P.holdout_start
+    y0 = predict(x0, stop)
+    if y0 is None:
+        return None
+    r0 = P.whiten(P.y[:stop] - y0, P.fit_start, stop)
+    flat = 1e4 * max(1.0, float(np.sqrt(np.mean(r0 ** 2))))
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        y = predict(x, stop)
+        if y is None:
+            return np.full(r0.size, flat)
+        return P.whiten(P.y[:stop] - y, P.fit_start, stop)
+
+    try:
+        sol = scipy.optimize.least_squares(residual, x0, x_scale="jac", ftol=1e-6, xtol=1e-6,
+                                           max_nfev=_NFEV_PER_PARAMETER * len(free))
+    except (ValueError, PipelineError):
+        return None
+    if not 2 * sol.cost < float(r0 @ r0):
+        return None
+    refitted = _with(effects, free, sol.x)
+    y = predict(sol.x, P.n)
+    if y is None:
+        return None
+    return refitted[:-1], refitted[-1], y

@@ -1,0 +1,439 @@
+"""Hidden-effect trials: data simulated from a shipped model with hidden catalogue effects.
+
+The discrepancy workflow must find the effects seeing only the data and the nominal
+model.  Used by the test suite, the benchmark (``tests/benchmarks/bench_discrepancy.py``)
+and the demo's inputs (:func:`trial_inputs`).  Core: numpy/scipy and the pipeline's
+model, simulation and effect catalogue.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.signal
+
+from pipeline.effects import (
+    MIN_GAP_REDUCTION,
+    Effect,
+    applicable_locations,
+    apply_effect,
+    output_offsets,
+    predict_outputs,
+)
+from pipeline.errors import ConfigError, ModelError
+from pipeline.model import Model
+from pipeline.simulate import discrete_state_space, simulate
+
+__all__ = ["HiddenEffectTrial", "MIN_VISIBILITY", "TRIAL_GAP_REDUCTION", "HOLDOUT_FRACTION",
+           "trial_inputs", "make_hidden_effect_trial", "make_hidden_effects_trial"]
+
+
+@dataclass(frozen=True)
+class HiddenEffectTrial:
+    """Data simulated from a nominal model with hidden effects (one, several or none).
+
+    Attributes
+    ----------
+    model : Model
+        The nominal model (what the workflow is given).
+    inputs : dict of str -> ndarray (N,)
+        Measured signals: the model inputs plus an extra measured signal ``aux_flow``
+        that the model does not use (source of ``unmodelled_input``; a null trial has
+        it too).
+    measured : dict of str -> ndarray (N,)
+        Measured outputs (noisy).
+    dt_s : float
+        Sample period, s.
+    effect : Effect or None
+        The hidden truth (None: null trial); the first of ``effects``.
+    truth : dict of str -> ndarray (N,)
+        Noise-free outputs of the true plant.
+    noise : dict
+        ``{"kind": "white"|"ar1", "phi": float, "relative_std": float}``; the noise std
+        per output is ``relative_std`` times the std of that output's noise-free signal.
+    redraws : int
+        How many effect draws were rejected (unstable loop, or an effect whose output
+        contribution is below :data:`MIN_VISIBILITY` of the noise std over the whole
+        record, or that would shrink the held-out gap of its last
+        :data:`HOLDOUT_FRACTION` by less than :data:`TRIAL_GAP_REDUCTION`).
+    seed : int
+    visibility : float
+        RMS of the (first) effect's contribution over the noise std, on the output
+        where it shows most (NaN for a null trial).
+    effects : tuple of Effect
+        Every hidden effect, in the order they were added (empty: null trial).
+    """
+
+    model: Model
+    inputs: dict[str, np.ndarray]
+    measured: dict[str, np.ndarray]
+    dt_s: float
+    effect: Effect | None
+    truth: dict[str, np.ndarray]
+    noise: dict[str, Any]
+    redraws: int
+    seed: int
+    visibility: float = field(default=float("nan"))
+    effects: tuple[Effect, ...] = ()
+
+
+#: A drawn effect is redrawn when the RMS of its contribution to the outputs (truth minus
+#: nominal, relative to that output's noise std, on the output where it shows most) is
+#: below this over the whole record.  At 0.25 an effect changes the outputs by a quarter
+#: of the sensor noise: smaller "effects" are not discrepancies an engineer would act on.
+MIN_VISIBILITY = 0.25
+#: A trial's effect must also shrink the held-out gap by at least this much when added
+#: to the model with its TRUE parameters (the expected held-out RMS of the nominal model,
+#: sqrt(noise var + effect contribution), against the noise alone; pooled over outputs as
+#: the workflow's ``gap`` is): 1.5 times :data:`MIN_GAP_REDUCTION`, so that a trial is
+#: never an effect the workflow must by definition call minor (before this bar the
+#: generator's only bar was visibility 0.25, i.e. a 3 % reduction) and a fitted effect
+#: a little off its true parameters still clears the 5 % bar.
+TRIAL_GAP_REDUCTION = 1.5 * MIN_GAP_REDUCTION
+#: ... on the last third of the record (the discrepancy workflow's default held-out
+#: part).  An effect can vanish there: a deadband inside a loop with integral action
+#: acts only while the block's input crosses zero; once the input stays on one side the
+#: deadband is a constant offset that the integrator absorbs *exactly* (truth - nominal
+#: ~ 1e-14 for the rest of the record).  No held-out selection can judge such a trial;
+#: 4 of the first published run's 50 deadband trials were of this kind.
+HOLDOUT_FRACTION = 1.0 / 3.0
+
+
+def _ar1(rng: np.random.Generator, n: int, tau_samples: float) -> np.ndarray:
+    """Unit-variance AR(1) with correlation time `tau_samples` (stationary start)."""
+    a = math.exp(-1.0 / tau_samples)
+    e = rng.standard_normal(n) * math.sqrt(1 - a * a)
+    x, _ = scipy.signal.lfilter([1.0], [1.0, -a], e, zi=[a * rng.standard_normal()])
+    return x
+
+
+def _steps(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
+    """Piecewise constant signal with `count` random steps (unit size scale)."""
+    out = np.zeros(n)
+    for k in np.sort(rng.integers(n // 20, n, count)):
+        out[k:] += rng.normal()
+    return out - out.mean()
+
+
+def trial_inputs(model_name: str, *, n: int, dt_s: float,
+                 rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Realistic excitation for the shipped models (deviation units).
+
+    Load (steam flow, kg/s): slow wander (correlation time 20 min) + turbulence (40 s)
+    + a few load steps.  Level set point (drum, mm): a few steps.  ``aux_flow``: an
+    extra measured signal (e.g. a blowdown or attemperator flow) with its own slow
+    wander, turbulence and steps, independent of the load.
+
+    Parameters
+    ----------
+    model_name : str
+        Name of the shipped model; ``"drum_level"`` also gets a ``level_setpoint``.
+    n : int
+        Number of samples.
+    dt_s : float
+        Sample period (s); sets the correlation times in samples.
+    rng : numpy.random.Generator
+        Source of the random wander, turbulence and steps.
+    """
+    n_tau = lambda s: max(s / dt_s, 1.0)  # noqa: E731 - correlation time in samples
+    load = 4.0 * _ar1(rng, n, n_tau(1200)) + 1.0 * _ar1(rng, n, n_tau(40)) + 2.0 * _steps(rng, n, 4)
+    aux = 2.0 * _ar1(rng, n, n_tau(600)) + 0.7 * _ar1(rng, n, n_tau(30)) + 1.0 * _steps(rng, n, 3)
+    signals = {"steam_flow": load - load[0], "aux_flow": aux - aux[0]}
+    if model_name == "drum_level":
+        sp = 20.0 * _steps(rng, n, 6) + 3.0 * _ar1(rng, n, n_tau(300))
+        signals["level_setpoint"] = sp - sp[0]
+    return signals
+
+
+def _stable(model: Model, dt_s: float) -> bool:
+    if not model.is_linear:
+        return True  # checked on the simulated trajectory instead
+    try:
+        system = discrete_state_space(model, dt_s=dt_s)
+    except ModelError:
+        return False
+    return bool(np.max(np.abs(np.linalg.eigvals(system.a)), initial=0.0) < 0.998)
+
+
+def _draw_effect(name: str, model: Model, nominal: Any, inputs: Mapping[str, np.ndarray],
+                 dt_s: float, rng: np.random.Generator, *, locations_of: Model,
+                 exclude: set[str]) -> Effect:
+    """One random effect of catalogue entry `name` (sizes documented in the suite),
+    sized on `model` (simulated: `nominal`) at a location of `locations_of` that shares
+    no block or output with `exclude`."""
+    locations = [loc for loc in applicable_locations(
+        locations_of, name, measured_outputs=list(locations_of.outputs),
+        signals=[s for s in inputs if s not in locations_of.inputs])
+        if not set(loc.split("->")) & exclude]
+    if not locations:
+        raise ConfigError(f"effect {name!r}: no free location left in model "
+                          f"{locations_of.name!r} (taken: {sorted(exclude)})")
+    loc = str(rng.choice(locations))
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    sig = nominal.signals
+    n = next(iter(inputs.values())).size
+    if name == "gain":
+        return Effect(name, loc, {"factor": math.exp(sign * rng.uniform(math.log(1.15), math.log(1.6)))})
+    if name == "dead_time":
+        return Effect(name, loc, {"delay_s": float(rng.integers(2, 16)) * dt_s})
+    if name == "extra_lag":
+        return Effect(name, loc, {"tau_s": math.exp(rng.uniform(math.log(3 * dt_s), math.log(40 * dt_s)))})
+    if name == "inverse_response":
+        return Effect(name, loc, {"tau_s": math.exp(rng.uniform(math.log(4 * dt_s), math.log(30 * dt_s))),
+                                  "magnitude": rng.uniform(0.4, 2.0)})
+    if name == "sensor_bias_drift":
+        std = float(np.std(sig[loc]))
+        hours = n * dt_s / 3600.0
+        return Effect(name, loc, {"bias": sign * rng.uniform(0.2, 1.0) * std,
+                                  "drift_per_h": (1 if rng.random() < 0.5 else -1)
+                                  * rng.uniform(0.2, 1.0) * std / hours})
+    if name == "operating_point_gain":
+        # the gain varies by 20-60 % at the signal's extreme: never changes sign
+        signal = str(rng.choice(list(inputs)))
+        extreme = float(np.max(np.abs(inputs[signal])))
+        return Effect(name, loc, {"slope": sign * rng.uniform(0.2, 0.6) / extreme, "signal": signal})
+    if name == "deadband":
+        block = model.block(loc)
+        u = sum(t.k * (sig[t.signal] if t.signal in sig else inputs[t.signal]) for t in block.inputs)
+        return Effect(name, loc, {"width": rng.uniform(0.3, 1.5) * float(np.std(u))})
+    if name == "saturation":
+        v = sig[loc]
+        return Effect(name, loc, {"low": float(np.quantile(v, rng.uniform(0.03, 0.15))),
+                                  "high": float(np.quantile(v, rng.uniform(0.85, 0.97)))})
+    if name == "unmodelled_input":
+        signal, _, output = loc.partition("->")
+        std_y = float(np.std(sig[output]))
+        return Effect(name, loc, {"k": sign * rng.uniform(0.3, 1.0) * std_y / float(np.std(inputs[signal])),
+                                  "tau_s": math.exp(rng.uniform(math.log(2 * dt_s), math.log(30 * dt_s))),
+                                  "delay_s": float(rng.integers(1, 11)) * dt_s})
+    raise ConfigError(f"effect {name!r} is not in the catalogue")
+
+
+def make_hidden_effect_trial(
+    model: Model,
+    effect_name: str | None,
+    *,
+    seed: int,
+    n: int = 10_000,
+    dt_s: float = 2.0,
+    noise_kind: str | None = None,
+    max_redraws: int = 50,
+) -> HiddenEffectTrial:
+    """Simulate a plant = `model` + one random hidden effect, with sensor noise.
+
+    Parameters
+    ----------
+    model : Model
+        A shipped model (``boiler_pressure`` or ``drum_level``: input names matter).
+    effect_name : str or None
+        Catalogue effect to hide (random location and size); None for a null trial.
+    seed : int
+        Seeds everything (inputs, effect, noise).
+    n : int
+        Samples.
+    dt_s : float
+        Sample period, s (divides every delay of the shipped models).
+    noise_kind : {"white", "ar1"}, optional
+        Default: drawn 50/50.  AR(1) has ``phi ~ U(0.5, 0.9)``.  The noise std is
+        ``U(0.1, 0.3)`` times the std of each noise-free output.
+    max_redraws : int
+        Effects drawn until the loop is stable and the effect visible
+        (:data:`MIN_VISIBILITY` on the whole record, :data:`TRIAL_GAP_REDUCTION` on its
+        held-out last third).
+
+    Notes
+    -----
+    Effect sizes (uniform, random sign where it has one; location uniform over
+    :func:`applicable_locations`): gain factor ``exp(±U(ln 1.15, ln 1.6))``; dead time
+    2-15 samples; extra lag ``tau_s`` log-uniform 3-40 samples; inverse response
+    ``tau_s`` log-uniform 4-30 samples, ``magnitude`` U(0.4, 2); sensor bias
+    U(0.2, 1) output std and drift U(0.2, 1) output std per record length;
+    operating-point gain: the gain changes by U(0.2, 0.6) at the signal's extreme;
+    deadband width U(0.3, 1.5) std of the block's input; saturation limits at the
+    U(0.03, 0.15) and U(0.85, 0.97) quantiles of the block's nominal output; unmodelled
+    input from ``aux_flow`` with a contribution of U(0.3, 1) output std per signal std,
+    ``tau_s`` log-uniform 2-30 samples, delay 1-10 samples.
+
+    Returns
+    -------
+    HiddenEffectTrial
+    """
+    names = () if effect_name is None else (effect_name,)
+    return make_hidden_effects_trial(model, names, seed=seed, n=n, dt_s=dt_s,
+                                     noise_kind=noise_kind, max_redraws=max_redraws)
+
+
+def make_hidden_effects_trial(
+    model: Model,
+    effect_names: Sequence[str],
+    *,
+    seed: int,
+    n: int = 10_000,
+    dt_s: float = 2.0,
+    noise_kind: str | None = None,
+    max_redraws: int = 50,
+) -> HiddenEffectTrial:
+    """Simulate a plant = `model` + several hidden effects at different locations.
+
+    The effects are drawn one after the other as in :func:`make_hidden_effect_trial`
+    (the k-th sized on the model with the earlier ones added), each at a location no
+    earlier one uses, and each must be visible *on top of the others*: the plant with
+    every effect against the plant without that one shrinks the held-out gap by at
+    least :data:`TRIAL_GAP_REDUCTION` (an effect the others hide is no finding).  An
+    empty `effect_names` is a null trial.
+
+    Parameters
+    ----------
+    model : Model
+        A shipped model (``boiler_pressure`` or ``drum_level``).
+    effect_names : sequence of str
+        Catalogue effects to hide, in order (repeats allowed at different locations).
+    seed : int
+        Seeds everything (inputs, effects, noise).
+    n : int
+        Samples.
+    dt_s : float
+        Sample period, s.
+    noise_kind : {"white", "ar1"}, optional
+        As in :func:`make_hidden_effect_trial`.
+    max_redraws : int
+        Draws per effect until the loop is stable and every effect visible; the whole
+        set is redrawn up to this many times when a later effect hides an earlier one.
+
+    Returns
+    -------
+    HiddenEffectTrial
+        ``effect`` is the first effect, ``effects`` all of them.
+    """
+    rng = np.random.default_rng(seed)
+    inputs = trial_inputs(model.name, n=n, dt_s=dt_s, rng=rng)
+    drive = {name: inputs[name] for name in model.inputs}
+    nominal = simulate(model, drive, dt_s=dt_s)
+    kind, phi, rel, noise_unit = _unit_noise(model, n, noise_kind, rng)
+    effects: tuple[Effect, ...] = ()
+    truth = {name: nominal.signals[name] for name in model.outputs}
+    redraws, visibility = 0, float("nan")
+    if effect_names:
+        effects, truth, redraws, visibility = _visible_effects(
+            model, tuple(effect_names), nominal, inputs, dt_s=dt_s, rel=rel, n=n,
+            seed=seed, max_redraws=max_redraws, rng=rng)
+    measured = {
+        name: truth[name] + rel * float(np.std(truth[name])) * noise_unit[name]
+        for name in model.outputs
+    }
+    return HiddenEffectTrial(
+        model=model, inputs=inputs, measured=measured, dt_s=dt_s,
+        effect=effects[0] if effects else None, truth=truth,
+        noise={"kind": kind, "phi": phi, "relative_std": rel},
+        redraws=redraws, seed=seed, visibility=visibility, effects=effects,
+    )
+
+
+def _unit_noise(model: Model, n: int, noise_kind: str | None, rng: np.random.Generator
+                ) -> tuple[str, float, float, dict[str, np.ndarray]]:
+    """The noise kind, AR(1) ``phi``, relative std and unit-variance noise per output."""
+    kind = noise_kind or ("white" if rng.random() < 0.5 else "ar1")
+    phi = 0.0 if kind == "white" else float(rng.uniform(0.5, 0.9))
+    rel = float(rng.uniform(0.1, 0.3))
+    noise_unit = {}
+    for name in model.outputs:
+        e = rng.standard_normal(n)
+        if phi:
+            e, _ = scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
+                                        zi=[phi * rng.standard_normal()])
+        noise_unit[name] = e
+    return kind, phi, rel, noise_unit
+
+
+def _plant_outputs(model: Model, effects: Sequence[Effect], inputs: Mapping[str, np.ndarray],
+                   dt_s: float) -> tuple[Model, dict[str, np.ndarray]] | None:
+    """The model with `effects` added and its outputs (offsets included), or None when
+    the loop is unstable or blows up."""
+    augmented = model
+    for effect in effects:
+        augmented = apply_effect(augmented, effect, dt_s=dt_s)
+    if not _stable(augmented, dt_s):
+        return None
+    with np.errstate(all="ignore"):
+        out = predict_outputs(augmented, None, inputs, dt_s=dt_s, outputs=model.outputs)
+    for effect in effects:
+        offsets = output_offsets(effect, n=next(iter(out.values())).size, dt_s=dt_s,
+                                 outputs=model.outputs)
+        out = {k: v + offsets[k] for k, v in out.items()}
+    return augmented, out
+
+
+def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
+                     inputs: Mapping[str, np.ndarray], *, dt_s: float, rel: float, n: int,
+                     seed: int, max_redraws: int, rng: np.random.Generator
+                     ) -> tuple[tuple[Effect, ...], dict[str, np.ndarray], int, float]:
+    """Draw effects until each is stable and visible on top of the others: the effects,
+    the true outputs, the number of rejected draws and the visibility of the first."""
+    redraws = 0
+    for _ in range(max_redraws):
+        effects: list[Effect] = []
+        base, base_sim, used = model, nominal, set()
+        for name in names:
+            for _draw in range(max_redraws):
+                candidate = _draw_effect(name, base, base_sim, inputs, dt_s, rng,
+                                         locations_of=model, exclude=used)
+                plant = _plant_outputs(model, [*effects, candidate], inputs, dt_s)
+                if plant is None or not all(
+                        np.all(np.isfinite(v)) and np.std(v) < 20 * np.std(nominal.signals[k]) + 1e-12
+                        for k, v in plant[1].items()):
+                    redraws += 1
+                    continue
+                effects.append(candidate)
+                used |= {candidate.location, *_location_blocks(candidate)}
+                base = plant[0]
+                base_sim = simulate(base, {k: inputs[k] for k in base.inputs}, dt_s=dt_s)
+                break
+            else:
+                raise ConfigError(
+                    f"make_hidden_effect_trial: no stable {name} effect in {max_redraws} "
+                    f"draws for model {model.name!r} (seed {seed})")
+        truth = _plant_outputs(model, effects, inputs, dt_s)[1]
+        shown = []
+        for k in range(len(effects)):
+            others = _plant_outputs(model, effects[:k] + effects[k + 1:], inputs, dt_s)
+            reference = others[1] if others is not None else None
+            if reference is None:
+                break
+            shown.append(_visibility(model, truth, reference, rel, n))
+        if len(shown) == len(effects) and all(
+                v >= MIN_VISIBILITY and r >= TRIAL_GAP_REDUCTION for v, r in shown):
+            return tuple(effects), truth, redraws, shown[0][0]
+        redraws += 1
+    raise ConfigError(
+        f"make_hidden_effect_trial: no stable, visible {'+'.join(names)} effect set in "
+        f"{max_redraws} draws for model {model.name!r} (seed {seed})"
+    )
+
+
+def _location_blocks(effect: Effect) -> tuple[str, ...]:
+    """Block or output names an effect's location occupies (``signal->output``: both)."""
+    return tuple(effect.location.split("->"))
+
+
+def _visibility(model: Model, out: Mapping[str, np.ndarray],
+                reference: Mapping[str, np.ndarray], rel: float, n: int) -> tuple[float, float]:
+    """RMS of the effect's contribution over the noise std on the output where it shows
+    most (whole record), and the held-out gap reduction the effect would give with its
+    true parameters (expected values: noise of std ``rel * std(output)``)."""
+    vis = []
+    before, after = [], []
+    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
+    for name in model.outputs:
+        sigma = rel * float(np.std(out[name]))
+        diff = out[name] - reference[name]
+        vis.append(float(np.sqrt(np.mean(diff ** 2))) / sigma)
+        # the workflow pools outputs relative to each one's held-out (measured) std
+        scale2 = float(np.var(out[name][held])) + sigma ** 2
+        before.append((sigma ** 2 + float(np.mean(diff[held] ** 2))) / scale2)
+        after.append(sigma ** 2 / scale2)
+    reduction = 1.0 - math.sqrt(sum(after) / sum(before))
+    return max(vis), reduction
