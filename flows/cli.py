@@ -174,11 +174,11 @@ def _cmd_reindex(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    if args.discrepancy:
+    if args.discrepancy or args.two_effects:  # --two-effects implies --discrepancy
         from flows.demo import run_discrepancy_demo
 
         return run_discrepancy_demo(Path(args.dir), no_prefect=args.no_prefect,
-                                    progress=_Progress())
+                                    progress=_Progress(), two_effects=args.two_effects)
     from flows.demo import run_demo
 
     return run_demo(Path(args.dir), no_prefect=args.no_prefect, progress=_Progress())
@@ -237,6 +237,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--discrepancy", action="store_true",
                    help="the discrepancy demo instead: a plant whose controller gain is 20 %% "
                         "above the model's (configs/demo_discrepancy.yaml)")
+    d.add_argument("--two-effects", action="store_true",
+                   help="the discrepancy demo with a plant that also has an auxiliary flow the "
+                        "model ignores; two effects are named in order "
+                        "(configs/demo_discrepancy_two.yaml)")
     d.set_defaults(fn=_cmd_demo)
     s = sub.add_parser("serve", help="serve the scheduled (nightly) deployments")
     s.add_argument("jobs", nargs="*", default=None,

@@ -63,8 +63,10 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
     return _print_where(_run(job, no_prefect=no_prefect, progress=progress, discrepancy=False))
 
 
-def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
-    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml``.
+def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=None,
+                         two_effects: bool = False) -> int:
+    """Write the discrepancy demo export and run ``configs/demo_discrepancy.yaml`` (or
+    ``configs/demo_discrepancy_two.yaml``).
 
     Parameters
     ----------
@@ -75,7 +77,9 @@ def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=Non
         Call the pipeline directly instead of through the Prefect flow.
     progress : callable (stage, message), optional
         Told what the demo writes and, with ``no_prefect``, each stage of the run.
+    two_effects : bool
+        The two-effect demo.
     """
-    job = prepare_discrepancy_demo(folder, progress=progress)
+    job = prepare_discrepancy_demo(folder, progress=progress, two_effects=two_effects)
     report = _run(job, no_prefect=no_prefect, progress=progress, discrepancy=True)
     return _print_where(report, ("model", report.run_dir / "model_augmented.yaml"))

@@ -17,7 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.model import Model, model_from_dict
-from pipeline.synthetic import boiler_demo_signals, make_discrepancy_demo
+from pipeline.synthetic import (
+    DEMO_EFFECTS,
+    TWO_EFFECT_DEMO_EFFECTS,
+    boiler_demo_signals,
+    make_discrepancy_demo,
+)
 
 # The shipped jobs and models: configs/ of the checkout, reached through the package's
 # _shipped link, which the wheel carries as package data (so an installed plantdyn has them).
@@ -90,11 +95,14 @@ def write_demo_export(folder: Path, *, hours: float = 12.0, seed: int = 7) -> Pa
 
 # ------------------------------------------------------------------ discrepancy demo
 DISCREPANCY_JOB = SHIPPED / "demo_discrepancy.yaml"
+TWO_EFFECT_JOB = SHIPPED / "demo_discrepancy_two.yaml"
 AUX0 = 20.0  # operating point of the unrelated auxiliary flow
 
 
-def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11) -> Path:
-    """Historian export of a plant whose pressure controller gain is 20 % above the model's.
+def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11,
+                             two_effects: bool = False) -> Path:
+    """Historian export of a plant whose pressure controller gain is 20 % above the model's
+    (and, with `two_effects`, an auxiliary flow the model ignores acts on the pressure).
 
     The signals come from :func:`pipeline.synthetic.make_discrepancy_demo` (the shipped
     boiler model with ``controller.kp`` × 1.2, AR(1) sensor noise), moved to the demo's
@@ -109,16 +117,21 @@ def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11
         Length of the record, h.
     seed : int
         Seeds the simulated signals; ``seed + 1`` places the digital states.
+    two_effects : bool
+        The plant of the two-effect demo (:data:`pipeline.synthetic.TWO_EFFECT_DEMO_EFFECTS`);
+        the file is then ``boiler_two_effects_export.csv``.
     """
     from pipeline.adapters.historian_writer import write_long_csv
-    inputs, measured, dt_s = make_discrepancy_demo(boiler_model(), seed, hours=hours)
+    effects = TWO_EFFECT_DEMO_EFFECTS if two_effects else DEMO_EFFECTS
+    inputs, measured, dt_s = make_discrepancy_demo(boiler_model(), seed, hours=hours,
+                                                   effects=effects)
     n = measured["turbine_pressure"].size
     folder.mkdir(parents=True, exist_ok=True)
     start = np.datetime64("2026-11-20T22:00:00", "us")
     times = start + (np.arange(n) * dt_s * 1e6).astype("timedelta64[us]")
     rng = np.random.default_rng(seed + 1)
     states = {"PI-102.PV": [(int(i), "Bad Input") for i in rng.integers(1000, n - 1000, 2)]}
-    path = folder / "boiler_kp_export.csv"
+    path = folder / ("boiler_two_effects_export.csv" if two_effects else "boiler_kp_export.csv")
     write_long_csv(path, times, {"FI-101.PV": STEAM0 + inputs["steam_flow"],
                                  "FI-110.PV": AUX0 + inputs["aux_flow"],
                                  "PI-102.PV": PRESSURE0 + measured["turbine_pressure"]},
@@ -156,9 +169,10 @@ def prepare_demo(folder: Path, *, progress=None) -> Path:
     return job
 
 
-def prepare_discrepancy_demo(folder: Path, *, progress=None) -> Path:
+def prepare_discrepancy_demo(folder: Path, *, progress=None, two_effects: bool = False) -> Path:
     """Write the discrepancy demo export, the shipped boiler model and a copy of
-    ``configs/demo_discrepancy.yaml`` into ``folder``; returns the job.
+    ``configs/demo_discrepancy.yaml`` (``demo_discrepancy_two.yaml`` with `two_effects`)
+    into ``folder``; returns the job.
 
     Parameters
     ----------
@@ -167,19 +181,23 @@ def prepare_discrepancy_demo(folder: Path, *, progress=None) -> Path:
         (``discrepancy/`` is replaced).
     progress : callable (stage, message), optional
         Told what is being written (stage ``"demo"``); ``None`` says nothing.
+    two_effects : bool
+        The two-effect demo (controller gain and an unmodelled auxiliary flow).
     """
     folder = folder.resolve()
-    exports = folder / "discrepancy"
-    text = DISCREPANCY_JOB.read_text()
-    text = text.replace("../demo/discrepancy/*.csv", "discrepancy/*.csv")
+    name = "discrepancy_two" if two_effects else "discrepancy"
+    shipped = TWO_EFFECT_JOB if two_effects else DISCREPANCY_JOB
+    exports = folder / name
+    text = shipped.read_text().replace(f"../demo/{name}/*.csv", f"{name}/*.csv")
     (folder / "models").mkdir(parents=True, exist_ok=True)
     shutil.copyfile(BOILER_MODEL, folder / "models" / BOILER_MODEL.name)
-    job = folder / "demo_discrepancy.yaml"
+    job = folder / shipped.name
     job.write_text(text)
     if exports.exists():
         shutil.rmtree(exports)
+    what = ("and an auxiliary flow it ignores acts on the pressure" if two_effects else "")
     _say(progress, f"writing an 8 h export of a boiler whose controller gain is 20 % above "
-                   f"the model's to {exports}")
-    path = write_discrepancy_export(exports)
+                   f"the model's {what + ' ' if what else ''}to {exports}")
+    path = write_discrepancy_export(exports, two_effects=two_effects)
     _say(progress, f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
     return job

@@ -63,13 +63,27 @@ def boiler_demo_signals(model: Model, operating_point: dict[str, float], *,
     }
 
 
-def make_discrepancy_demo(model: Model, seed: int = 0, *, hours: float = 8.0, dt_s: float = 1.0
+#: The discrepancy demo's plant: the controller gain 20 % above the model's (method.md §9).
+DEMO_EFFECTS = (Effect("gain", "controller", {"factor": 1.2}),)
+#: The two-effect demo's plant: that, and the auxiliary flow (an attemperator spray the
+#: model ignores) acting on the turbine pressure through a 60 s lag after 10 s.
+TWO_EFFECT_DEMO_EFFECTS = (
+    Effect("gain", "controller", {"factor": 1.2}),
+    Effect("unmodelled_input", "aux_flow->turbine_pressure",
+           {"k": 0.02, "tau_s": 60.0, "delay_s": 10.0}),
+)
+
+
+def make_discrepancy_demo(model: Model, seed: int = 0, *, hours: float = 8.0, dt_s: float = 1.0,
+                          effects: tuple[Effect, ...] = DEMO_EFFECTS
                           ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float]:
-    """Plant data for the discrepancy demo: controller gain 20 % above the model's.
+    """Plant data for the discrepancy demos: the model with hidden `effects`.
 
     The plant is ``model`` (the shipped boiler steam-pressure loop, design.md "Model
-    YAML") with the PI controller's ``kp`` multiplied by 1.2 (method.md §9: the thesis'
-    simulation matched the plant only after raising the controller gain by about 20 %).  Steam flow
+    YAML") with `effects` added -- by default the PI controller's ``kp`` multiplied by
+    1.2 (method.md §9: the thesis' simulation matched the plant only after raising the
+    controller gain by about 20 %); :data:`TWO_EFFECT_DEMO_EFFECTS` adds an unmodelled
+    auxiliary flow.  Steam flow
     (the load, kg/s deviation) wanders slowly (20 min), with turbulence (40 s) and a few
     load steps; the measured turbine pressure carries AR(1) sensor noise (phi 0.7) at
     15 % of the pressure's std.  Also measured: ``aux_flow``, an unrelated flow.
@@ -85,6 +99,8 @@ def make_discrepancy_demo(model: Model, seed: int = 0, *, hours: float = 8.0, dt
         Record length, h.
     dt_s : float
         Sample period, s (must divide the model's 8 s fuel dead time).
+    effects : tuple of Effect
+        The plant's differences from `model`, added in order.
 
     Returns
     -------
@@ -97,8 +113,10 @@ def make_discrepancy_demo(model: Model, seed: int = 0, *, hours: float = 8.0, dt
     rng = np.random.default_rng(seed)
     n = int(round(hours * 3600.0 / dt_s))
     inputs = trial_inputs(model.name, n=n, dt_s=dt_s, rng=rng)
-    plant = apply_effect(model, Effect("gain", "controller", {"factor": 1.2}), dt_s=dt_s)
-    truth = simulate(plant, {"steam_flow": inputs["steam_flow"]}, dt_s=dt_s).signals[
+    plant = model
+    for effect in effects:
+        plant = apply_effect(plant, effect, dt_s=dt_s)
+    truth = simulate(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s).signals[
         "turbine_pressure"]
     phi = 0.7
     e = scipy.signal.lfilter([math.sqrt(1 - phi**2)], [1.0, -phi], rng.standard_normal(n))

@@ -40,7 +40,8 @@ def _build_wheel(tmp: Path) -> Path:
 def test_wheel_carries_the_shipped_jobs_and_runs_the_demo_from_an_empty_folder(tmp_path):
     wheel = _build_wheel(tmp_path)
     names = set(zipfile.ZipFile(wheel).namelist())
-    for shipped in ("demo_boiler.yaml", "demo_discrepancy.yaml", "models/boiler_pressure.yaml"):
+    for shipped in ("demo_boiler.yaml", "demo_discrepancy.yaml", "demo_discrepancy_two.yaml",
+                    "models/boiler_pressure.yaml"):
         assert f"pipeline/_shipped/{shipped}" in names, sorted(names)[:20]
     # a fresh venv with the wheel installed by pip (console script and all); its
     # dependencies come from this venv's site-packages through a plain path entry, which does
