@@ -29,7 +29,7 @@ from pipeline.model import Model
 from pipeline.simulate import discrete_state_space, simulate
 
 __all__ = ["HiddenEffectTrial", "MIN_VISIBILITY", "TRIAL_GAP_REDUCTION", "HOLDOUT_FRACTION",
-           "trial_inputs", "make_hidden_effect_trial", "make_hidden_effects_trial"]
+           "trial_inputs", "make_hidden_effect_trial", "make_hidden_effects_trial", "unit_ar1"]
 
 
 @dataclass(frozen=True)
@@ -103,12 +103,28 @@ TRIAL_GAP_REDUCTION = 1.5 * MIN_GAP_REDUCTION
 HOLDOUT_FRACTION = 1.0 / 3.0
 
 
+def unit_ar1(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
+    """Unit-variance AR(1) with pole `phi` from a stationary start (white for 0).
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        Draws the innovations, then the initial state.
+    n : int
+        Number of samples.
+    phi : float
+        Pole, in [0, 1).
+    """
+    e = rng.standard_normal(n)
+    if phi:
+        e, _ = scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
+                                    zi=[phi * rng.standard_normal()])
+    return e
+
+
 def _ar1(rng: np.random.Generator, n: int, tau_samples: float) -> np.ndarray:
     """Unit-variance AR(1) with correlation time `tau_samples` (stationary start)."""
-    a = math.exp(-1.0 / tau_samples)
-    e = rng.standard_normal(n) * math.sqrt(1 - a * a)
-    x, _ = scipy.signal.lfilter([1.0], [1.0, -a], e, zi=[a * rng.standard_normal()])
-    return x
+    return unit_ar1(rng, n, math.exp(-1.0 / tau_samples))
 
 
 def _steps(rng: np.random.Generator, n: int, count: int) -> np.ndarray:
@@ -339,13 +355,7 @@ def _unit_noise(model: Model, n: int, noise_kind: str | None, rng: np.random.Gen
     kind = noise_kind or ("white" if rng.random() < 0.5 else "ar1")
     phi = 0.0 if kind == "white" else float(rng.uniform(0.5, 0.9))
     rel = float(rng.uniform(0.1, 0.3))
-    noise_unit = {}
-    for name in model.outputs:
-        e = rng.standard_normal(n)
-        if phi:
-            e, _ = scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
-                                        zi=[phi * rng.standard_normal()])
-        noise_unit[name] = e
+    noise_unit = {name: unit_ar1(rng, n, phi) for name in model.outputs}
     return kind, phi, rel, noise_unit
 
 

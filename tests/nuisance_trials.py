@@ -38,13 +38,13 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.signal
 
 from pipeline.effect_trials import (
     HOLDOUT_FRACTION,
     TRIAL_GAP_REDUCTION,
     HiddenEffectTrial,
     make_hidden_effects_trial,
+    unit_ar1,
 )
 from pipeline.effects import Effect, apply_effect, output_offsets
 from pipeline.model import Model
@@ -65,13 +65,6 @@ def _with_effects(model: Model, effects: Sequence[Effect], dt_s: float) -> Model
     for effect in effects:
         model = apply_effect(model, effect, dt_s=dt_s)
     return model
-
-
-def _ar1(rng: np.random.Generator, n: int, tau_samples: float) -> np.ndarray:
-    a = math.exp(-1.0 / tau_samples)
-    x, _ = scipy.signal.lfilter([math.sqrt(1 - a * a)], [1.0, -a], rng.standard_normal(n),
-                                zi=[a * rng.standard_normal()])
-    return x
 
 
 def nuisance_plant(model: Model, effects: Sequence[Effect], inputs: dict[str, np.ndarray],
@@ -98,7 +91,7 @@ def nuisance_plant(model: Model, effects: Sequence[Effect], inputs: dict[str, np
     quanta = {c: QUANTUM_FRAC * float(np.std(nominal.signals[c])) for c in controllers
               if c in nominal.signals and np.std(nominal.signals[c]) > 0}
     scale = DISTURBANCE_FRAC * float(np.std(inputs[model.inputs[0]]))
-    disturbances = {b.name: scale * _ar1(rng, n, DISTURBANCE_TAU_S / dt_s)
+    disturbances = {b.name: scale * unit_ar1(rng, n, math.exp(-dt_s / DISTURBANCE_TAU_S))
                     for b in plant.blocks if b.TYPE == "integrator"}
     out = simulate_plant(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s,
                          substeps=SUBSTEPS, dcs_scan_s=DCS_SCAN_S, quanta=quanta,
@@ -166,13 +159,8 @@ def make_nuisance_trial(model: Model, effect_names: Sequence[str], *, seed: int,
         rng = np.random.default_rng([trial_seed, 1])
         truth = nuisance_plant(model, clean.effects, clean.inputs, dt_s, rng)
         rel, phi = clean.noise["relative_std"], clean.noise["phi"]
-        measured = {}
-        for o in model.outputs:
-            e = rng.standard_normal(n)
-            if phi:
-                e, _ = scipy.signal.lfilter([math.sqrt(1 - phi * phi)], [1.0, -phi], e,
-                                            zi=[phi * rng.standard_normal()])
-            measured[o] = truth[o] + rel * float(np.std(truth[o])) * e
+        measured = {o: truth[o] + rel * float(np.std(truth[o])) * unit_ar1(rng, n, phi)
+                    for o in model.outputs}
         inputs = {k: v + INPUT_NOISE_FRAC * float(np.std(v)) * rng.standard_normal(n)
                   for k, v in clean.inputs.items()}
         effects = clean.effects
