@@ -49,6 +49,9 @@ def _check_job(path: str, *, files: bool = True):
         from pipeline.errors import ConfigError
 
         raise ConfigError(f"storage: {str(root)!r} is a file, not a folder")
+    from pipeline.monitor_job import check_baseline
+
+    check_baseline(cfg)  # a pinned baseline run must exist (exit 2 naming the runs)
     return cfg
 
 
@@ -125,8 +128,7 @@ def _cmd_nightly(args) -> int:
 
 
 def _cmd_runs(args) -> int:
-    import polars as pl
-
+    from flows.runs_view import show_runs
     from pipeline.adapters.config import load_job
     from pipeline.adapters.store import ResultStore
 
@@ -138,21 +140,7 @@ def _cmd_runs(args) -> int:
     # read-only: listing never creates a catalog (a --storage typo) nor needs write access
     # (an archive on a read-only disk)
     store = ResultStore(root, readonly=True)
-    runs = store.list_runs(job)
-    if runs.height == 0:
-        print(f"no runs of job {job!r} under {root}")
-        return 0
-    with pl.Config(tbl_rows=200, tbl_cols=20, fmt_str_lengths=60, tbl_width_chars=200):
-        print(runs.select([c for c in ("run_id", "status", "created_utc", "n_inputs", "path")
-                           if c in runs.columns]))
-        trend = store.trend(job)
-        if trend.height:
-            keep = [c for c in ("run_id", "created_utc", "output", "input", "metric", "value")
-                    if c in trend.columns]
-            metrics = args.metric or ["gain", "rate", "dead_time_s", "static_gain",
-                                      "holdout_rms_before", "holdout_rms_after", "reduction"]
-            print(trend.filter(pl.col("metric").is_in(metrics)).select(keep))
-    return 0
+    return show_runs(store, job, metrics=args.metric, plot=args.plot, draw=not args.no_plot)
 
 
 def _cmd_reindex(args) -> int:
@@ -208,6 +196,17 @@ def _cmd_discrepancy(args) -> int:
     return _run_workflow(args, run_discrepancy, "discrepancy", flow, check=check_job)
 
 
+def _cmd_export(args) -> int:
+    from pipeline.adapters.export import export_run
+
+    res = export_run(args.run_dir, fmt=args.format, out=args.out, force=args.force,
+                     progress=_Progress())
+    for note in res.notes:
+        print(note, file=sys.stderr)
+    print(res.path)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="plantdyn",
@@ -249,11 +248,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--once", action="store_true",
                    help="register the deployments, run each once now, and exit")
     s.set_defaults(fn=_cmd_serve)
-    ru = sub.add_parser("runs", help="list runs of a job and trend its pairs")
+    ru = sub.add_parser("runs", help="list runs of a job (pairs changed against the "
+                                     "monitoring baseline first) and plot its trend")
     ru.add_argument("job", help="job name or job YAML")
     ru.add_argument("--storage", default="storage",
                     help="results root when JOB is a name (default: ./storage)")
     ru.add_argument("--metric", action="append", help="metrics to trend (repeatable)")
+    ru.add_argument("--plot", default=None, metavar="FILE",
+                    help="where to write the trend figure (PNG; default "
+                         "<storage>/<job>/trend.png)")
+    ru.add_argument("--no-plot", action="store_true", help="do not write the trend figure")
     ru.set_defaults(fn=_cmd_runs)
     rx = sub.add_parser("reindex", help="rebuild a results root's catalog from its run "
                                         "folders (after a read-only or lost catalog)")
@@ -266,6 +270,18 @@ def build_parser() -> argparse.ArgumentParser:
     dc.add_argument("--no-prefect", action="store_true",
                     help="call the pipeline directly instead of through the Prefect flow")
     dc.set_defaults(fn=_cmd_discrepancy)
+    ex = sub.add_parser("export", help="write a run's step responses and fitted transfer "
+                                       "functions for control tools; prints the file")
+    ex.add_argument("run_dir", help="an estimation run directory (<storage>/<job>/<run-id>)")
+    ex.add_argument("--format", required=True, choices=("csv", "json", "mat", "control"),
+                    help="csv: DMC-style step-coefficient table; json: everything; mat: "
+                         "MATLAB arrays; control: transfer functions for "
+                         "pipeline.adapters.export.load_control (python-control)")
+    ex.add_argument("--out", default=None,
+                    help="file, or an existing folder (default: ./<job>_<run-id>.<ext> in the "
+                         "current folder; never inside the run directory)")
+    ex.add_argument("--force", action="store_true", help="replace an existing --out file")
+    ex.set_defaults(fn=_cmd_export)
     return p
 
 

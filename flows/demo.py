@@ -21,6 +21,8 @@ def _print_where(report, *extra: tuple[str, Path]) -> int:
     print(report, file=sys.stderr)
     print(f"\nresults:   {report.run_dir}")
     print(f"report:    {report.run_dir / 'report.md'}")
+    if (report.run_dir / "report.html").is_file():
+        print(f"html:      {report.run_dir / 'report.html'}")
     for label, path in extra:
         print(f"{label + ':':<10} {path}")
     if report.recording:

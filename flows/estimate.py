@@ -1,5 +1,6 @@
 """The ``estimate`` flow: ingest -> condition -> sample period -> windows -> N_p/N_d search
--> estimates -> checks -> store -> Rerun.  Each task body is one call into ``pipeline.jobs``."""
+-> estimates -> checks -> [monitor vs the baseline run] -> store -> Rerun.  Each task body
+is one call into ``pipeline.jobs`` (``pipeline.monitor_job`` for the monitor)."""
 
 from __future__ import annotations
 
@@ -23,8 +24,9 @@ from flows.common import (
     say,
     task_runner_for,
 )
-from pipeline import jobs, recording
+from pipeline import jobs, monitor_job, recording
 from pipeline.adapters.config import load_job
+from pipeline.monitor import monitor_banner, monitor_markdown
 from pipeline.stages import StageRunner
 from pipeline.adapters.progress import bar as progress_bar
 
@@ -121,6 +123,23 @@ def summarise_task(cfg, prep, sr, all_est, wins):
     return jobs.summarise(cfg, prep, sr, all_est, wins)
 
 
+@task(name="monitor", **_T)
+def monitor_task(cfg, summary, run_id):
+    """Compare the run with the job's baseline run before it is written
+    (:func:`pipeline.monitor_job.monitor_run`); returns ``(summary, run_id)``.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job, with a ``monitor`` section.
+    summary : Summary
+        From :func:`summarise_task`.
+    run_id : str or None
+        Id of the run directory; ``None`` chooses one now.
+    """
+    return monitor_job.monitor_run(cfg, summary, run_id)
+
+
 @task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
 def store_task(cfg, summary, prep, sr, timings, run_id):
     """Write the run directory and build the report (:func:`pipeline.jobs.finish_run`).
@@ -183,6 +202,9 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     ests = stage("estimate", _estimate_windows, prep, windows, jobs.estimate_settings(cfg, sr))
     update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
     summary = stage("summarise", summarise_task, cfg, prep, sr, ests[0], ests[1:])
+    if cfg.monitor is not None:  # the baseline is read before the new run is written
+        summary, run_id = stage("monitor", monitor_task, cfg, summary, run_id)
+        say(start, "monitor", monitor_banner(summary.checks["monitor"]))
     timings = stage.timings
     say(start, "store", "writing run directory and Rerun recording")
     report = store_task(cfg, summary, prep, sr, timings, run_id)
@@ -198,6 +220,10 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
           "warnings": ", ".join(w["code"] for w in p["warnings"])}
          for p in summary.checks["pairs"]],
         key=artifact_key(cfg.job, "pairs"), description="pairs and window-agreement verdicts")
+    if cfg.monitor is not None:
+        create_markdown_artifact(monitor_markdown(summary.checks["monitor"]),
+                                 key=artifact_key(cfg.job, "monitor"),
+                                 description=f"{cfg.job} run {report.run_id} vs baseline")
     return report
 
 

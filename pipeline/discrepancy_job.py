@@ -451,6 +451,10 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
         run.write_parquet("discrepancy_series.parquet", series_table(result))
         run.write_report(summary_markdown(out))
         run.set_status(result.verdict)
+        from pipeline.adapters.html_report import add_report_html
+
+        add_report_html(run, config=cfg.model_dump(mode="json"), inputs=list(data.files),
+                        kind="discrepancy")
         metrics = []
         for o, pg in result.gap["per_output"].items():
             for key in ("holdout_rms_before", "holdout_rms_after", "reduction"):

@@ -9,6 +9,7 @@ from pipeline.checks import cross_correlation_check, ljung_box, window_agreement
 from pipeline.errors import PipelineError
 from pipeline.job_types import Prepared, Summary, WindowFailure
 from pipeline.prediction import innovations, residuals
+from pipeline.quality import GRADE_MEANING, GRADE_RULE, grade_from_checks
 from pipeline.search import SearchResult
 from pipeline.step_result import StepResponseEstimate, lag_times
 
@@ -331,9 +332,9 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
              f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
              f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
              f"Estimator: {method}.", "",
-             "| output | input | N_p | N_p·T (s) | gain ± σ | rate K ± σ (/s) | windows (p) "
-             "| feedback (p) | warnings |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| output | input | grade | N_p | N_p·T (s) | gain ± σ | rate K ± σ (/s) "
+             "| windows (p) | feedback (p) | warnings |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for p in pairs:
         uo, ui = _unit(cfg, p["output"]), _unit(cfg, p["input"])
         unit = f" {uo}/{ui}" if uo and ui else ""
@@ -345,7 +346,8 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
         fbs = "not tested" if fb is None else \
             (f"**yes** ({fb['p_value']:.2g})" if fb["detected"] else f"no ({fb['p_value']:.2g})")
         codes = ", ".join(w["code"] for w in p["warnings"]) or "none"
-        lines.append(f"| {p['output']} | {p['input']} | {p['n_p']} | {p['n_p'] * prep.dt_s:g} "
+        lines.append(f"| {p['output']} | {p['input']} | {grade_from_checks(p, checks).grade} "
+                     f"| {p['n_p']} | {p['n_p'] * prep.dt_s:g} "
                      f"| {gain} | {rate} | {agr} | {fbs} | {codes} |")
     lines += ["", "Noise models (per output, chosen from the data):", ""]
     for o, nm in checks["noise_model"].items():
@@ -356,6 +358,7 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
                      f"{nm['innovation_std']:.3g}; prediction errors "
                      f"{'white' if checks['residuals']['whiteness'][o]['white'] else 'NOT white'}"
                      f" (Ljung–Box p = {_fmt_p(checks['residuals']['whiteness'][o]['p_value'])})")
+    lines += _grade_lines(pairs, checks)
     warned = [p for p in pairs if p["warnings"]]
     lines += ["", "## When to distrust a pair", ""]
     if not warned:
@@ -379,6 +382,22 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
                      f"between {d['first']} and {d['last']}, far from the rest of the record "
                      "— check the export's timestamps.")
     return "\n".join(lines) + "\n"
+
+
+def _grade_lines(pairs: list, checks: dict) -> list[str]:
+    """report.md's grade section: why each pair is not an A, and the rule (the same
+    :mod:`pipeline.quality` function and table as report.html)."""
+    lines = ["", "## Quality grades", ""]
+    for p in pairs:
+        g = grade_from_checks(p, checks)
+        lines.append(f"- {p['output']}<-{p['input']}: **{g.grade}**"
+                     + (f" — {'; '.join(g.reasons)}" if g.reasons else " — every check passes"))
+    lines += ["", "Each criterion caps the grade; the grade is the worst cap "
+              "(A " + GRADE_MEANING["A"] + "; B " + GRADE_MEANING["B"] + "; C "
+              + GRADE_MEANING["C"] + "; D " + GRADE_MEANING["D"] + "):", "",
+              "| criterion | read from | A | B | C | D |", "|---|---|---|---|---|---|"]
+    lines += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in GRADE_RULE]
+    return lines
 
 
 def _fmt_p(p) -> str:

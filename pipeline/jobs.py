@@ -5,7 +5,7 @@ The estimation job is a readable sequence of stage functions; the Prefect flow i
 windows), so the flow and a plain call produce the same results.
 
     load_recording -> prepare -> search_orders -> estimate_window (all + each window)
-      -> summarise -> write_run (store + Rerun)
+      -> summarise -> [monitor: compare with the baseline run] -> write_run (store + Rerun)
 
 Decisions (also in the README):
 
@@ -39,6 +39,7 @@ from pipeline.errors import (
 from pipeline.estimate import estimate_step_responses
 from pipeline.job_summary import summarise
 from pipeline.job_types import Prepared, Recording, RunReport, Summary, WindowFailure
+from pipeline.monitor_job import monitor_run
 from pipeline.progress import Progress, Tick, quiet, silent
 from pipeline.recording import configured_decimation, load_recording, longest_common_good
 from pipeline.sampling import choose_sample_period, resample_average_masked
@@ -297,12 +298,16 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
         run.write_report(summary.report_md)
         run.set_status(summary.status)
         run.add_metrics(summary.metrics)
+        from pipeline.adapters.html_report import add_report_html
+
+        add_report_html(run, config=resolved, inputs=files)
         if cfg.rerun.enabled:
             from pipeline.adapters.rerun_sink import render_run
 
             t0 = time.perf_counter()
             trends = store.trend(cfg.job) if store.list_runs(cfg.job).height else None
-            render_run(run.path, trends=trends, ident=f"{cfg.job}/{run.run_id}")
+            render_run(run.path, trends=trends, ident=f"{cfg.job}/{run.run_id}",
+                       config=resolved)
             run.record_timing("rerun", time.perf_counter() - t0)
         rid = run.run_id
     run_dir = store.run_dir(cfg.job, rid)
@@ -336,6 +341,8 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     for k, w in enumerate(sr.windows):
         wins.append(stage(f"estimate_w{k}", estimate_window, prep, tuple(w), *choice))
     summary = stage("summarise", summarise, cfg, prep, sr, all_est, wins)
+    if cfg.monitor is not None:  # the baseline is read before the new run is written
+        summary, run_id = stage("monitor", monitor_run, cfg, summary, run_id)
     return finish_run(cfg, summary, prep, sr, stage.timings, run_id=run_id, progress=progress)
 
 

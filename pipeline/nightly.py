@@ -35,6 +35,7 @@ from pathlib import Path
 from pipeline.adapters.config import JobConfig, resolve_sources
 from pipeline.adapters.store import ResultStore, file_sha256
 from pipeline.errors import ConfigError, UserInputError
+from pipeline.monitor_job import check_baseline
 
 __all__ = ["discover_files", "process_file", "nightly_run_id", "claim_lease_s",
            "LEASE_ENV"]
@@ -82,7 +83,10 @@ def claim_lease_s(lease_s: float | None = None) -> float | None:
 def discover_files(cfg: JobConfig) -> list[tuple[str, str]]:
     """``(path, sha256)`` of every file matching ``source.path``, in name order.
 
-    Also opens the job's result store once, creating its catalog if needed, before the
+    A pinned ``monitor.baseline`` that is not a stored run of the job raises
+    :class:`~pipeline.errors.ConfigError` here, before any file is claimed (each file
+    would otherwise be marked failed for a configuration error).  Also opens the job's
+    result store once, creating its catalog if needed, before the
     files are processed concurrently: the first switch of a new SQLite catalog to WAL
     cannot wait for a lock, so threads creating it at the same moment could collide.
 
@@ -92,6 +96,7 @@ def discover_files(cfg: JobConfig) -> list[tuple[str, str]]:
         The validated job (``source.path``, ``storage_root``).
     """
     ResultStore(cfg.storage_root)
+    check_baseline(cfg)  # a missing pinned baseline stops the night, not each file
     if not any(Path(f).is_file() for f in glob.glob(str(cfg.base / cfg.source.path))):
         return []  # an empty drop folder is a normal night
     return [(str(f), file_sha256(f)) for f in resolve_sources(cfg)]

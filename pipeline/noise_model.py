@@ -15,7 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["NoiseModel", "levinson", "ar_order_by_bic", "fit_ar", "DEFAULT_AR_ORDER_MAX",
-           "is_minimum_phase"]
+           "is_minimum_phase", "NUISANCE_NAMES"]
+
+NUISANCE_NAMES = ("none", "constant", "constant and trend", "constant, trend and quadratic")
+"""``NoiseModel.nuisance`` (the index) as ``to_dict`` writes it (the name)."""
 
 DEFAULT_AR_ORDER_MAX = 20
 """Largest AR order tried by ``noise="auto"``.  An AR(20) whitens the slow disturbances
@@ -66,8 +69,7 @@ class NoiseModel:
                 "coefficients": [float(c) for c in self.coefficients],
                 "innovation_std": float(self.innovation_std),
                 "dominant_pole": self.dominant_pole(),
-                "nuisance": ["none", "constant", "constant and trend",
-                             "constant, trend and quadratic"][self.nuisance],
+                "nuisance": NUISANCE_NAMES[self.nuisance],
                 "selection": self.selection}
 
     def dominant_pole(self) -> float | None:

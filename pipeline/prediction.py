@@ -83,28 +83,56 @@ def innovations(est: StepResponseEstimate, x, y, *, good=None) -> np.ndarray:
     good : bool array (N,), optional
         ``False`` where the residual must not be used (set to NaN before filtering).
     """
-    import scipy.signal
-
     e = residuals(est, x, y)
     if good is not None:
         e[~np.asarray(good, dtype=bool)] = np.nan
     out = np.full_like(e, np.nan)
     for i in range(e.shape[1]):
         nm = est.noise_model[i] if est.noise_model else None
-        d = np.ones(1) if nm is None else nm.d
-        level = nm is not None and nm.form == "level"
-        for a, b in good_segments(np.isfinite(e[:, i])):
-            seg = e[a:b, i]
-            if level:
-                seg = np.cumsum(seg)
-            f = scipy.signal.lfilter(d, [1.0], seg)
-            f[: d.size - 1] = np.nan
-            nuis = 0 if nm is None else nm.nuisance
-            ok = np.isfinite(f)
-            if nuis and ok.sum() > nuis:
-                t = np.arange(f.size, dtype=float)
-                basis = np.column_stack([t**p for p in range(nuis)])
-                coef, *_ = np.linalg.lstsq(basis[ok], f[ok], rcond=None)
-                f = f - basis @ coef
-            out[a:b, i] = f
+        out[:, i] = whiten_residual(e[:, i], np.ones(1) if nm is None else nm.d,
+                                    level=nm is not None and nm.form == "level",
+                                    nuisance=0 if nm is None else nm.nuisance)
+    return out
+
+
+def whiten_residual(residual, d, *, level: bool = False, nuisance: int = 0) -> np.ndarray:
+    """One output's residual through its noise model's ``D(q)``: the one-step prediction
+    errors (:func:`innovations` for one output, from a stored residual and noise model).
+
+    Filtering restarts at every NaN; the first ``len(d) - 1`` samples of each stretch are
+    NaN; per stretch the ``nuisance`` polynomial terms (a constant, a trend, …) are
+    removed after filtering.
+
+    Parameters
+    ----------
+    residual : array (N,)
+        The residual of the fitted form (:func:`residuals`; differenced for integrating
+        outputs), NaN where undefined.
+    d : array (p + 1,)
+        ``[1, d_1, …, d_p]`` of the noise model (``[1]``: white).
+    level : bool
+        The output was fitted in the level form: the residual is cumulated per stretch
+        first.
+    nuisance : int
+        Polynomial terms profiled out per stretch (0 none, 1 constant, 2 and trend, 3
+        and quadratic).
+    """
+    import scipy.signal
+
+    e = np.asarray(residual, dtype=float)
+    d = np.asarray(d, dtype=float)
+    out = np.full_like(e, np.nan)
+    for a, b in good_segments(np.isfinite(e)):
+        seg = e[a:b]
+        if level:
+            seg = np.cumsum(seg)
+        f = scipy.signal.lfilter(d, [1.0], seg)
+        f[: d.size - 1] = np.nan
+        ok = np.isfinite(f)
+        if nuisance and ok.sum() > nuisance:
+            t = np.arange(f.size, dtype=float)
+            basis = np.column_stack([t**p for p in range(nuisance)])
+            coef, *_ = np.linalg.lstsq(basis[ok], f[ok], rcond=None)
+            f = f - basis @ coef
+        out[a:b] = f
     return out

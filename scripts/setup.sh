@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Create ./.venv and install plantdyn with pinned dependencies (idempotent).
-# Usage: scripts/setup.sh [--test]   (--test also installs the test extras and the
-# software-Vulkan libraries the headless Rerun viewer test needs)
+# Usage: scripts/setup.sh [--test]   (--test also installs the test extras, the
+# software-Vulkan libraries the headless Rerun viewer test needs and Chromium, which
+# screenshots report.html headless)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -41,6 +42,16 @@ if [ $want_test = 1 ]; then
         || echo "[setup] WARNING: could not install software Vulkan; the viewer screenshot test will fail"
     else
       echo "[setup] WARNING: not root; install libvulkan1 and mesa-vulkan-drivers for the viewer screenshot test"
+    fi
+  fi
+  # The report.html test takes screenshots with headless Chromium (Debian's package).
+  if [ ! -x /usr/bin/chromium ]; then
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+      echo "[setup] installing chromium (headless screenshots of report.html)"
+      (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+        || echo "[setup] WARNING: could not install chromium; the report.html screenshot test will fail"
+    else
+      echo "[setup] WARNING: not root; install chromium for the report.html screenshot test"
     fi
   fi
 fi

@@ -47,6 +47,7 @@ from pipeline.effect_trials import (
     unit_ar1,
 )
 from pipeline.effects import Effect, apply_effect, output_offsets
+from pipeline.errors import ConfigError
 from pipeline.model import Model
 from pipeline.simulate import simulate
 from tests.plant_sim import simulate_plant
@@ -154,8 +155,12 @@ def make_nuisance_trial(model: Model, effect_names: Sequence[str], *, seed: int,
     redraws = 0
     for attempt in range(max_redraws):
         trial_seed = seed + SEED_STRIDE * attempt
-        clean = make_hidden_effects_trial(model, tuple(effect_names), seed=trial_seed,
-                                          n=n, dt_s=dt_s)
+        try:
+            clean = make_hidden_effects_trial(model, tuple(effect_names), seed=trial_seed,
+                                              n=n, dt_s=dt_s)
+        except ConfigError:  # no visible effect at this draw's noise level
+            redraws += 1
+            continue
         rng = np.random.default_rng([trial_seed, 1])
         truth = nuisance_plant(model, clean.effects, clean.inputs, dt_s, rng)
         rel, phi = clean.noise["relative_std"], clean.noise["phi"]

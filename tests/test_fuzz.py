@@ -11,7 +11,9 @@ from __future__ import annotations
 
 from tests import fuzzing
 
-CI_CASES = 400
+#: 200 cases (about 1 min; the suite's 15-minute budget): the campaigns in the README run
+#: 2000 and 600.
+CI_CASES = 200
 CI_SEED = 10_001
 
 

@@ -52,9 +52,9 @@ from tests.benchmarks.bench_discrepancy import (
     summarise_pairs,
 )
 
-N_CLEAN, N_CLEAN_NULL = 2, 6
-N_NUISANCE, N_NUISANCE_NULL = 1, 8
-N_PAIRS = 5
+N_CLEAN, N_CLEAN_NULL = 1, 4
+N_NUISANCE, N_NUISANCE_NULL = 1, 5
+N_PAIRS = 3
 ALPHA = 0.01
 
 

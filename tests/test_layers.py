@@ -19,6 +19,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = ROOT / "pipeline"
 COMPOSITION = {"jobs", "job_types", "job_summary", "discrepancy_job", "nightly", "demo",
+               "monitor_job",
                "recording", "stages"}
 """``pipeline`` modules that compose adapters and core (design.md layer 3)."""
 CORE_PACKAGES = ("discrepancy",)

@@ -43,7 +43,8 @@ def decoded(path: Path) -> dict:
             continue
         b = ch.to_record_batch()
         names = b.schema.names
-        idx = [n for n in names if n in ("time", "lag_s", "run_time")]
+        # a series' own axis: UTC time (signals, residuals), run_time (trends), else elapsed
+        idx = [n for n in ("time", "run_time", "elapsed") if n in names]
         val = [n for n in names if n.endswith("Scalars:scalars")]
         if not idx or not val:
             continue
@@ -60,16 +61,16 @@ def test_entity_paths_and_values_match_the_stored_results(run_dir):
     windows = sorted(steps["window"].unique().to_list())
     assert "all" in windows and len(windows) >= 3
     for w in windows:
-        assert f"/step/y/u/{w}" in data
-    for p in ("/step/y/u/all_upper", "/step/y/u/all_lower", "/signals/raw/u",
+        assert f"/step/y/u/window/{w}" in data
+    for p in ("/step/y/u/band/upper", "/step/y/u/band/lower", "/step/y/u/band/fill", "/signals/raw/u",
               "/signals/conditioned/y", "/residuals/y"):
         assert p in data, p
     all_ = steps.filter(pl.col("window") == "all").sort("lag")
-    got = np.array([v for _, v in data["/step/y/u/all"]])
-    lag_ns = np.array([t for t, _ in data["/step/y/u/all"]])
+    got = np.array([v for _, v in data["/step/y/u/window/all"]])
+    lag_ns = np.array([t for t, _ in data["/step/y/u/window/all"]])
     assert np.allclose(got, all_["step"].to_numpy(), rtol=0, atol=1e-12)
     assert np.allclose(lag_ns / 1e9, all_["time_s"].to_numpy(), atol=1e-9)
-    upper = np.array([v for _, v in data["/step/y/u/all_upper"]])
+    upper = np.array([v for _, v in data["/step/y/u/band/upper"]])
     assert np.allclose(upper, (all_["step"] + 2 * all_["step_std"]).to_numpy(), atol=1e-12)
     sig = pl.read_parquet(first / "signals.parquet").filter(pl.col("signal") == "u")
     raw = np.array([v for _, v in data["/signals/raw/u"]])
@@ -133,7 +134,9 @@ def test_headless_viewer_shows_the_step_responses(run_dir, tmp_path):
             colours = len({tuple(c // 16) for c in saturated})
             if colours >= 4:
                 break
-    shutil.copy(png, "/tmp/plantdyn_viewer_test.png")
+    artefacts = Path(__file__).parent / "artefacts"
+    artefacts.mkdir(exist_ok=True)
+    shutil.copy(png, artefacts / "recording_steps.png")
     assert img.shape[0] >= 600 and img.shape[1] >= 800
     assert img.std() > 10  # not a blank frame
     assert colours >= 4  # coloured window series are drawn

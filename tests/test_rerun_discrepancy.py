@@ -37,7 +37,7 @@ from pipeline.errors import ConfigError, DataQualityError
 
 VENV_BIN = Path(sys.executable).parent
 OUTPUT = "turbine_pressure"
-TABS = {"Measured vs simulated", "Residual before/after", "Localisation", "Candidates"}
+TABS = {"Summary", "Measured vs simulated", "Residual before/after", "Localisation", "Candidates"}
 # Three effect families instead of all nine and four fitted classes instead of five: the
 # analysis takes ~4 s instead of ~10 s and still yields candidates that pass (gain) and
 # candidates that fail (gain at the output, operating_point_gain at the drum), so both
@@ -302,7 +302,7 @@ def test_blueprint_tabs_views_and_time_panel(run):
     containers = {c["ContainerBlueprint:display_name"][0][0]: c for p, c in blueprint.items()
                   if p.startswith("/container/") and "ContainerBlueprint:display_name" in c}
     assert set(containers) == TABS | {"plantdyn discrepancy"}
-    assert len(containers["plantdyn discrepancy"]["ContainerBlueprint:contents"][0]) == 4
+    assert len(containers["plantdyn discrepancy"]["ContainerBlueprint:contents"][0]) == 5
     views = {path: comps for path, comps in blueprint.items() if path.startswith("/view/") and path.count("/") == 2}
     kinds = {}
     for path, comps in views.items():
@@ -319,6 +319,20 @@ def test_blueprint_tabs_views_and_time_panel(run):
                     | {"/discrepancy/candidates/delta_bic", "/discrepancy/candidates/holdout_z"},
         "TextDocument": {"/discrepancy/summary", "/discrepancy/candidates/table", f"{BASE}/localisation/report"},
     }
+    # names, not indices or entity paths: bar charts have no series names, so their legends
+    # (which would list raw entity paths) are hidden and the titles say what each bar is
+    names = {comps["ViewBlueprint:display_name"][0][0]: path for path, comps in views.items()}
+    assert f"{OUTPUT}: partial R² — 0 steam_flow · 1 aux_flow" in names
+    assert f"{OUTPUT}: −log10 p (1.3: p = 0.05) — 0 steam_flow · 1 aux_flow" in names
+    for name, path in names.items():
+        kind = views[path]["ViewBlueprint:class_identifier"][0][0]
+        if kind in ("BarChart", "TimeSeries"):
+            assert blueprint[f"{path}/PlotLegend"]["PlotLegend:visible"] == [[False]], name
+    # the summary has a tab of its own (full width: its tables are not cut off)
+    summary_tab = containers["Summary"]["ContainerBlueprint:contents"][0]
+    assert summary_tab == [names["Summary"].lstrip("/")]
+    for panel_name in ("/blueprint_panel", "/selection_panel"):
+        assert blueprint[panel_name]["PanelBlueprint:state"] == [[2]]  # collapsed
     s = run["result"].series
     panel = blueprint["/time_panel"]
     assert panel["TimePanelBlueprint:timeline"] == [["time_s"]]
@@ -477,21 +491,35 @@ def _free_port() -> int:
 
 
 def _pixels_near(img: np.ndarray, colour: tuple[int, int, int], tol: int = 30) -> int:
-    """Pixels near ``colour`` in the plot area of a 1920x1080 screenshot (below the tab
-    bar, between the blueprint and selection panels)."""
-    area = img[100:820, 210:1610].astype(int)
+    """Pixels near ``colour`` in the viewport of a 1920x1080 screenshot (below the top and
+    tab bars, above the collapsed time panel; the side panels start collapsed)."""
+    area = img[70:1050, :].astype(int)
     return int((np.abs(area - np.array(colour)).max(axis=2) <= tol).sum())
+
+
+ARTEFACTS = Path(__file__).parent / "artefacts"
+
+
+def activate(viewer, tab: str) -> None:
+    """Make the tab named ``tab`` the active one, through the blueprint API."""
+    blueprint = viewer.get_blueprint().blueprint
+    tabs = next(k for k, e in blueprint.items() if e.get("ContainerBlueprint", {}).get("container_kind") == "Tabs"
+                and e["ContainerBlueprint"].get("display_name") == "plantdyn discrepancy")
+    target = next(k for k, e in blueprint.items() if e.get("ContainerBlueprint", {}).get("display_name") == tab)
+    blueprint[tabs]["ContainerBlueprint"]["active_tab"] = target
+    viewer.set_blueprint(blueprint, of="recording")
 
 
 @pytest.mark.slow
 def test_headless_viewer_draws_every_view(run):
-    """The real viewer opens the file with no view reporting an error.  First tab: the
+    """The real viewer opens the file with no view reporting an error.  *Measured vs
+    simulated* tab (the file opens on *Summary*): the
     red split lines are drawn (two 1 px lines of ~650 px: ~650-700 pixels were measured;
     0 with the lines removed).  Candidates tab: the passed and failed bars are drawn.
     The viewer fills bars at ~80 % opacity over its dark background, so green
     (44, 160, 44) shows as ~(46, 133, 46) and red (214, 39, 40) as ~(174, 42, 43);
     ~70 000 and ~47 000 such pixels were measured, 0 without candidates.  Screenshots go
-    to /tmp for people to look at."""
+    to tests/artefacts/ for people to look at."""
     from PIL import Image
     from rerun.experimental import ViewerClient
 
@@ -507,22 +535,20 @@ def test_headless_viewer_draws_every_view(run):
             time.sleep(1.0)
 
     red = (220, 0, 0)
+    ARTEFACTS.mkdir(exist_ok=True)
     with ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True,
                             executable_path=str(VENV_BIN / "rerun")) as viewer:
         viewer.open(str(run["rrd"]))
-        first = wait_for(lambda img: _pixels_near(img, red, 40) >= 300, 40.0)
-        Image.fromarray(first).save("/tmp/plantdyn_discrepancy_viewer.png")
+        wait_for(lambda img: bool(viewer.get_state().views), 20.0)
         state = viewer.get_state()
         assert len(state.views) == 12
         assert all(not v.reports for v in state.views), [(v.name, v.reports) for v in state.views]
-        blueprint = viewer.get_blueprint().blueprint
-        tabs = next(k for k, e in blueprint.items() if e.get("ContainerBlueprint", {}).get("container_kind") == "Tabs")
-        cand = next(k for k, e in blueprint.items()
-                    if e.get("ContainerBlueprint", {}).get("display_name") == "Candidates")
-        blueprint[tabs]["ContainerBlueprint"]["active_tab"] = cand
-        viewer.set_blueprint(blueprint, of="recording")
+        activate(viewer, "Measured vs simulated")
+        first = wait_for(lambda img: _pixels_near(img, red, 40) >= 300, 40.0)
+        Image.fromarray(first).save(ARTEFACTS / "discrepancy_signals.png")
+        activate(viewer, "Candidates")
         green, red_bar = (46, 133, 46), (174, 42, 43)  # as rendered (see the docstring)
         second = wait_for(lambda img: min(_pixels_near(img, green, 15), _pixels_near(img, red_bar, 15)) >= 5000, 20.0)
-        Image.fromarray(second).save("/tmp/plantdyn_discrepancy_viewer_candidates.png")
+        Image.fromarray(second).save(ARTEFACTS / "discrepancy_candidates.png")
     assert _pixels_near(first, red, 40) >= 300
     assert _pixels_near(second, green, 15) >= 5000 and _pixels_near(second, red_bar, 15) >= 5000

@@ -113,26 +113,33 @@ def stored(tmp_path_factory):
 
 
 def decode_recording(path: Path) -> dict[str, dict]:
-    """entity path -> {timeline, index (int64 ns), values} of its temporal scalar chunks,
-    plus {'static': {component: values}} for static data."""
+    """entity path -> {timelines, index (int64 ns), values, indexes {timeline: int64 ns}}
+    of its temporal scalar chunks, plus {'static': {component: values}} for static data.
+    ``index`` is on the series' own axis: ``time`` (UTC) for signals and residuals,
+    ``run_time`` for trends, else ``elapsed``; ``indexes`` holds every timeline."""
     out: dict[str, dict] = {}
     for chunk in RrdReader(path).stream().to_chunks():
         batch = chunk.to_record_batch()
-        entry = out.setdefault(chunk.entity_path, {"timelines": set(), "rows": [], "static": {}})
+        entry = out.setdefault(chunk.entity_path, {"timelines": set(), "rows": {}, "static": {}})
         data_cols = [n for n in batch.schema.names if not n.startswith("rerun.controls") and n not in chunk.timeline_names]
         if chunk.is_static:
             for name in data_cols:
                 entry["static"][name] = batch.column(name).to_pylist()
             continue
         entry["timelines"].update(chunk.timeline_names)
-        (timeline,) = chunk.timeline_names
-        index = batch.column(timeline).cast("int64").to_numpy()
         values = [v[0] for v in batch.column("Scalars:scalars").to_pylist()]
-        entry["rows"].extend(zip(index.tolist(), values, strict=True))
+        for timeline in chunk.timeline_names:
+            index = batch.column(timeline).cast("int64").to_numpy()
+            entry["rows"].setdefault(timeline, []).extend(zip(index.tolist(), values, strict=True))
     for entry in out.values():
-        rows = sorted(entry.pop("rows"), key=lambda r: r[0])
-        entry["index"] = np.array([r[0] for r in rows], dtype=np.int64)
-        entry["values"] = np.array([r[1] for r in rows], dtype=np.float64)
+        per = {}
+        for timeline, rows in entry.pop("rows").items():
+            rows = sorted(rows, key=lambda r: r[0])
+            per[timeline] = (np.array([r[0] for r in rows], dtype=np.int64), np.array([r[1] for r in rows]))
+        entry["indexes"] = {t: idx for t, (idx, _) in per.items()}
+        own = next((t for t in ("time", "run_time", "elapsed") if t in per), None)
+        entry["index"], entry["values"] = per[own] if own else (np.zeros(0, np.int64), np.zeros(0))
+        entry["values"] = entry["values"].astype(np.float64)
     return out
 
 
@@ -164,9 +171,9 @@ def test_every_stored_series_is_drawn_with_its_values(stored):
     signals = pl.read_parquet(run_dir / "signals.parquet")
     resid = pl.read_parquet(run_dir / "residuals.parquet")
 
-    expected_paths = {"/__properties"}
-    expected_paths |= {f"/step/{o}/{i}/{w}".replace(" ", "\\ ") for o, i in PAIRS for w in WINDOWS}
-    expected_paths |= {f"/step/{o}/{i}/all_{b}".replace(" ", "\\ ") for o, i in PAIRS for b in ("upper", "lower")}
+    expected_paths = {"/__properties", "/trends/readme"}
+    expected_paths |= {f"/step/{o}/{i}/window/{w}".replace(" ", "\\ ") for o, i in PAIRS for w in WINDOWS}
+    expected_paths |= {f"/step/{o}/{i}/band/{b}".replace(" ", "\\ ") for o, i in PAIRS for b in ("upper", "lower", "fill")}
     expected_paths |= {f"/signals/{kind}/{s}".replace(" ", "\\ ")
                        for s, _ in SIGNALS for kind in ("raw", "conditioned", "masked")}
     expected_paths |= {"/residuals/pressure", "/residuals/level", "/trends/pressure/steam_flow/static_gain"}
@@ -176,9 +183,9 @@ def test_every_stored_series_is_drawn_with_its_values(stored):
         base = f"/step/{output}/{inp}".replace(" ", "\\ ")
         for window in WINDOWS:
             stored_rows = steps.filter(window=window, output=output, input=inp).sort("lag")
-            drawn = data[f"{base}/{window}"]
-            assert drawn["timelines"] == {"lag_s"}
-            # lag_s holds time_s as integer nanoseconds: l * 5 s exactly
+            drawn = data[f"{base}/window/{window}"]
+            assert drawn["timelines"] == {"elapsed"}
+            # elapsed holds time_s as integer nanoseconds: l * 5 s exactly
             np.testing.assert_array_equal(drawn["index"], stored_rows["lag"].to_numpy().astype(np.int64) * 5_000_000_000)
             np.testing.assert_array_equal(drawn["values"], stored_rows["step"].to_numpy())  # float64, exact
             # ... which is the first-order lag's analytic step response
@@ -186,16 +193,19 @@ def test_every_stored_series_is_drawn_with_its_values(stored):
                                                                       DT_S * np.arange(1, N_P + 1)), rtol=1e-15, atol=0)
         all_rows = steps.filter(window="all", output=output, input=inp).sort("lag")
         two_sigma = 2.0 * all_rows["step_std"].to_numpy()
-        np.testing.assert_array_equal(data[f"{base}/all_upper"]["values"], all_rows["step"].to_numpy() + two_sigma)
-        np.testing.assert_array_equal(data[f"{base}/all_lower"]["values"], all_rows["step"].to_numpy() - two_sigma)
+        np.testing.assert_array_equal(data[f"{base}/band/upper"]["values"], all_rows["step"].to_numpy() + two_sigma)
+        np.testing.assert_array_equal(data[f"{base}/band/lower"]["values"], all_rows["step"].to_numpy() - two_sigma)
 
     for name, _ in SIGNALS:
         rows = signals.filter(signal=name).sort("time")
         part = name.replace(" ", "\\ ")
         raw, cond, masked = (data[f"/signals/{k}/{part}"] for k in ("raw", "conditioned", "masked"))
         for series in (raw, cond, masked):
-            assert series["timelines"] == {"time"}
+            assert series["timelines"] == {"time", "elapsed"}
         np.testing.assert_array_equal(raw["index"], ns(rows["time"]))
+        # elapsed: the same samples, 0 at the first stored sample (every signal starts there)
+        np.testing.assert_array_equal(raw["indexes"]["elapsed"], ns(rows["time"]) - ns(signals["time"]).min())
+        np.testing.assert_array_equal(masked["indexes"]["elapsed"], masked["index"] - ns(signals["time"]).min())
         # every stored sample, a missing raw value as NaN (a gap in the line)
         np.testing.assert_array_equal(raw["values"], rows["raw"].fill_null(np.nan).to_numpy())
         assert np.isnan(raw["values"][MASKED[1]]) and np.isfinite(raw["values"]).sum() == N_SAMPLES - 1
@@ -210,7 +220,9 @@ def test_every_stored_series_is_drawn_with_its_values(stored):
     for output in ("pressure", "level"):
         rows = resid.filter(window="all", output=output).sort("time")
         drawn = data[f"/residuals/{output}"]
+        assert drawn["timelines"] == {"time", "elapsed"}
         np.testing.assert_array_equal(drawn["index"], ns(rows["time"]))
+        np.testing.assert_array_equal(drawn["indexes"]["elapsed"], ns(rows["time"]) - ns(signals["time"]).min())
         np.testing.assert_array_equal(drawn["values"], rows["residual"].to_numpy())
 
 
@@ -226,7 +238,7 @@ def test_no_wallclock_timelines_and_a_derived_recording_id(stored):
     run_dir, run_id = stored["run_dir"], stored["run_id"]
     data = decode_recording(run_dir / "recording.rrd")
     timelines = set().union(*(entry["timelines"] for entry in data.values()))
-    assert timelines == {"time", "lag_s", "run_time"}  # no log_time, no log_tick
+    assert timelines == {"time", "elapsed", "run_time"}  # no log_time, no log_tick
     (recording,) = RrdReader(run_dir / "recording.rrd").recordings()
     assert recording.application_id == "plantdyn"
     assert recording.recording_id == str(uuid.uuid5(uuid.NAMESPACE_URL, f"plantdyn:boiler/{run_id}"))
@@ -235,27 +247,42 @@ def test_no_wallclock_timelines_and_a_derived_recording_id(stored):
 
 def test_default_blueprint_has_a_view_per_pair_and_full_ranges(stored):
     blueprint = decode_blueprint(stored["run_dir"] / "recording.rrd")
-    views = {path: comps for path, comps in blueprint.items()
+    views = {comps["ViewBlueprint:display_name"][0][0]: path for path, comps in blueprint.items()
              if path.startswith("/view/") and path.count("/") == 2}
-    origins = {comps["ViewBlueprint:space_origin"][0][0]: path for path, comps in views.items()}
-    assert set(origins) == {
-        "/step/pressure/steam_flow", "/step/level/feed\\ water",
-        "/signals", "/signals/conditioned",
-        "/residuals/pressure", "/residuals/level",
-        "/trends/pressure/steam_flow",
-    }
-    assert all(c["ViewBlueprint:class_identifier"] == [["TimeSeries"]] for c in views.values())
-    timeline_of = {"/step": "lag_s", "/signals": "time", "/residuals": "time", "/trends": "run_time"}
-    for origin, path in origins.items():
-        timeline = next(t for prefix, t in timeline_of.items() if origin.startswith(prefix))
-        # infinite start and end (decoded as None) on the view's timeline, and on its x axis
-        assert blueprint[f"{path}/VisibleTimeRanges"]["VisibleTimeRanges:ranges"] == [
-            [{"timeline": timeline, "range": {"start": None, "end": None}}]]
-        assert blueprint[f"{path}/TimeAxis"]["TimeAxis:view_range"] == [[{"start": None, "end": None}]]
-    tabs = [c for p, c in blueprint.items() if p.startswith("/container/")
-            and c.get("ContainerBlueprint:display_name") == [["plantdyn"]]]
-    assert len(tabs) == 1 and len(tabs[0]["ContainerBlueprint:contents"][0]) == 4  # steps, signals, residuals, trends
-    assert blueprint["/time_panel"]["TimePanelBlueprint:timeline"] == [["lag_s"]]
+    assert all(blueprint[p]["ViewBlueprint:class_identifier"] == [["TimeSeries"]]
+               for n, p in views.items() if n != "How to see the trends")
+    # outputs x inputs: pressure, level x steam_flow, feed water; two pairs were not estimated
+    steps = [n for n in views if "←" in n and not n.startswith("trend") and "per run" not in n]
+    assert sorted(steps) == sorted(["pressure ← steam_flow", "pressure ← feed water (not estimated)",
+                                    "level ← steam_flow (not estimated)", "level ← feed water"])
+    signal_views = {f"{s} ({r}): {k}" for s, r in SIGNALS for k in ("raw, × masked", "conditioned")}
+    assert signal_views <= set(views)
+    assert {"pressure: residual of the all-data estimate", "level: residual of the all-data estimate",
+            "pressure ← steam_flow: static_gain per run"} <= set(views)
+    for name, path in views.items():
+        if name == "How to see the trends":
+            continue
+        ranges = blueprint[f"{path}/VisibleTimeRanges"]["VisibleTimeRanges:ranges"][0]
+        axis = blueprint[f"{path}/TimeAxis"]["TimeAxis:view_range"]
+        timelines = [r["timeline"] for r in ranges]
+        assert all(r["range"] == {"start": None, "end": None} for r in ranges)  # all data on each timeline
+        if name in ("pressure ← steam_flow", "level ← feed water"):
+            # x from 0 to the last lag (+2 %), not the whole timeline (which holds 10 min of signals)
+            assert timelines == ["elapsed"] and axis == [[{"start": 0, "end": int(round(1.02 * N_P * DT_S * 1e9))}]]
+        elif "per run" in name:  # the runs' span and 5 % on either side: no point on an edge
+            first_ns, last_ns = int(T0_S * 1e9), int((T0_S + 2 * 86400.0) * 1e9)
+            pad_ns = 0.05 * (last_ns - first_ns)
+            assert timelines == ["run_time"]
+            assert abs(axis[0][0]["start"] - (first_ns - pad_ns)) < 1e6 and abs(axis[0][0]["end"] - (last_ns + pad_ns)) < 1e6
+        elif "←" not in name:  # signals, residuals: on elapsed and on UTC time alike
+            assert timelines == ["elapsed", "time"] and axis == [[{"start": None, "end": None}]]
+    containers = {c["ContainerBlueprint:display_name"][0][0]: c for p, c in blueprint.items()
+                  if p.startswith("/container/") and "ContainerBlueprint:display_name" in c}
+    assert len(containers["plantdyn"]["ContainerBlueprint:contents"][0]) == 4  # steps, signals, residuals, trends
+    assert containers["Step responses"]["ContainerBlueprint:grid_columns"] == [[2]]
+    assert {"Signals (0 s = 2026-03-01 06:00:00 UTC)", "Residuals (0 s = 2026-03-01 06:00:00 UTC)",
+            "Trends"} <= set(containers)
+    assert blueprint["/time_panel"]["TimePanelBlueprint:timeline"] == [["elapsed"]]
 
 
 def test_rendering_twice_gives_the_same_content(stored, tmp_path):
@@ -342,10 +369,10 @@ def _free_port() -> int:
 
 
 def _pixels_near(img: np.ndarray, colour: tuple[int, int, int], tol: int = 30) -> int:
-    """Pixels within ``tol`` of ``colour`` in the plot area of a 1920x1080 screenshot
-    (below the tab bar, between the blueprint and selection panels, whose badges and
-    highlights use similar colours)."""
-    plot_area = img[100:820, 210:1610].astype(int)
+    """Pixels within ``tol`` of ``colour`` in the viewport of a 1920x1080 screenshot
+    (below the top bar and the tab bar, above the collapsed time panel; the side panels,
+    whose badges and highlights use similar colours, start collapsed)."""
+    plot_area = img[70:1050, :].astype(int)
     return int((np.abs(plot_area - np.array(colour)).max(axis=2) <= tol).sum())
 
 
@@ -354,11 +381,12 @@ def test_headless_viewer_draws_steps_and_signals(stored, tmp_path):
     """The real viewer (software Vulkan: libvulkan1 + mesa-vulkan-drivers) opens the file.
 
     Step tab: the window series are drawn in their colours (blue, orange, green: a line of
-    ~600 px length and >= 1.5 px width gives ~1000 pixels, ~1500 were measured; a run
-    without windows gave 0 such pixels in the plot area).  Signals tab (made active
-    through the blueprint API, on the `time` timeline): the red masked-sample crosses are
-    drawn (~200 pixels measured; 0 for a run without masked samples).  Screenshots are
-    kept in /tmp for people to look at.
+    ~600 px length and 1 px width gives several hundred pixels; a run without windows
+    gave 0 such pixels in the plot area).  Signals tab (made active through the blueprint
+    API, on the timeline the file opens on -- no timeline switch): the red masked-sample
+    crosses are drawn (~100 pixels measured; 0 for a run without masked samples, and 0
+    when the tab's data were not on the opening timeline).  Screenshots are kept in
+    tests/artefacts/ for people to look at.
     """
     from PIL import Image
     from rerun.experimental import ViewerClient
@@ -366,6 +394,8 @@ def test_headless_viewer_draws_steps_and_signals(stored, tmp_path):
     def shot() -> np.ndarray:
         return np.asarray(Image.open(io.BytesIO(viewer.take_screenshot())).convert("RGB"))
 
+    artefacts = Path(__file__).parent / "artefacts"
+    artefacts.mkdir(exist_ok=True)
     window_colours = [(31, 119, 180), (255, 127, 14), (44, 160, 44)]
     with ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True,
                             executable_path=str(VENV_BIN / "rerun")) as viewer:
@@ -377,8 +407,7 @@ def test_headless_viewer_draws_steps_and_signals(stored, tmp_path):
             if min(counts) >= 300 or time.monotonic() > deadline:
                 break
             time.sleep(1.0)
-        Image.fromarray(img).save(tmp_path / "steps.png")
-        Image.fromarray(img).save("/tmp/plantdyn_viewer.png")
+        Image.fromarray(img).save(artefacts / "sink_steps.png")
         state = viewer.get_state()
         assert {v.name for v in state.views} >= {"pressure ← steam_flow", "level ← feed water"}
         assert all(not v.reports for v in state.views), [v.reports for v in state.views]
@@ -386,10 +415,9 @@ def test_headless_viewer_draws_steps_and_signals(stored, tmp_path):
         blueprint = viewer.get_blueprint().blueprint
         tabs = next(k for k, e in blueprint.items() if e.get("ContainerBlueprint", {}).get("container_kind") == "Tabs")
         signals_tab = next(k for k, e in blueprint.items()
-                           if e.get("ContainerBlueprint", {}).get("display_name") == "Signals")
+                           if str(e.get("ContainerBlueprint", {}).get("display_name", "")).startswith("Signals"))
         blueprint[tabs]["ContainerBlueprint"]["active_tab"] = signals_tab
         viewer.set_blueprint(blueprint, of="recording")
-        viewer.set_time("time")
         deadline = time.monotonic() + 20.0
         while True:
             signals_img = shot()
@@ -397,8 +425,7 @@ def test_headless_viewer_draws_steps_and_signals(stored, tmp_path):
             if red >= 60 or time.monotonic() > deadline:
                 break
             time.sleep(1.0)
-        Image.fromarray(signals_img).save(tmp_path / "signals.png")
-        Image.fromarray(signals_img).save("/tmp/plantdyn_viewer_signals.png")
+        Image.fromarray(signals_img).save(artefacts / "sink_signals.png")
 
     assert img.shape == (1080, 1920, 3) and img.std() > 10.0
     assert min(counts) >= 300, counts

@@ -44,6 +44,7 @@ __all__ = [
     "load_model_spec",
     "dump_yaml",
     "DiscrepancySection",
+    "MonitorConfig",
 ]
 
 
@@ -329,6 +330,27 @@ class DiscrepancySection(_Strict):
         return out
 
 
+class MonitorConfig(_Strict):
+    """``monitor:``: compare every run with a pinned baseline run (:mod:`pipeline.monitor`)."""
+
+    baseline: str = Field(default="first", min_length=1, max_length=64)
+    """A run id of this job, or ``first``: the job's first run in the catalog (with no
+    earlier run, the run itself becomes the baseline)."""
+    threshold_sigma: float = Field(default=3.0, ge=1.0, le=50.0)
+    """A pair is ``changed`` when its gain (rate), dead time or step response differs
+    from the baseline's by more than this many σ (both runs' σ combined)."""
+
+    @field_validator("baseline")
+    @classmethod
+    def _run_id(cls, v: str) -> str:
+        import re
+
+        if v != "first" and not re.fullmatch(r"[A-Za-z0-9_-][A-Za-z0-9_.-]*", v):
+            raise ValueError("must be 'first' or a run id of this job (letters, digits, "
+                             "'_', '-', '.'; as `plantdyn runs JOB` lists them)")
+        return v
+
+
 class DaskConfig(_Strict):
     address: str | None = None
     """Dask scheduler address (``tcp://host:8786``); None runs in-process."""
@@ -349,6 +371,8 @@ class JobConfig(_Strict):
     quality: QualityConfig = QualityConfig()
     rerun: RerunConfig = RerunConfig()
     dask: DaskConfig = DaskConfig()
+    monitor: MonitorConfig | None = None
+    """Compare each run with a baseline run (nightly monitoring); off when absent."""
     schedule: str | None = None
     """Cron string for the nightly deployment (e.g. ``"0 2 * * *"``)."""
     model: Any = None

@@ -40,6 +40,8 @@ _FREE: dict[str, dict[str, bool]] = {
 }
 #: Candidates of a later search refitted jointly with the earlier effects.
 N_JOINT = 3
+#: A positive parameter's joint refit stays within this factor (in log) of where it starts.
+_LOG_RANGE = math.log(100.0)
 #: Least-squares evaluations per joint refit, per free parameter.
 _NFEV_PER_PARAMETER = 8
 
@@ -122,8 +124,12 @@ def joint_refit(P: Problem, nominal: Model, prior: Sequence[Effect], candidate: 
             return np.full(r0.size, flat)
         return P.whiten(P.y[:stop] - y, P.fit_start, stop)
 
+    # positive parameters move at most a factor _LOG_RANGE either way (and exp never
+    # overflows); the others are free
+    span = np.array([_LOG_RANGE if pos else np.inf for _, _, pos in free])
     try:
         sol = scipy.optimize.least_squares(residual, x0, x_scale="jac", ftol=1e-6, xtol=1e-6,
+                                           bounds=(x0 - span, x0 + span),
                                            max_nfev=_NFEV_PER_PARAMETER * len(free))
     except (ValueError, PipelineError):
         return None

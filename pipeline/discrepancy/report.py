@@ -53,6 +53,23 @@ def md_cell(value: Any) -> str:
     return str(value).replace("|", "\\|").replace("\n", " ")
 
 
+def effect_parts(effect: Mapping[str, Any]) -> tuple[str, str, list[tuple[str, str]], list[str]]:
+    """An effect's text pieces, for every renderer (Markdown here, HTML in the report):
+    name, location, ``(parameter, formatted value)`` pairs and equivalent locations.
+
+    Parameters
+    ----------
+    effect : mapping
+        ``name``, ``location`` and ``parameters`` (and optionally
+        ``equivalent_locations``), as in ``discrepancy.json``.
+    """
+    params = effect.get("parameters") or {}
+    pairs = ([(str(k), v if isinstance(v, str) else fmt_number(v)) for k, v in params.items()]
+             if isinstance(params, Mapping) else [])
+    return (str(effect.get("name")), str(effect.get("location")), pairs,
+            [str(e) for e in effect.get("equivalent_locations") or []])
+
+
 def effect_text(effect: Mapping[str, Any]) -> str:
     """An effect as Markdown: ``\\`gain\\` at \\`controller\\` (factor = 1.2)``.
 
@@ -62,14 +79,12 @@ def effect_text(effect: Mapping[str, Any]) -> str:
         ``name``, ``location`` and ``parameters`` (and optionally
         ``equivalent_locations``), as in ``discrepancy.json``.
     """
-    params = effect.get("parameters") or {}
-    text = f"`{md_cell(effect.get('name'))}` at `{md_cell(effect.get('location'))}`"
-    if isinstance(params, Mapping) and params:
-        text += " (" + ", ".join(f"{k} = {fmt_number(v) if not isinstance(v, str) else v}"
-                                 for k, v in params.items()) + ")"
-    eq = effect.get("equivalent_locations") or []
+    name, location, params, eq = effect_parts(effect)
+    text = f"`{md_cell(name)}` at `{md_cell(location)}`"
+    if params:
+        text += " (" + ", ".join(f"{k} = {v}" for k, v in params) + ")"
     if eq:
-        text += f"; equivalent locations: {', '.join(map(str, eq))}"
+        text += f"; equivalent locations: {', '.join(eq)}"
     return text
 
 

@@ -1,4 +1,5 @@
-"""What every recording shares: ids, timelines, colours, bulk series, writing the file."""
+"""What every recording shares: ids, timelines, colours, view ranges and legends, units,
+bulk series, writing the file."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import contextlib
 import os
 import secrets
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,17 +20,27 @@ from pipeline.errors import ConfigError
 
 
 APPLICATION_ID = "plantdyn"
-#: Timeline names: sample time of the signals, lag after the step, creation time of runs,
-#: seconds since the first sample of a discrepancy record.
-TIMELINES = {"signals": "time", "step": "lag_s", "trends": "run_time", "discrepancy": "time_s"}
+#: Timeline names.  ``elapsed`` (a duration, the timeline a recording opens on) carries
+#: every estimation series: seconds after the step for step responses, seconds since the
+#: first stored sample for signals and residuals.  ``time`` is the same samples' UTC clock
+#: time, ``run_time`` the creation time of earlier runs (trends), ``time_s`` the seconds
+#: since the first sample of a discrepancy record.  A Rerun 0.41 time-series view plots
+#: against the time panel's active timeline only (there is no per-view timeline), so what
+#: a tab shows by default must share the timeline it opens on.
+TIMELINES = {"elapsed": "elapsed", "signals": "time", "trends": "run_time", "discrepancy": "time_s"}
 # Fixed namespace: recording ids are uuid5(namespace, "<job>/<run_id>"), stable across
 # processes and machines (uuid5 of a URL-namespace name, as the first version did).
 _NAMESPACE = uuid.NAMESPACE_URL
 WINDOW_COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40),
                    (148, 103, 189), (140, 86, 75), (227, 119, 194), (127, 127, 127)]
 ALL_COLOUR = (240, 240, 240)
-BAND_COLOUR = (150, 150, 150)
+#: The ±2σ band: a dense fill (drawn first, under every line) and its edges.
+BAND_FILL_COLOUR = (64, 96, 96)
+BAND_EDGE_COLOUR = (120, 170, 170)
 MASKED_COLOUR = (220, 0, 0)
+#: Signals by role (raw and conditioned alike) and residuals.
+ROLE_COLOURS = {"input": (86, 180, 233), "output": (230, 159, 0), "instrument": (0, 158, 115)}
+RESIDUAL_COLOUR = (204, 121, 167)
 TREND_COLUMNS = ("created_utc", "output", "input", "metric", "value")
 
 
@@ -58,17 +69,91 @@ def path_part(name: str) -> str:
 
 
 def full_range(timeline: str) -> dict[str, Any]:
-    """Both the visible data range and the x-axis view range span all data (design.md:
-    without an explicit range the view shows ±30 s around the time cursor).
+    """TimeSeriesView arguments: all data on ``timeline``, x axis over the whole timeline
+    (design.md: without an explicit range the view shows ±30 s around the time cursor).
 
     Parameters
     ----------
     timeline : str
         The view's timeline (:data:`TIMELINES`).
     """
+    return x_range([timeline])
+
+
+def x_range(timelines: Sequence[str], start_s: float | None = None, end_s: float | None = None) -> dict[str, Any]:
+    """TimeSeriesView arguments: all data on each of ``timelines``; the x axis spans
+    ``start_s``..``end_s`` (a duration timeline's seconds) or, when they are None, the
+    whole active timeline.
+
+    An explicit span keeps a short series (a step response with N_p = 3) from being a
+    sliver at the left of a timeline that also holds hours of signals.  It is one range
+    for every timeline (Rerun 0.41 keeps a single x range per view), so only views whose
+    data live on one timeline get one.
+
+    Parameters
+    ----------
+    timelines : sequence of str
+        The timelines the view's data are on.
+    start_s, end_s : float, optional
+        The x span in seconds on a duration timeline.
+    """
     inf = rrb.TimeRangeBoundary.infinite()
-    return {"time_ranges": [rrb.VisibleTimeRange(timeline, start=inf, end=inf)],
-            "axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=inf, end=inf))}
+    if start_s is None or end_s is None:
+        start, end = inf, inf
+    else:
+        start = rrb.TimeRangeBoundary.absolute(seconds=float(start_s))
+        end = rrb.TimeRangeBoundary.absolute(seconds=float(end_s))
+    return {"time_ranges": [rrb.VisibleTimeRange(t, start=inf, end=inf) for t in timelines],
+            "axis_x": rrb.TimeAxis(view_range=rr.TimeRange(start=start, end=end))}
+
+
+def legend(corner: str | None) -> rrb.PlotLegend:
+    """A plot legend in ``corner`` (``"RightTop"``, ``"RightBottom"``, ...), or hidden.
+
+    Parameters
+    ----------
+    corner : str or None
+        Corner of the plot; None hides the legend.
+    """
+    return rrb.PlotLegend(corner, visible=corner is not None)
+
+
+def with_unit(name: str, units: Mapping[str, str]) -> str:
+    """``name [unit]`` when the job gives ``name`` a unit, else ``name``.
+
+    Parameters
+    ----------
+    name : str
+        A signal name.
+    units : mapping of str to str
+        Units by signal name (``signals.<group>.<name>.unit`` of the job config).
+    """
+    unit = units.get(name)
+    return f"{name} [{unit}]" if unit else str(name)
+
+
+def units_of(config: Mapping[str, Any] | None) -> dict[str, str]:
+    """Units by signal name from a resolved job config (``signals.<inputs|outputs|
+    instruments>.<name>.unit``); empty and ``-`` units are left out.
+
+    Parameters
+    ----------
+    config : mapping, optional
+        The resolved job config, as ``manifest.json`` stores it under ``config``.
+    """
+    signals = config.get("signals") if isinstance(config, Mapping) else None
+    units: dict[str, str] = {}
+    if not isinstance(signals, Mapping):
+        return units
+    for group in ("inputs", "outputs", "instruments"):
+        entries = signals.get(group)
+        if not isinstance(entries, Mapping):
+            continue
+        for name, spec in entries.items():
+            unit = spec.get("unit") if isinstance(spec, Mapping) else None
+            if isinstance(unit, str) and unit.strip() and unit.strip() != "-":
+                units[str(name)] = unit.strip()
+    return units
 
 
 def with_fixed_ids(item: Any, ident: str, key: str) -> Any:
@@ -88,9 +173,9 @@ def with_fixed_ids(item: Any, ident: str, key: str) -> Any:
     return item
 
 
-def send_series(rec: rr.RecordingStream, path: str, index: rr.TimeColumn, values: np.ndarray,
-                *, name: str, colour: tuple[int, int, int] | None = None,
-                width: float = 1.5) -> None:
+def send_series(rec: rr.RecordingStream, path: str, index: rr.TimeColumn | Sequence[rr.TimeColumn],
+                values: np.ndarray, *, name: str, colour: tuple[int, int, int] | None = None,
+                width: float = 1.5, aggregation: str | None = None) -> None:
     """Log one series in bulk (``send_columns``: ~30× faster than a log call per row).
 
     Parameters
@@ -99,8 +184,8 @@ def send_series(rec: rr.RecordingStream, path: str, index: rr.TimeColumn, values
         The recording.
     path : str
         Entity path.
-    index : rerun.TimeColumn
-        The samples' times on the series' timeline.
+    index : rerun.TimeColumn or sequence of them
+        The samples' times on the series' timeline(s), one per value.
     values : ndarray (N,)
         The values (NaN: a gap).
     name : str
@@ -109,11 +194,16 @@ def send_series(rec: rr.RecordingStream, path: str, index: rr.TimeColumn, values
         RGB; None lets the viewer choose.
     width : float
         Line width.
+    aggregation : str, optional
+        ``SeriesLines`` aggregation policy (``"Off"`` keeps every point: fills, vertical
+        lines); None: the viewer's default.
     """
     style = rr.SeriesLines(names=name, widths=width,
-                           **({"colors": [colour]} if colour is not None else {}))
+                           **({"colors": [colour]} if colour is not None else {}),
+                           **({"aggregation_policy": aggregation} if aggregation is not None else {}))
     rec.log(path, style, static=True, strict=True)
-    rec.send_columns(path, indexes=[index], columns=rr.Scalars.columns(scalars=values), strict=True)
+    indexes = [index] if isinstance(index, rr.TimeColumn) else list(index)
+    rec.send_columns(path, indexes=indexes, columns=rr.Scalars.columns(scalars=values), strict=True)
 
 
 def float_values(series: pl.Series) -> np.ndarray:
@@ -189,3 +279,33 @@ def write_recording(out: Path, ident: str, blueprint: rrb.Blueprint,
         tmp.unlink(missing_ok=True)
         raise
     return out
+
+
+def make_blueprint(root: Any, timeline: str, *, time_selection: Any = None) -> rrb.Blueprint:
+    """The saved default blueprint: ``root`` fills the window (blueprint, selection and
+    time panels collapsed: one click on the icons at the top right, or the bar at the
+    bottom, opens them), the time panel on ``timeline``, paused.
+
+    Parameters
+    ----------
+    root : blueprint container
+        The viewport's root (a Tabs container).
+    timeline : str
+        The active timeline.
+    time_selection : rerun AbsoluteTimeRange, optional
+        A selected time range in the time panel.
+    """
+    panel = rrb.TimePanel(timeline=timeline, play_state="paused", state="collapsed", time_selection=time_selection)
+    return rrb.Blueprint(root, rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+                         panel, collapse_panels=False)
+
+
+def durations(seconds: np.ndarray | Sequence[float]) -> np.ndarray:
+    """Seconds as timedelta64[ns], rounded to the nearest ns (the SDK truncates floats).
+
+    Parameters
+    ----------
+    seconds : array-like of float
+        Durations in seconds.
+    """
+    return np.rint(np.asarray(seconds, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")

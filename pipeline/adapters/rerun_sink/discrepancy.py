@@ -18,8 +18,11 @@ from pipeline.adapters.rerun_sink.common import (
     TIMELINES,
     WINDOW_COLOURS,
     check_out_name,
+    durations,
     float_values,
     full_range,
+    legend,
+    make_blueprint,
     path_part,
     send_series,
     with_fixed_ids,
@@ -66,9 +69,10 @@ def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident:
     * ``discrepancy/<o>/rolling_rms`` -- rolling RMS of the residual before (NaN ends
       are gaps);
     * ``discrepancy/<o>/localisation/partial_r2/<s>`` and ``.../neg_log10_p/<s>`` --
-      one bar per signal at x = its index in ``localization[o]["signals"]`` (the legend
-      names it): partial R² of the residual on the signal's lagged bank and -log10 of
-      its bootstrap p-value (1.3 = p 0.05);
+      one bar per signal at x = its index in ``localization[o]["signals"]`` (the view
+      title names them in x order, ``0 air · 1 fuel``: a bar chart has no labels):
+      partial R² of the residual on the signal's lagged bank and -log10 of its
+      bootstrap p-value (1.3 = p 0.05);
     * ``discrepancy/<o>/localisation/frequency_bands/<s>/{model_gain,data_gain}`` --
       for model inputs: mean |H| per band, x = log10 f in Hz: each band
       [log10 f_lo, log10 f_hi] holds the model's bar in its left half and the data's in
@@ -89,10 +93,15 @@ def render_discrepancy(run_dir: Path, *, out_name: str = "recording.rrd", ident:
     Bar charts are stored with the viewer's convention: ``abscissa`` is a bar's left
     edge, so a bar centred on x with width w has abscissa x - w/2.
 
-    The default blueprint has tabs *Measured vs simulated* (one view per output, the
-    summary beside them), *Residual before/after*, *Localisation* and *Candidates*; it
-    opens on ``time_s`` with the hold-out selected in the time panel, and every
-    TimeSeriesView spans all data.  Series are sent with ``send_columns``; the recording
+    The default blueprint has tabs *Summary* (full width, so its tables are never cut
+    off), *Measured vs simulated* and *Residual before/after* (one view per output, each
+    with its own y axis), *Localisation* (per output its plots beside its numbers; one
+    sub-tab per output when there are several) and *Candidates* (bars beside the ranking;
+    with several outputs their held-out RMS is a second table).  Views are titled with
+    the output and signal names and say which colour is which; legends are hidden (bar
+    charts would list raw entity paths, and time-series legends covered the data).  The
+    side panels start collapsed; the time panel is on ``time_s`` with the hold-out
+    selected, and every TimeSeriesView spans all data.  Series are sent with ``send_columns``; the recording
     id derives from ``ident`` and no log time/tick is recorded.
 
     Parameters
@@ -282,13 +291,8 @@ def _split_times(df: pl.DataFrame) -> tuple[float, float, float]:
     return start("fit"), start("holdout"), end
 
 
-def _durations(seconds: np.ndarray | Sequence[float]) -> np.ndarray:
-    """Seconds as timedelta64[ns], rounded to the nearest ns (the SDK truncates floats)."""
-    return np.rint(np.asarray(seconds, dtype=np.float64) * 1e9).astype(np.int64).astype("timedelta64[ns]")
-
-
 def _time_index(seconds: np.ndarray | Sequence[float]) -> rr.TimeColumn:
-    return rr.TimeColumn(TIMELINES["discrepancy"], duration=_durations(seconds))
+    return rr.TimeColumn(TIMELINES["discrepancy"], duration=durations(seconds))
 
 
 def _split_lines(rec: rr.RecordingStream, base: str, values: Sequence[np.ndarray],
@@ -432,19 +436,29 @@ def _send_candidates(rec: rr.RecordingStream, candidates: Sequence[Mapping[str, 
 
 
 def _candidates_markdown(candidates: Sequence[Mapping[str, Any]]) -> str:
+    """The ranking; with several outputs their held-out RMS goes to a second table (one
+    wide table would be cut off at the view's right edge: the viewer does not scroll
+    tables sideways)."""
     if not candidates:
         return "# Candidates\n\nNo candidate effect was fitted.\n"
     outs = list(dict.fromkeys(o for c in candidates if isinstance(c.get("holdout_rms"), Mapping)
                               for o in c["holdout_rms"]))
-    head = ["#", "effect", "criterion (BIC)", "ΔBIC", "held-out z", *[f"held-out RMS {o}" for o in outs], "passed"]
+    inline = outs if len(outs) <= 1 else []
+    head = ["#", "effect", "criterion (BIC)", "ΔBIC", "held-out z", *[f"held-out RMS {o}" for o in inline], "passed"]
     lines = ["# Candidates", "", "Ranked by the whitened BIC on the fit part (rank = x of the bar charts; "
              "ΔBIC = nominal − candidate, larger is better).", "",
              "| " + " | ".join(map(md_cell, head)) + " |", "|" + "---|" * len(head)]
+    rms_rows = []
     for k, c in enumerate(candidates, 1):
         rms = c.get("holdout_rms") if isinstance(c.get("holdout_rms"), Mapping) else {}
         row = [str(k), effect_text(c), fmt_number(c.get("criterion"), 6), fmt_number(c.get("delta_bic"), 5),
-               fmt_number(c.get("holdout_z"), 3), *[fmt_number(rms.get(o)) for o in outs], "yes" if c.get("passed") is True else "no"]
+               fmt_number(c.get("holdout_z"), 3), *[fmt_number(rms.get(o)) for o in inline],
+               "yes" if c.get("passed") is True else "no"]
         lines.append("| " + " | ".join(row) + " |")
+        rms_rows.append("| " + " | ".join([f"rank {k}", *[fmt_number(rms.get(o)) for o in outs]]) + " |")
+    if not inline and outs:
+        lines += ["", "## Held-out RMS per output", "",
+                  "| candidate | " + " | ".join(map(md_cell, outs)) + " |", "|" + "---|" * (len(outs) + 1), *rms_rows]
     return "\n".join(lines) + "\n"
 
 
@@ -495,70 +509,106 @@ def _localisation_markdown(output: str, loc: Mapping[str, Any]) -> str:
 # ---------------------------------------------------------------- discrepancy blueprint
 
 
+def _names_by_x(names: Sequence[str]) -> str:
+    """``0 air · 1 load``: which signal each bar position is (BarChart has no labels)."""
+    return " · ".join(f"{j} {n}" for j, n in enumerate(names))
+
+
+def _localisation_views(output: str, lay: Mapping[str, Any], has_series: bool, bars_view: Any,
+                        series_view: Any, text_view: Any) -> tuple[list[Any], Any | None]:
+    """One output's localisation plots and its numbers document (None when it has none)."""
+    base = f"/discrepancy/{path_part(output)}/localisation"
+    views: list[Any] = []
+    if lay["signals"]:
+        names = _names_by_x(lay["signals"])
+        views.append(bars_view(f"partial_r2/{output}", origin=f"{base}/partial_r2",
+                               name=f"{output}: partial R² — {names}"))
+        views.append(bars_view(f"neg_log10_p/{output}", origin=f"{base}/neg_log10_p",
+                               name=f"{output}: −log10 p (1.3: p = 0.05) — {names}"))
+    for s in lay["bands"]:
+        views.append(bars_view(f"bands/{output}/{s}", origin=f"{base}/frequency_bands/{path_part(s)}",
+                               name=f"{output} ← {s}: |H| model blue, data orange; x: log10 f/Hz"))
+    if lay["blocks"] or has_series:
+        views.append(series_view(f"time_windows/{output}", origin=f"/discrepancy/{path_part(output)}",
+                                 contents=[f"{base}/time_windows/**", f"/discrepancy/{path_part(output)}/rolling_rms"],
+                                 name=f"{output}: block RMS (green), rolling RMS (purple), high blocks (red)"))
+    if lay["load_signal"] is not None:
+        views.append(bars_view(f"operating_range/{output}", origin=f"{base}/operating_range",
+                               name=f"{output}: residual RMS per {lay['load_signal']} bin (x: {lay['load_signal']})"))
+    report = None
+    if lay["signals"] or lay["blocks"] or lay["load_signal"] is not None:
+        report = text_view(f"report/{output}", f"{base}/report", f"{output}: localisation numbers")
+    return views, report
+
+
 def _discrepancy_blueprint(ident: str, outputs: Sequence[str], per_output: Mapping[str, pl.DataFrame],
                            layout: Mapping[str, dict[str, Any]], has_candidates: bool,
                            split: tuple[float, float, float]) -> rrb.Blueprint:
+    """Tabs *Summary* (full width: its tables are never cut), *Measured vs simulated*,
+    *Residual before/after* (one view per output), *Localisation* (per output its plots
+    beside its numbers; a tab per output when there are several) and *Candidates*."""
     timeline = TIMELINES["discrepancy"]
 
     def fixed(item: Any, key: str) -> Any:
         return with_fixed_ids(item, ident, f"discrepancy:{key}")
 
     def series_view(key: str, **kwargs: Any) -> rrb.TimeSeriesView:
-        return fixed(rrb.TimeSeriesView(**kwargs, **full_range(timeline)), key)
+        # The title names every series by colour: a legend would cover the data, which
+        # fill these plots from edge to edge.
+        return fixed(rrb.TimeSeriesView(**kwargs, plot_legend=legend(None), **full_range(timeline)), key)
 
     def bars_view(key: str, **kwargs: Any) -> rrb.BarChartView:
-        return fixed(rrb.BarChartView(**kwargs), key)
+        # Bar charts have no series names: their legend would list raw entity paths.
+        return fixed(rrb.BarChartView(**kwargs, plot_legend=legend(None)), key)
 
     def text_view(key: str, origin: str, name: str) -> rrb.TextDocumentView:
         return fixed(rrb.TextDocumentView(origin=origin, name=name), key)
 
     drawn = [o for o in outputs if o in per_output]
-    summary = text_view("summary", "/discrepancy/summary", "Summary")
+    tabs = [fixed(rrb.Vertical(text_view("summary", "/discrepancy/summary", "Summary"), name="Summary"),
+                  "tab:summary")]
     signal_views = [series_view(f"signals/{o}", origin=f"/discrepancy/{path_part(o)}/signals",
-                                name=f"{o}: measured, nominal, augmented") for o in drawn]
-    tabs = [fixed(rrb.Horizontal(fixed(rrb.Vertical(*signal_views), "signals_column"), summary,
-                                 column_shares=[3, 1], name="Measured vs simulated"), "tab:signals")]
+                                name=f"{o}: measured (grey), nominal (blue), augmented (orange); "
+                                     "red: fit / hold-out start") for o in drawn]
+    if signal_views:
+        tabs.append(fixed(rrb.Vertical(*signal_views, name="Measured vs simulated"), "tab:signals"))
     residual_views = [series_view(f"residual/{o}", origin=f"/discrepancy/{path_part(o)}",
-                                  contents=[f"/discrepancy/{path_part(o)}/residual/**", f"/discrepancy/{path_part(o)}/rolling_rms"],
-                                  name=f"{o}: residual before/after") for o in drawn]
+                                  contents=[f"/discrepancy/{path_part(o)}/residual/**",
+                                            f"/discrepancy/{path_part(o)}/rolling_rms"],
+                                  name=f"{o}: residual before (blue) / after (orange), rolling RMS (purple); "
+                                       "red: fit / hold-out start") for o in drawn]
     if residual_views:
         tabs.append(fixed(rrb.Vertical(*residual_views, name="Residual before/after"), "tab:residual"))
-    loc_views: list[Any] = []
+    per_output_tabs = []
     for o in outputs:
-        lay, base = layout[o], f"/discrepancy/{path_part(o)}/localisation"
-        views: list[Any] = []
-        if lay["signals"]:
-            views.append(bars_view(f"partial_r2/{o}", origin=f"{base}/partial_r2", name=f"{o}: partial R² per signal"))
-            views.append(bars_view(f"neg_log10_p/{o}", origin=f"{base}/neg_log10_p",
-                                   name=f"{o}: −log10 p per signal (1.3 = p 0.05)"))
-        for s in lay["bands"]:
-            views.append(bars_view(f"bands/{o}/{s}", origin=f"{base}/frequency_bands/{path_part(s)}",
-                                   name=f"{o} ← {s}: |H| model vs data (x: log10 f/Hz)"))
-        if lay["blocks"] or o in per_output:
-            views.append(series_view(f"time_windows/{o}", origin=f"/discrepancy/{path_part(o)}",
-                                     contents=[f"{base}/time_windows/**", f"/discrepancy/{path_part(o)}/rolling_rms"],
-                                     name=f"{o}: residual level over time"))
-        if lay["load_signal"] is not None:
-            views.append(bars_view(f"operating_range/{o}", origin=f"{base}/operating_range",
-                                   name=f"{o}: residual RMS per {lay['load_signal']} bin (x: load)"))
-        if lay["signals"] or lay["blocks"] or lay["load_signal"] is not None:
-            views.append(text_view(f"report/{o}", f"{base}/report", f"{o}: localisation numbers"))
-        loc_views.extend(views)
-    if loc_views:
-        tabs.append(fixed(rrb.Grid(*loc_views, name="Localisation"), "tab:localisation"))
-    cand_views: list[Any] = []
-    if has_candidates:
-        cand_views += [bars_view("delta_bic", origin="/discrepancy/candidates/delta_bic",
-                                 name="ΔBIC per candidate (x: rank; green: passed)"),
-                       bars_view("holdout_z", origin="/discrepancy/candidates/holdout_z",
-                                 name="held-out z per candidate (x: rank)")]
-    cand_tab = fixed(rrb.Horizontal(*([fixed(rrb.Vertical(*cand_views), "candidates_column")] if cand_views else []),
-                                    text_view("candidates", "/discrepancy/candidates/table", "Candidate ranking"),
-                                    column_shares=[2, 3] if cand_views else None, name="Candidates"),
-                     "tab:candidates")
-    tabs.append(cand_tab)
+        views, report = _localisation_views(o, layout[o], o in per_output, bars_view, series_view, text_view)
+        if not views and report is None:
+            continue
+        plots = fixed(rrb.Grid(*views, grid_columns=2 if len(views) > 2 else 1), f"localisation_plots/{o}")
+        parts = [p for p in (plots if views else None, report) if p is not None]
+        per_output_tabs.append(fixed(rrb.Horizontal(*parts, column_shares=[3, 2] if len(parts) == 2 else None,
+                                                    name=f"Localisation: {o}" if len(outputs) > 1 else "Localisation"),
+                                     f"tab:localisation/{o}"))
+    if len(per_output_tabs) == 1:
+        tabs.append(per_output_tabs[0])
+    elif per_output_tabs:
+        tabs.append(fixed(rrb.Tabs(*per_output_tabs, name="Localisation"), "tab:localisation"))
+    tabs.append(_candidates_tab(has_candidates, fixed, bars_view, text_view))
     fit_s, hold_s, end_s = split
-    ns = _durations([hold_s, end_s]).astype(np.int64)
+    ns = durations([hold_s, end_s]).astype(np.int64)
     holdout = rr.encodings.AbsoluteTimeRange(int(ns[0]), int(ns[1])) if hold_s < end_s else None
-    panel = rrb.TimePanel(timeline=timeline, play_state="paused", time_selection=holdout)
-    return rrb.Blueprint(fixed(rrb.Tabs(*tabs, name="plantdyn discrepancy"), "tabs"), panel, collapse_panels=False)
+    return make_blueprint(fixed(rrb.Tabs(*tabs, name="plantdyn discrepancy"), "tabs"), timeline,
+                          time_selection=holdout)
+
+
+def _candidates_tab(has_candidates: bool, fixed: Any, bars_view: Any, text_view: Any) -> Any:
+    """The criteria as bars (x: rank) beside the ranking table."""
+    table = text_view("candidates", "/discrepancy/candidates/table", "Candidate ranking")
+    if not has_candidates:
+        return fixed(rrb.Horizontal(table, name="Candidates"), "tab:candidates")
+    bars = [bars_view("delta_bic", origin="/discrepancy/candidates/delta_bic",
+                      name="ΔBIC per candidate (x: rank; green passed, red failed)"),
+            bars_view("holdout_z", origin="/discrepancy/candidates/holdout_z",
+                      name="held-out z per candidate (x: rank; green passed, red failed)")]
+    return fixed(rrb.Horizontal(fixed(rrb.Vertical(*bars), "candidates_column"), table, column_shares=[2, 3],
+                                name="Candidates"), "tab:candidates")
