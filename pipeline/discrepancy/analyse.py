@@ -485,6 +485,41 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
 _BIC_SHARE = 0.03
 
 
+#: An inverse response is delay-like when its magnitude is within this of 1 ...
+_PADE_MAGNITUDE = 0.15
+#: ... and a dead time at its location lasts 2 tau within this fraction; the dead time
+#: then also needs this share of the inverse response's whitened BIC improvement.
+_PADE_DELAY = 0.3
+_PADE_BIC_SHARE = 0.95
+
+
+def _pade_original(best: Candidate, c: Candidate, config: DiscrepancyConfig) -> bool:
+    """Whether `best` is the first-order Padé approximant of the dead time `c`.
+
+    ``e^{-sT} ~ (1 - sT/2) / (1 + sT/2)``: an inverse response of magnitude ~1 and
+    ``tau_s ~ T/2`` at the dead time's location is the delay's degenerate form.  The dead
+    time is then named when it closes nearly as much of the held-out gap -- at least
+    ``1 - lookalike_gap`` of what the inverse response closes (a share of the *closed*
+    gap, not of what remains, so low signal-to-noise does not make every pair look
+    alike).  Under nuisance mismatch the smooth approximant can predict better than the
+    exact delay: a hidden 20 s dead time left 16 % more of the gap than its look-alike
+    (magnitude 0.977, tau 9.6 s) while closing 94 % as much (0.695 against 0.737), with
+    96.5 % of its BIC improvement.  The BIC share keeps real delay-like inverse responses
+    on a plant that is its model: on tuning trials their dead times closed 91-95 % as much
+    but had only 84-94 % of the BIC improvement."""
+    if best.effect.name != "inverse_response" or c.effect.name != "dead_time":
+        return False
+    p, q = best.effect.parameters, c.effect.parameters
+    locations = {best.effect.location, *best.effect.equivalent_locations}
+    if not locations & {c.effect.location, *c.effect.equivalent_locations}:
+        return False
+    delay, tau = float(q["delay_s"]), float(p["tau_s"])
+    return (abs(float(p["magnitude"]) - 1.0) <= _PADE_MAGNITUDE
+            and abs(2.0 * tau - delay) <= _PADE_DELAY * delay
+            and c.gap_reduction >= (1.0 - config.lookalike_gap) * best.gap_reduction
+            and c.delta_bic >= _PADE_BIC_SHARE * best.delta_bic)
+
+
 def _decide(candidates: list, findings: list, config: DiscrepancyConfig):
     """The finding among practically significant candidates (BIC order).
 
@@ -495,15 +530,17 @@ def _decide(candidates: list, findings: list, config: DiscrepancyConfig):
     model).  Misspecification scales BIC differences with the record -- the first-order
     Padé approximant of a delay (an inverse response of magnitude ~1, 2 parameters) beat
     the exact dead time (1 parameter) by 81 whitened BIC on a scale of 39 000 while both
-    closed 85 % of the gap.  Then look-alikes of another class within ``lookalike_margin``
+    closed 85 % of the gap.  A delay-like inverse response gives way to its dead time by
+    :func:`_pade_original`.  Then look-alikes of another class within ``lookalike_margin``
     of BIC: fewer parameters wins, a tie is ``inconclusive``.  (Equal parameter counts
     with close held-out gaps are left to BIC: ``gain`` at the controller and at the drum
     of the demo predict within 3 % of each other, yet BIC separates them by 168.)"""
     best = findings[0]
     simpler = [c for c in findings[1:] if c.n_parameters < best.n_parameters
                and not same_class(c.effect, best.effect)
-               and c.holdout_gap <= (1.0 + config.lookalike_gap) * best.holdout_gap
-               and c.delta_bic >= (1.0 - _BIC_SHARE) * best.delta_bic]
+               and (c.holdout_gap <= (1.0 + config.lookalike_gap) * best.holdout_gap
+                    and c.delta_bic >= (1.0 - _BIC_SHARE) * best.delta_bic
+                    or _pade_original(best, c, config))]
     if simpler:
         best = min(simpler, key=lambda c: (c.n_parameters, c.criterion))
     group = [best] + [c for c in findings if c is not best
