@@ -158,6 +158,14 @@ class StepModelFit:
 
 
 # ------------------------------------------------------------------ model step responses
+DELAY_RESOLUTION = 0.01
+"""A fitted dead time shorter than this share of the sample period is reported as 0: at the
+data's resolution it cannot be told from none (it moves the sampled step by under 1 % of a
+sample's change), and its Padé approximant (poles near 2·order/θ) would make the exported
+continuous-time model numerically stiff — a 3e-4 s delay at 1 s gave a python-control step
+response of NaN (the demo's pressure<-steam pair)."""
+
+
 def _lag_after(t, delay_s: float) -> np.ndarray:
     return np.maximum(np.asarray(t, dtype=float) - float(delay_s), 0.0)
 
@@ -659,8 +667,7 @@ def fit_step_model(step, *, dt_s: float, step_std=None, integrating: bool = Fals
 
 
 def _result(c: dict, h, dt_s, noise, tol, rule, trials) -> StepModelFit:
-    # a delay under a millionth of a sample is round-off of the bound θ >= 0
-    delay = float(c["delay_s"]) if c["delay_s"] > 1e-6 * dt_s else 0.0
+    delay = float(c["delay_s"]) if c["delay_s"] >= DELAY_RESOLUTION * dt_s else 0.0
     exact = sampled_step(c["num"], c["den"], delay_s=delay, dt_s=dt_s, n_lags=h.size)
     rms = float(np.sqrt(np.mean((exact - h) ** 2)))
     peak = float(np.max(np.abs(h)))

@@ -81,6 +81,23 @@ def test_exact_fopdt_is_recovered_and_taken_first():
     assert fit.fit_rms < 1e-8
 
 
+@pytest.mark.parametrize("delay", [3e-4, 0.004])
+def test_a_delay_below_the_resolution_is_zero_and_its_pade_form_stays_finite(delay):
+    """A dead time under DELAY_RESOLUTION of a sample is reported as 0 (the demo's
+    pressure<-steam pair once got 3e-4 s, whose Padé(6) form stepped to NaN); the stated
+    fit error is then that of the zero-delay model, still tiny (slope·delay)."""
+    from pipeline.adapters.control_lti import pade_transfer_function
+    from pipeline.lti_fit import DELAY_RESOLUTION
+
+    h = fopdt_step(T, gain=2.0, time_constant_s=3.0, delay_s=delay)
+    fit = fit_step_model(h, dt_s=DT)
+    assert delay < DELAY_RESOLUTION * DT and fit.delay_s == 0.0
+    assert fit.fit_rms < 2.0 / 3.0 * delay  # the response's largest slope times the delay
+    g = pade_transfer_function(fit.num, fit.den, delay_s=fit.delay_s, order=6)
+    y = control.step_response(g, T=np.arange(301) * DT / 2).outputs[1::2]
+    assert np.all(np.isfinite(y)) and np.abs(y - h).max() < 2.0 / 3.0 * delay + 1e-6
+
+
 @pytest.mark.parametrize("shift", [0, 3])
 @pytest.mark.parametrize("scale", [1.0, -0.5])
 def test_dead_time_follows_a_time_shift_and_the_gain_a_scaling(shift, scale):
