@@ -19,7 +19,8 @@ Tolerances: with 80 records the coverage over lags (~60 correlated lags per reco
 roughly 80 independent draws) has a standard error of about 2.5 %, so the 90–98 % band
 holds a calibrated ±2σ band (95.4 %) with margin; the false-fail rate is nominally 1 %
 (binomial: P(more than 4 of 80) < 0.1 %); the gain-change detection needs 90 % and the
-agreement test is built for 90 % power at the chosen N_d (measured 100 %).
+agreement test is built for 90 % power at the chosen N_d (measured 100 % on 80 records; the
+suite runs 40 per noise pole — at a power of 0.99, P(fewer than 36 of 40) < 0.1 %).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from tests.plants import arx_bic_step, open_loop_record, open_loop_truth
 
 N = 10_000
 RECORDS = 80
+CHANGE_RECORDS = 40  # detection is measured at 100 %: P(< 90 % of 40 | power 0.99) < 0.1 %
 HORIZON = 90  # lags compared: twice the 98 % settling time
 ARX_MAX_ORDER = 40
 TRUTH = open_loop_truth(400)
@@ -96,11 +98,11 @@ def test_auto_bands_cover_the_truth_and_windows_agree(phi, seed0):
 @pytest.mark.parametrize("phi,seed0", [(0.5, 2_400_000), (0.9, 2_500_000), (0.97, 2_600_000)])
 def test_a_30_percent_gain_change_fails_the_window_agreement(phi, seed0):
     verdicts = []
-    for k in range(RECORDS):
+    for k in range(CHANGE_RECORDS):
         u, y = open_loop_record(N, phi, seed0 + k, gain_change=1.3)
         verdicts.append(search(u, y, dt=1.0, noise="auto").agreement[0][0].verdict)
     rate = np.mean([v == "fail" for v in verdicts])
-    print(f"phi={phi}: 30 % gain change fails in {rate:.0%} of {RECORDS} records")
+    print(f"phi={phi}: 30 % gain change fails in {rate:.0%} of {CHANGE_RECORDS} records")
     assert rate >= 0.90
 
 
