@@ -5,7 +5,7 @@ Rerun summary panel are all :func:`summary_markdown` of the ``discrepancy.json``
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 __all__ = ["effect_text", "fmt_number", "json_number", "md_cell", "summary_markdown"]
@@ -79,12 +79,28 @@ def effect_text(effect: Mapping[str, Any]) -> str:
         ``name``, ``location`` and ``parameters`` (and optionally
         ``equivalent_locations``), as in ``discrepancy.json``.
     """
+    return effect_markup(effect, code=lambda s: f"`{md_cell(s)}`", plain=str)
+
+
+def effect_markup(effect: Mapping[str, Any], *, code: Callable[[str], str],
+                  plain: Callable[[str], str]) -> str:
+    """An effect in one markup (the one sentence shape of report.md and report.html).
+
+    Parameters
+    ----------
+    effect : mapping
+        As for :func:`effect_text`.
+    code : callable
+        Marks up a name or location as code (escaping it).
+    plain : callable
+        Escapes plain text.
+    """
     name, location, params, eq = effect_parts(effect)
-    text = f"`{md_cell(name)}` at `{md_cell(location)}`"
+    text = f"{code(name)} at {code(location)}"
     if params:
-        text += " (" + ", ".join(f"{k} = {v}" for k, v in params) + ")"
+        text += " (" + ", ".join(f"{plain(k)} = {plain(v)}" for k, v in params) + ")"
     if eq:
-        text += f"; equivalent locations: {', '.join(eq)}"
+        text += f"; equivalent locations: {plain(', '.join(eq))}"
     return text
 
 

@@ -24,7 +24,7 @@ from pipeline.adapters.html_report.page import (
     signal_units,
     table,
 )
-from pipeline.discrepancy.report import effect_parts, json_number
+from pipeline.discrepancy.report import effect_markup, json_number
 
 __all__ = ["render_discrepancy_html", "effect_html"]
 
@@ -41,13 +41,7 @@ def effect_html(effect: Mapping[str, Any]) -> str:
     effect : mapping
         ``name``, ``location``, ``parameters`` (and optionally ``equivalent_locations``).
     """
-    name, location, params, eq = effect_parts(effect)
-    text = f"<code>{esc(name)}</code> at <code>{esc(location)}</code>"
-    if params:
-        text += " (" + ", ".join(f"{esc(k)} = {esc(v)}" for k, v in params) + ")"
-    if eq:
-        text += f"; equivalent locations: {esc(', '.join(eq))}"
-    return text
+    return effect_markup(effect, code=lambda s: f"<code>{esc(s)}</code>", plain=esc)
 
 
 def _pct(value: Any) -> str:
