@@ -74,7 +74,14 @@ __all__ = [
 ONE_MINUS_INV_E = 1.0 - math.exp(-1.0)  # 63.2 %
 
 
-def _json_float(v):
+def finite_or_none(v):
+    """A number for JSON: ``float(v)``, or None when `v` is None or not finite.
+
+    Parameters
+    ----------
+    v : float or None
+        The number.
+    """
     return None if v is None or not np.isfinite(v) else float(v)
 
 
@@ -124,7 +131,7 @@ class SelfRegulatingCharacteristics:
 
     def to_dict(self) -> dict:
         """JSON-ready dict (NaN → None; ``undefined`` keeps the reasons)."""
-        out = {k: (v if isinstance(v, bool) else _json_float(v))
+        out = {k: (v if isinstance(v, bool) else finite_or_none(v))
                for k, v in asdict(self).items() if k != "undefined"}
         for k in self.undefined:
             out[k] = None
@@ -176,7 +183,7 @@ class IntegratingCharacteristics:
 
     def to_dict(self) -> dict:
         """JSON-ready dict (NaN → None)."""
-        return {k: _json_float(v) for k, v in asdict(self).items()}
+        return {k: finite_or_none(v) for k, v in asdict(self).items()}
 
 
 # ------------------------------------------------------------------------- helpers

@@ -66,7 +66,7 @@ import scipy.linalg
 import scipy.optimize
 import scipy.signal
 
-from pipeline.characteristics import integrating_characteristics
+from pipeline.characteristics import finite_or_none, integrating_characteristics
 from pipeline.errors import ConfigError, DataQualityError, PipelineError
 from pipeline.frequency import fit_transfer_function, frequency_response_from_step
 
@@ -136,15 +136,12 @@ class StepModelFit:
 
     def to_dict(self) -> dict:
         """JSON-ready dict (numbers as floats, NaN as None)."""
-        def num_or_none(v):
-            return None if v is None or not np.isfinite(v) else float(v)
-
         return {
             "kind": self.kind, "num": [float(v) for v in self.num],
             "den": [float(v) for v in self.den], "delay_s": float(self.delay_s),
-            "parameters": self.parameters, "fit_rms": num_or_none(self.fit_rms),
-            "fit_rms_rel": num_or_none(self.fit_rms_rel),
-            "noise_rms": num_or_none(self.noise_rms), "tolerance": float(self.tolerance),
+            "parameters": self.parameters, "fit_rms": finite_or_none(self.fit_rms),
+            "fit_rms_rel": finite_or_none(self.fit_rms_rel),
+            "noise_rms": finite_or_none(self.noise_rms), "tolerance": float(self.tolerance),
             "within_noise": bool(self.within_noise), "rule": self.rule,
             "trials": list(self.trials),
         }
