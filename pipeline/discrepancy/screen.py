@@ -24,6 +24,8 @@ from pipeline.simulate import discrete_state_space, simulate
 #: Relative tolerance under which two candidates' sensitivities count as identical
 #: (equivalent locations): rounding of an FFT convolution is ~1e-13 relative.
 _EQUIVALENT_RTOL = 1e-7
+#: Elements per block of :func:`batch_sse` (2 MB of float64: a few blocks fit in cache).
+_SSE_BLOCK_ELEMENTS = 262_144
 
 
 #: One screening grid point: (explained whitened SS, parameters, whitened direction).
@@ -418,17 +420,24 @@ class StaticMapPath:
         first : int
             No column's injection is nonzero before this sample.
         """
-        a, b, c = self.a, self.b[:, None], self.c
-        d_out = self.d_out[:, None]
+        n_y = len(self.d_out)
+        # one product per sample, rows [signal, outputs, next state] = [c; a] @ x, and
+        # the injection's feedthrough [d_out; b] * d added in place: this per-sample
+        # Python loop is overhead-bound, and fewer operations made it 1.4x faster
+        ca = np.vstack([self.c, self.a])
+        bd = np.concatenate([self.d_out, self.b])[:, None]
         s_nom = self.s_nominal
-        y = np.zeros((self.stop, len(self.d_out), k))
-        x = np.zeros((a.shape[0], k))
+        y = np.zeros((self.stop, n_y, k))
+        x = np.zeros((self.a.shape[0], k))
         for t in range(first, self.stop):
-            m = c @ x
-            s = s_nom[t] + m[0]
-            d = phi(s, t) - s
-            y[t] = m[1:] + d_out * d
-            x = a @ x + b * d
+            m = ca @ x
+            s = m[0]
+            s += s_nom[t]
+            d = phi(s, t)
+            d -= s
+            m[1:] += bd * d
+            y[t] = m[1:1 + n_y]
+            x = m[1 + n_y:]
         return y
 
 
@@ -446,11 +455,17 @@ def batch_sse(P: Problem, y_corr: np.ndarray, stop: int) -> np.ndarray:
         End of the fit part (exclusive), a sample index.
     """
     first = P.fit_start + max(len(a) for a in P.ar) - 1
-    total = np.zeros(y_corr.shape[2])
+    k = y_corr.shape[2]
+    total = np.zeros(k)
+    # in blocks of columns: the whole (stop, K) error of a long record is hundreds of MB
+    # that every step would stream through memory; a block stays in cache
+    width = max(1, _SSE_BLOCK_ELEMENTS // max(stop, 1))
     for i in range(P.n_y):
-        e = (P.y[:stop, i] - P.y_nominal[:stop, i])[:, None] - y_corr[:, i, :]
-        w = fir_from(P.ar[i], e, first)[: stop - first] / P.sigma[i]
-        total += np.einsum("ij,ij->j", w, w)
+        r = (P.y[:stop, i] - P.y_nominal[:stop, i])[:, None]
+        for j in range(0, k, width):
+            e = r - y_corr[:, i, j:j + width]
+            w = fir_from(P.ar[i], e, first)[: stop - first]
+            total[j:j + width] += np.einsum("ij,ij->j", w, w) / P.sigma[i] ** 2
     return np.where(np.isfinite(total), total, np.inf)
 
 
