@@ -130,3 +130,28 @@ def test_a_simpler_look_alike_wins_only_against_degenerate_inverse_responses():
                 delta_bic=637.0, gap=1.00, reduction=0.60)
     gain = _cand("gain", {"factor": 1.1}, k=1, delta_bic=623.0, gap=1.05, reduction=0.58)
     assert _named(opg, gain) == "gain"
+
+
+def test_the_lag_nested_in_a_jointly_refitted_inverse_response_is_refitted_jointly_too():
+    """In a later search of the chain the best candidates are refitted jointly with the
+    earlier effects; the extra lag at a chosen inverse response's location (its
+    magnitude-0 form, also through an equivalent location) joins them -- and only
+    that: lags elsewhere, lags already chosen and other classes do not."""
+    from pipeline.discrepancy.analyse import _nested_lags
+    from pipeline.discrepancy.fit import Fit
+    from pipeline.effects import Effect
+
+    def entry(name, loc, params, equivalent=()):
+        return (Fit(Effect(name, loc, params, tuple(equivalent)), 1, 0.0, None), 0.0, 0.0, None)
+
+    fitted = [
+        entry("inverse_response", "fuel", {"tau_s": 7.0, "magnitude": 0.01}),  # 0 chosen
+        entry("gain", "drum", {"factor": 1.2}),                                 # 1 chosen
+        entry("extra_lag", "fuel", {"tau_s": 7.0}),                             # 2 nested
+        entry("extra_lag", "drum", {"tau_s": 7.0}),                             # 3 elsewhere
+        entry("extra_lag", "controller", {"tau_s": 7.0}, ["fuel"]),             # 4 equivalent
+        entry("dead_time", "fuel", {"delay_s": 14.0}),                          # 5 not a lag
+    ]
+    assert _nested_lags(fitted, [0, 1]) == [2, 4]
+    assert _nested_lags(fitted, [0, 2]) == [4]  # a chosen lag is not repeated
+    assert _nested_lags(fitted, [1, 3]) == []   # no inverse response chosen
