@@ -25,8 +25,8 @@ from pipeline.discrepancy.select import (
     rms_of,
     same_class,
 )
-from pipeline.effects import Effect, apply_effect, output_offsets
-from pipeline.errors import InsufficientDataError
+from pipeline.effects import Effect, apply_effect, output_offsets, predict_outputs
+from pipeline.errors import InsufficientDataError, PipelineError
 from pipeline.model import Model
 from pipeline.noise_model import fit_ar
 from pipeline.progress import quiet
@@ -104,11 +104,11 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     (:mod:`pipeline.discrepancy.chain`)."""
     config = config or DiscrepancyConfig()
     say = progress or quiet
-    def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any]
-             ) -> DiscrepancyResult:
+    def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
+             also: tuple[Candidate, ...]) -> DiscrepancyResult:
         reference = chain.steps[0].gap["holdout_rms_before"] if chain.steps else None
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
-                     reference)
+                     reference, also)
 
     chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say)
     links, minor = chain.run()
@@ -154,7 +154,8 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
 def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], dt_s: float,
           config: DiscrepancyConfig, seed: int, say: Callable[[str, str], None],
           clock: Callable[[], float] | None, base: Model,
-          prior: tuple[Effect, ...], gap_reference: float | None = None) -> DiscrepancyResult:
+          prior: tuple[Effect, ...], gap_reference: float | None = None,
+          also: tuple[Candidate, ...] = ()) -> DiscrepancyResult:
     """One search: localise, screen, fit and select the best effect for ``model`` (the
     nominal model `base` with the chain's `prior` effects; locations limited to those with a
     counterpart in the nominal model; the best candidates also refitted jointly with
@@ -186,7 +187,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         localization[out]["locations"] = [dict(s) for s in screening[:10]]
     bic_nom, hold_nom = criteria(P, P.y_nominal, 0)
     noise["bic_nominal"] = bic_nom
-    fitted, revised = _fitted(P, preds, hold_nom, base, prior, say)
+    fitted, revised = _fitted(P, preds, hold_nom, base, prior, say, also)
     lap("search")
     say("select", "held-out comparison")
     candidates, verdict, effect, lookalikes, minor = _select(P, fitted, bic_nom, resid, seed,
@@ -217,14 +218,17 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
 
 
 def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
-            prior: tuple[Effect, ...], say: Callable[[str, str], None]
-            ) -> tuple[list, dict[int, tuple[Effect, ...]]]:
+            prior: tuple[Effect, ...], say: Callable[[str, str], None],
+            also: tuple[Candidate, ...] = ()) -> tuple[list, dict[int, tuple[Effect, ...]]]:
     """Criteria of every fitted candidate, plus -- in a later search of the chain -- the
     :data:`~pipeline.discrepancy.joint.N_JOINT` best, and the extra lag nested in each
     inverse response among them (:func:`_nested_lags`), refitted jointly with the prior
     effects (as extra candidates of the same class; the better fit of a class is kept
     at selection).  Returns the ``(Fit, bic, held-out z, held-out errors)`` list and,
-    per joint candidate (by ``id`` of its effect), the prior effects as refitted."""
+    per joint candidate (by ``id`` of its effect), the prior effects as refitted.  The
+    candidates `also` (nominal locations) are refitted jointly with the prior effects
+    too, or -- when nothing of theirs is refitted (a dead time, a sensor bias) -- taken as
+    they are."""
     fitted = []
     for c, effect, y_pred in preds:
         bic, hold = criteria(P, y_pred, c.n_parameters)
@@ -247,7 +251,32 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
         fitted.append((Fit(effect, fit.n_parameters, fit.screening_score, y_pred), bic,
                        holdout_z_score(hold_nom, hold), hold))
         revised[id(effect)] = tuple(refitted_prior)
+    for c in also:
+        joint = joint_refit(P, nominal, prior, c.effect)
+        if joint is None:
+            y_pred = _prediction(P, c.effect)
+            if y_pred is None:
+                continue
+            joint = (prior, c.effect, y_pred)
+        refitted_prior, effect, y_pred = joint
+        bic, hold = criteria(P, y_pred, c.n_parameters)
+        fitted.append((Fit(effect, c.n_parameters, c.screening_score, y_pred), bic,
+                       holdout_z_score(hold_nom, hold), hold))
+        revised[id(effect)] = tuple(refitted_prior)
     return fitted, revised
+
+
+def _prediction(P: Problem, effect: Effect) -> np.ndarray | None:
+    """Predicted outputs (N, n_y) of the search's model with `effect` added as it is
+    (its output offsets included); None when it cannot be simulated."""
+    try:
+        with np.errstate(all="ignore"):
+            out = predict_outputs(P.model, effect, P.inputs, dt_s=P.dt_s, outputs=P.outputs,
+                                  initial=P.config.initial)
+    except PipelineError:
+        return None
+    y = np.column_stack([out[o] for o in P.outputs])
+    return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
 
 
 def _nested_lags(fitted: list, chosen: list[int]) -> list[int]:
