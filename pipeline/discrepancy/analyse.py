@@ -11,7 +11,7 @@ import numpy as np
 from pipeline._threads import single_threaded_blas
 from pipeline.discrepancy.chain import Chain, build, chain_steps
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.discrepancy.fit import Fit, Fitter, refit_nested_lags
+from pipeline.discrepancy.fit import Fit, Fitter, predict_with, refit_nested_lags
 from pipeline.discrepancy.joint import N_JOINT, joint_refit
 from pipeline.discrepancy.localise import localise
 from pipeline.discrepancy.problem import Problem, settling_time, sigma_floor, validate_signals
@@ -25,8 +25,8 @@ from pipeline.discrepancy.select import (
     rms_of,
     same_class,
 )
-from pipeline.effects import Effect, apply_effect, output_offsets, predict_outputs
-from pipeline.errors import InsufficientDataError, PipelineError
+from pipeline.effects import Effect, apply_effect, output_offsets
+from pipeline.errors import InsufficientDataError
 from pipeline.model import Model
 from pipeline.noise_model import fit_ar
 from pipeline.progress import quiet
@@ -239,11 +239,16 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
         return fitted, revised
     best = sorted(range(len(fitted)), key=lambda k: fitted[k][1])[:N_JOINT]
     best += _nested_lags(fitted, best)
-    say("joint", f"refitting {len(best)} candidate(s) jointly with {len(prior)} earlier "
-        "effect(s)")
-    for k in best:
-        fit = fitted[k][0]
+    # (fit, taken as it is when nothing of it can be refitted)
+    joint_fits = [(fitted[k][0], False) for k in best] + [
+        (Fit(c.effect, c.n_parameters, c.screening_score, None), True) for c in also]
+    say("joint", f"refitting {len(joint_fits)} candidate(s) jointly with {len(prior)} "
+        "earlier effect(s)")
+    for fit, as_is in joint_fits:
         joint = joint_refit(P, nominal, prior, fit.effect)
+        if joint is None and as_is and (y_pred := predict_with(P, fit.effect, P.inputs)) \
+                is not None:
+            joint = (list(prior), fit.effect, y_pred)
         if joint is None:
             continue
         refitted_prior, effect, y_pred = joint
@@ -251,32 +256,7 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
         fitted.append((Fit(effect, fit.n_parameters, fit.screening_score, y_pred), bic,
                        holdout_z_score(hold_nom, hold), hold))
         revised[id(effect)] = tuple(refitted_prior)
-    for c in also:
-        joint = joint_refit(P, nominal, prior, c.effect)
-        if joint is None:
-            y_pred = _prediction(P, c.effect)
-            if y_pred is None:
-                continue
-            joint = (prior, c.effect, y_pred)
-        refitted_prior, effect, y_pred = joint
-        bic, hold = criteria(P, y_pred, c.n_parameters)
-        fitted.append((Fit(effect, c.n_parameters, c.screening_score, y_pred), bic,
-                       holdout_z_score(hold_nom, hold), hold))
-        revised[id(effect)] = tuple(refitted_prior)
     return fitted, revised
-
-
-def _prediction(P: Problem, effect: Effect) -> np.ndarray | None:
-    """Predicted outputs (N, n_y) of the search's model with `effect` added as it is
-    (its output offsets included); None when it cannot be simulated."""
-    try:
-        with np.errstate(all="ignore"):
-            out = predict_outputs(P.model, effect, P.inputs, dt_s=P.dt_s, outputs=P.outputs,
-                                  initial=P.config.initial)
-    except PipelineError:
-        return None
-    y = np.column_stack([out[o] for o in P.outputs])
-    return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
 
 
 def _nested_lags(fitted: list, chosen: list[int]) -> list[int]:

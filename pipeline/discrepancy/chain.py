@@ -84,11 +84,12 @@ def build(model: Model, effects: Sequence[Effect], dt_s: float) -> Model:
 def _accepted(result: DiscrepancyResult, nominal: Model) -> Link | None:
     """The step's accepted effect with its location mapped to nominal names (None if the
     location has no nominal counterpart)."""
-    return _link(result.effect, result.candidates, nominal)
+    return _link(next(c for c in result.candidates if c.effect is result.effect), nominal)
 
 
-def _link(effect: Effect, candidates: Sequence[Candidate], nominal: Model) -> Link | None:
-    """`effect` (one of `candidates`) as a link in nominal names (None: no counterpart)."""
+def _link(cand: Candidate, nominal: Model) -> Link | None:
+    """A candidate's effect as a link in nominal names (None: no counterpart)."""
+    effect = cand.effect
     names = (*nominal.block_names, *nominal.outputs)
     loc = original_location(effect.location, names)
     if loc is None:
@@ -96,7 +97,6 @@ def _link(effect: Effect, candidates: Sequence[Candidate], nominal: Model) -> Li
     equivalent = tuple(dict.fromkeys(
         m for m in (original_location(e, names) for e in effect.equivalent_locations)
         if m is not None and m != loc))
-    cand = next(c for c in candidates if c.effect is effect)
     if loc == effect.location and equivalent == tuple(effect.equivalent_locations):
         return Link(effect, cand)  # names of the nominal model already: the same object
     mapped = dataclasses.replace(effect, location=loc, equivalent_locations=equivalent)
@@ -246,7 +246,7 @@ class Chain:
         for cand in masked:
             if budget < 2:
                 break
-            link0 = _link(cand.effect, first.candidates, self.model)
+            link0 = _link(cand, self.model)
             if link0 is None:
                 continue
             self.say("chain", f"{cand.effect.describe()} fits but fails on held-out data: "

@@ -83,20 +83,8 @@ class Fitter:
         full : bool
             Simulate the whole record (N rows) instead of samples ``[0, holdout_start)``.
         """
-        P = self.P
-        inputs = P.inputs if full else self.ins_fit
         self.n_eval += 1
-        try:
-            with np.errstate(all="ignore"), warnings.catch_warnings():
-                # parameter trials near a null value (magnitude ~ 0) give transfer
-                # functions scipy calls badly conditioned; the simulation is still exact
-                warnings.simplefilter("ignore", scipy.signal.BadCoefficients)
-                out = predict_outputs(P.model, effect, inputs, dt_s=P.dt_s, outputs=P.outputs,
-                                      initial=P.config.initial)
-        except PipelineError:
-            return None
-        y = np.column_stack([out[o] for o in P.outputs])
-        return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
+        return predict_with(self.P, effect, self.P.inputs if full else self.ins_fit)
 
     def residual(self, effect: Effect) -> np.ndarray:
         """Whitened fit-part residual; a blown-up simulation gives a flat huge vector
@@ -408,6 +396,32 @@ class Fitter:
                     best = (val, k, math.exp(res.x) * dt, dd * dt)
         assert best is not None
         return mk({"k": float(best[1]), "tau_s": float(best[2]), "delay_s": float(best[3])})
+
+
+def predict_with(P: Problem, effect: Effect, inputs: Mapping[str, np.ndarray]
+                 ) -> np.ndarray | None:
+    """Outputs (rows of `inputs`, n_y) of the search's model with `effect` added as it is,
+    measurement offsets included; None if the simulation fails or blows up.
+
+    Parameters
+    ----------
+    P : Problem
+    effect : Effect
+        Added to ``P.model``.
+    inputs : mapping of str -> ndarray
+        ``P.inputs`` or a leading part of them.
+    """
+    try:
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            # parameter trials near a null value (magnitude ~ 0) give transfer
+            # functions scipy calls badly conditioned; the simulation is still exact
+            warnings.simplefilter("ignore", scipy.signal.BadCoefficients)
+            out = predict_outputs(P.model, effect, inputs, dt_s=P.dt_s, outputs=P.outputs,
+                                  initial=P.config.initial)
+    except PipelineError:
+        return None
+    y = np.column_stack([out[o] for o in P.outputs])
+    return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
 
 
 def _local_minima(values: np.ndarray, sse: np.ndarray, m: int = 3) -> list[float]:
