@@ -15,18 +15,14 @@ import scipy.signal
 
 from pipeline.discrepancy.localise import lag_filter
 from pipeline.discrepancy.problem import Problem
-from pipeline.discrepancy.screen import (
-    Screen,
-    Screener,
-    batch_sse,
-    clip_map,
+from pipeline.discrepancy.lure import (
     first_crossing,
-    near,
     one_sided,
     saturation_grids,
     saturation_profile,
     static_path,
 )
+from pipeline.discrepancy.screen import Screen, Screener, near
 from pipeline.effects import Effect, apply_effect, predict_outputs
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.simulate import simulate
@@ -464,9 +460,7 @@ class _SaturationSearch:
             return np.array([f.sse(self.mk({"low": float(a), "high": float(b)}))
                              for a, b in zip(lo, hi, strict=True)])
         f.n_eval += 1  # one pass simulates the whole batch
-        with np.errstate(all="ignore"):
-            y = path.corrections(clip_map(lo, hi), lo.size, first=first_crossing(v, lo, hi))
-        return batch_sse(P, y, stop)
+        return path.clip_sse(P, lo, hi, first=first_crossing(v, lo, hi))
 
     def run(self, pairs: Sequence[tuple[float, float]]) -> None:
         """Evaluate the new valid pairs (low < high) and record them in `tried`."""
@@ -488,8 +482,7 @@ class _SaturationSearch:
             p_lows, p_highs = one_sided(grid_lo, grid_hi)
             p_sse = self.evaluate(p_lows, p_highs)
         else:
-            p_lows, p_highs, y_corr = profile
-            p_sse = batch_sse(P, y_corr, stop)
+            p_lows, p_highs, p_sse, _ = profile
         self.tried.update({(float(a), float(b)): float(e)
                            for a, b, e in zip(p_lows, p_highs, p_sse, strict=True)})
         self.tried[(-inf, inf)] = f.sse(self.mk({"low": -inf, "high": inf}))

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -13,19 +11,18 @@ import scipy.fft
 import scipy.optimize
 
 from pipeline.discrepancy.localise import lag_filter
-from pipeline.discrepancy.problem import Problem, fir_from
+from pipeline.discrepancy.lure import first_crossing, inject_model, saturation_profile
+from pipeline.discrepancy.problem import Problem
 from pipeline.effects import Effect, applicable_locations, original_location, predict_outputs
-from pipeline.errors import ModelError, PipelineError
-from pipeline.blocks import Sum, Term
-from pipeline.model import Model, insert_after, insert_before
-from pipeline.simulate import discrete_state_space, simulate
+from pipeline.errors import PipelineError
+from pipeline.blocks import Sum
+from pipeline.model import Model
+from pipeline.simulate import simulate
 
 
 #: Relative tolerance under which two candidates' sensitivities count as identical
 #: (equivalent locations): rounding of an FFT convolution is ~1e-13 relative.
 _EQUIVALENT_RTOL = 1e-7
-#: Elements per block of :func:`batch_sse` (2 MB of float64: a few blocks fit in cache).
-_SSE_BLOCK_ELEMENTS = 262_144
 
 
 #: One screening grid point: (explained whitened SS, parameters, whitened direction).
@@ -43,19 +40,6 @@ class Screen:
     starts: list[dict[str, Any]]  # best grid points first (parameters)
     direction: np.ndarray  # whitened direction at the best point (equivalence test)
     members: list[str] = field(default_factory=list)
-
-
-def _inject_model(model: Model, block: str, *, side: str) -> Model:
-    """`model` plus an input ``__inject`` added at the output (or input) of `block`."""
-    base = dataclasses.replace(model, inputs=(*model.inputs, "__inject"))
-    if side == "output":
-        upstream = f"{block}__inject_upstream"
-        return insert_after(base, block, upstream_name=upstream,
-                            block=Sum(name=block, inputs=(Term(upstream), Term("__inject"))))
-    name = f"{block}__inject_sum"
-    with_sum = insert_before(base, block, block=Sum(name=name))
-    summed = with_sum.block(name)
-    return with_sum.with_block(dataclasses.replace(summed, inputs=(*summed.inputs, Term("__inject"))))
 
 
 class Screener:
@@ -98,7 +82,7 @@ class Screener:
         """
         key = (block, side)
         if key not in self._h:
-            m = _inject_model(self.P.model, block, side=side)
+            m = inject_model(self.P.model, block, side=side)
             u = {k: np.zeros(self.stop) for k in m.inputs}
             u["__inject"][0] = 1.0
             with np.errstate(all="ignore"):
@@ -321,11 +305,14 @@ class Screener:
         # a nonlinear nominal model, five limit pairs (quantiles of the signal).
         profile = saturation_profile(P, self._h, loc, self.stop)
         if profile is not None:
-            p_lows, p_highs, y_corr = profile
-            p_sse = batch_sse(P, y_corr, self.stop)
+            p_lows, p_highs, p_sse, path = profile
             rr = float(self.r_w @ self.r_w)
-            for j in np.argsort(p_sse)[:3]:
-                dw = self.w(y_corr[:, :, j])
+            best = np.argsort(p_sse)[:3]
+            lows, highs = p_lows[best], p_highs[best]
+            y_corr = path.clip_corrections(P, lows, highs,
+                                           first=first_crossing(v, lows, highs))
+            for m, j in enumerate(best):
+                dw = self.w(y_corr[:, :, m])
                 grid.append((rr - float(p_sse[j]),
                              {"low": float(p_lows[j]), "high": float(p_highs[j])}, dw))
         pairs = () if profile is not None else (
@@ -354,227 +341,6 @@ class Screener:
                 grid.append((self.fixed(dw), {"width": width}, dw))
 
 
-class StaticMapPath:
-    """The nominal model with a static map on one block's output, exact for many
-    parameter values at once.
-
-    A ``saturation`` of block B is a static map ``s -> phi(s, t)`` of B's output ``s``
-    (a clip).  The augmented model is then the nominal (linear) model plus an injection
-    ``d = phi(s) - s`` at ``s`` (Lur'e form), and superposition is exact: the outputs are
-    the nominal outputs plus the injection's response, and ``s`` is its nominal value plus
-    the response to *earlier* injections (strictly causal: the nominal model has no
-    algebraic loop).  One pass over time with a state matrix of K columns therefore
-    simulates K parameter values of the map exactly (equal to
-    :func:`pipeline.effects.predict_outputs` to rounding) for about the cost of one
-    per-sample simulation -- which is what makes dense searches over saturation limits,
-    whose error valleys are narrow when a loop winds up, affordable.
-
-    Raises ModelError when the nominal model is not linear (the caller then simulates
-    each parameter value exactly).
-
-    Parameters
-    ----------
-    P : Problem
-        The analysis problem (model, measured outputs, sample period).
-    block : str
-        Block whose output the map acts on.
-    s_nominal : ndarray (N,)
-        Nominal simulated output of `block`; the first `stop` samples are used.
-    stop : int
-        Number of samples simulated, ``[0, stop)`` (the end of the fit part).
-    """
-
-    #: Above this many states the K-column state update costs more than simulating.
-    MAX_STATES = 200
-
-    def __init__(self, P: Problem, block: str, s_nominal: np.ndarray, stop: int) -> None:
-        model = _inject_model(P.model, block, side="output")
-        system = discrete_state_space(model, dt_s=P.dt_s)
-        if system.a.shape[0] > self.MAX_STATES:
-            raise ModelError(f"{system.a.shape[0]} states: simulate candidates one by one")
-        j = system.input_names.index("__inject")
-        name = f"{block}__inject_upstream"
-        row = system.signal_names.index(name)
-        # the map's own signal must not depend on the current injection
-        if abs(system.d[row, j]) > 1e-12:  # pragma: no cover - algebraic loop
-            raise ModelError(f"signal {name!r} depends algebraically on the injection")
-        rows = [row] + [system.signal_names.index(o) for o in P.outputs]
-        self.a = system.a
-        self.b = system.b[:, j].copy()
-        self.c = system.c[rows]
-        self.d_out = system.d[rows[1:], j].copy()
-        self.s_nominal = np.asarray(s_nominal[:stop], dtype=float)
-        self.stop = stop
-
-    def corrections(self, phi: Callable[[np.ndarray, int], np.ndarray], k: int,
-                    first: int = 0) -> np.ndarray:
-        """Output changes (stop, n_y, k) caused by the map ``phi(s, t)`` (k columns).
-
-        Parameters
-        ----------
-        phi : callable (s, t) -> ndarray
-            The map: ``s`` (k,) is the block's output of every column at sample ``t``;
-            returns the mapped values (k,).
-        k : int
-            Number of columns (parameter values of the map).
-        first : int
-            No column's injection is nonzero before this sample.
-        """
-        n_y = len(self.d_out)
-        # one product per sample, rows [signal, outputs, next state] = [c; a] @ x, and
-        # the injection's feedthrough [d_out; b] * d added in place: this per-sample
-        # Python loop is overhead-bound, and fewer operations made it 1.4x faster
-        ca = np.vstack([self.c, self.a])
-        bd = np.concatenate([self.d_out, self.b])[:, None]
-        s_nom = self.s_nominal
-        y = np.zeros((self.stop, n_y, k))
-        x = np.zeros((self.a.shape[0], k))
-        for t in range(first, self.stop):
-            m = ca @ x
-            s = m[0]
-            s += s_nom[t]
-            d = phi(s, t)
-            d -= s
-            m[1:] += bd * d
-            y[t] = m[1:1 + n_y]
-            x = m[1 + n_y:]
-        return y
-
-
-def batch_sse(P: Problem, y_corr: np.ndarray, stop: int) -> np.ndarray:
-    """Whitened SSE on the fit part of ``y - y_nominal - y_corr[:, :, j]`` per column j
-    (the same numbers as ``Fitter.sse`` of each candidate).
-
-    Parameters
-    ----------
-    P : Problem
-        Measured and nominal outputs, ``fit_start`` and noise model.
-    y_corr : ndarray (stop, n_y, K)
-        Output changes per candidate column (:meth:`StaticMapPath.corrections`).
-    stop : int
-        End of the fit part (exclusive), a sample index.
-    """
-    first = P.fit_start + max(len(a) for a in P.ar) - 1
-    k = y_corr.shape[2]
-    total = np.zeros(k)
-    # in blocks of columns: the whole (stop, K) error of a long record is hundreds of MB
-    # that every step would stream through memory; a block stays in cache
-    width = max(1, _SSE_BLOCK_ELEMENTS // max(stop, 1))
-    for i in range(P.n_y):
-        r = (P.y[:stop, i] - P.y_nominal[:stop, i])[:, None]
-        for j in range(0, k, width):
-            e = r - y_corr[:, i, j:j + width]
-            w = fir_from(P.ar[i], e, first)[: stop - first]
-            total[j:j + width] += np.einsum("ij,ij->j", w, w) / P.sigma[i] ** 2
-    return np.where(np.isfinite(total), total, np.inf)
-
-
-def clip_map(lows: np.ndarray, highs: np.ndarray) -> Callable[[np.ndarray, int], np.ndarray]:
-    """The saturation map ``phi(s, t) = min(max(s, lows), highs)`` (per column).
-
-    Parameters
-    ----------
-    lows, highs : ndarray (K,)
-        Lower and upper limit of each column (-inf / inf: no limit).
-    """
-    return lambda s, t: np.minimum(np.maximum(s, lows), highs)
-
-
-def saturation_grids(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate low and high limits for the one-sided profiles of a signal `v`.
-
-    Quantiles 0.5 %-50 % (low) and 50 %-99.5 % (high) in steps of 0.5 %, joined with
-    values every 1 % of the range: dense where the signal spends its time and in its
-    tails.  (A limit outside the range is never met by the nominal signal, and before a
-    saturation has acted the plant's signal IS the nominal one, so the limit met first
-    lies inside the range.)
-
-    Parameters
-    ----------
-    v : ndarray
-        Nominal signal at the location, samples ``[0, stop)``.
-    """
-    lo, hi = float(v.min()), float(v.max())
-    med = float(np.median(v))
-    q = np.arange(0.005, 0.5001, 0.005)
-    lows = np.concatenate([np.quantile(v, q), np.linspace(lo, med, 51)[1:]])
-    highs = np.concatenate([np.quantile(v, 1.0 - q), np.linspace(med, hi, 51)[:-1]])
-    spacing = 1e-6 * max(hi - lo, 1e-300)
-    lows = np.unique(np.round(lows / spacing)) * spacing
-    highs = np.unique(np.round(highs / spacing)) * spacing
-    return lows[(lows > lo) & (lows <= med)], highs[(highs < hi) & (highs >= med)]
-
-
-def one_sided(grid_lo: np.ndarray, grid_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(lows, highs) of the one-sided limit pairs: each low with no high, then each high
-    with no low.
-
-    Parameters
-    ----------
-    grid_lo, grid_hi : ndarray
-        Candidate low and high limits (:func:`saturation_grids`).
-    """
-    return (np.concatenate([grid_lo, np.full(grid_hi.size, -np.inf)]),
-            np.concatenate([np.full(grid_lo.size, np.inf), grid_hi]))
-
-
-def saturation_profile(P: Problem, cache: dict, loc: str, stop: int
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """One-sided limit profiles at `loc`: (lows, highs, output changes (stop, n_y, K)).
-
-    Column j has limits ``(lows[j], highs[j])`` with one of them infinite.  Computed
-    once per location and cached (the changes do not depend on the noise model).  None
-    when the nominal model is not linear.
-
-    Parameters
-    ----------
-    P : Problem
-        Nominal signals and model.
-    cache : dict
-        The screening cache (:class:`Screener`'s ``h_cache``), shared across passes.
-    loc : str
-        Block whose output is saturated.
-    stop : int
-        End of the fit part (exclusive), a sample index.
-    """
-    key = ("saturation_profile", loc, stop)
-    if key not in cache:
-        v = P.nominal_signals[loc][:stop]
-        lows, highs = one_sided(*saturation_grids(v))
-        path = static_path(P, cache, loc, stop)
-        if path is None or lows.size == 0:
-            cache[key] = None
-        else:
-            with np.errstate(all="ignore"):
-                y = path.corrections(clip_map(lows, highs), lows.size,
-                                     first=first_crossing(v, lows, highs))
-            cache[key] = (lows, highs, y)
-    return cache[key]
-
-
-def static_path(P: Problem, cache: dict, loc: str, stop: int) -> StaticMapPath | None:
-    """The cached :class:`StaticMapPath` at the output of `loc` (None: not available).
-
-    Parameters
-    ----------
-    P : Problem
-        Nominal signals and model.
-    cache : dict
-        The screening cache (:class:`Screener`'s ``h_cache``), shared across passes.
-    loc : str
-        Block whose output the map acts on.
-    stop : int
-        End of the fit part (exclusive), a sample index.
-    """
-    key = ("static_path", loc, stop)
-    if key not in cache:
-        try:
-            cache[key] = StaticMapPath(P, loc, P.nominal_signals[loc], stop)
-        except PipelineError:
-            cache[key] = None
-    return cache[key]
-
-
 def near(a: float, b: float, tol: float) -> bool:
     """a and b equal (also both the same infinity) or within tol.
 
@@ -586,23 +352,6 @@ def near(a: float, b: float, tol: float) -> bool:
         Absolute tolerance.
     """
     return a == b or abs(a - b) <= tol
-
-
-def first_crossing(v: np.ndarray, lows: np.ndarray, highs: np.ndarray) -> int:
-    """First sample where the nominal `v` leaves any of the intervals [low, high] (before
-    it, no clip acts, so every simulated signal is still the nominal one).
-
-    Parameters
-    ----------
-    v : ndarray (stop,)
-        Nominal signal at the location, samples ``[0, stop)``.
-    lows, highs : ndarray (K,)
-        Limits of each column; ``v.size`` is returned when there are none.
-    """
-    if not lows.size:
-        return v.size
-    out = np.flatnonzero((v < np.max(lows)) | (v > np.min(highs)))
-    return int(out[0]) if out.size else v.size
 
 
 def screen_all(P: Problem, resid: np.ndarray,
