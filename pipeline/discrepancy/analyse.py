@@ -221,8 +221,11 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
             prior: tuple[Effect, ...], say: Callable[[str, str], None],
             also: tuple[Candidate, ...] = ()) -> tuple[list, dict[int, tuple[Effect, ...]]]:
     """Criteria of every fitted candidate, plus -- in a later search of the chain -- the
-    :data:`~pipeline.discrepancy.joint.N_JOINT` best, and the extra lag nested in each
-    inverse response among them (:func:`_nested_lags`), refitted jointly with the prior
+    :data:`~pipeline.discrepancy.joint.N_JOINT` best (class and location; the better of
+    two fits of one counts once), the dead times among the next N_JOINT (a dead time's
+    own fit cannot move off its integer grid to offset the earlier effects' compromise,
+    so it ranks low until refitted jointly), and the extra lag nested in each inverse
+    response among them (:func:`_nested_lags`), refitted jointly with the prior
     effects (as extra candidates of the same class; the better fit of a class is kept
     at selection).  Returns the ``(Fit, bic, held-out z, held-out errors)`` list and,
     per joint candidate (by ``id`` of its effect), the prior effects as refitted.  The
@@ -237,7 +240,15 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
     revised: dict[int, tuple[Effect, ...]] = {}
     if not prior:
         return fitted, revised
-    best = sorted(range(len(fitted)), key=lambda k: fitted[k][1])[:N_JOINT]
+    ranked, seen = [], set()  # best fit of each (class, location) first
+    for k in sorted(range(len(fitted)), key=lambda k: fitted[k][1]):
+        key = (fitted[k][0].effect.name, fitted[k][0].effect.location)
+        if key not in seen:
+            seen.add(key)
+            ranked.append(k)
+    best = ranked[:N_JOINT]
+    best += [k for k in ranked[N_JOINT:2 * N_JOINT]
+             if fitted[k][0].effect.name == "dead_time"]
     best += _nested_lags(fitted, best)
     # (fit, taken as it is when nothing of it can be refitted)
     joint_fits = [(fitted[k][0], False) for k in best] + [

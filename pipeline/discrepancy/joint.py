@@ -9,6 +9,9 @@ effect (the earlier ones start where they are; least squares moves all of them),
 judged by the same tests as any candidate.  Integer and structural parameters (dead
 times in whole samples, scheduling signals, a sensor bias that lives outside the model)
 stay fixed -- the backfitting sweeps of :mod:`pipeline.discrepancy.chain` revisit those.
+A candidate with no continuous parameter of its own (a dead time) is still refitted: the
+earlier effects' parameters move with it held fixed (a first step that absorbed part of
+a hidden dead time otherwise kept its compromise, and a look-alike that could move it won).
 """
 
 from __future__ import annotations
@@ -89,7 +92,7 @@ def joint_refit(P: Problem, nominal: Model, prior: Sequence[Effect], candidate: 
     """
     effects = [*prior, candidate]
     free = _free(effects)
-    if not free or not _free([candidate]):
+    if not free:
         return None
     x0 = np.array([math.log(effects[i].parameters[k]) if pos else effects[i].parameters[k]
                    for i, k, pos in free])
