@@ -240,9 +240,10 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
     revised: dict[int, tuple[Effect, ...]] = {}
     if not prior:
         return fitted, revised
-    ranked, seen = [], set()  # best fit of each (class, location) first
+    ranked, seen = [], set()  # best fit of each class (effect, location, schedule signal)
     for k in sorted(range(len(fitted)), key=lambda k: fitted[k][1]):
-        key = (fitted[k][0].effect.name, fitted[k][0].effect.location)
+        effect = fitted[k][0].effect
+        key = (effect.name, effect.location, effect.parameters.get("signal"))
         if key not in seen:
             seen.add(key)
             ranked.append(k)

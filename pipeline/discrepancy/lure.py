@@ -29,6 +29,7 @@ from pipeline.blocks import Sum, Term
 from pipeline.model import Model, insert_after, insert_before
 from pipeline.simulate import discrete_state_space
 
+
 def inject_model(model: Model, block: str, *, side: str) -> Model:
     """`model` plus an input ``__inject`` added at the output (or input) of `block`.
 
