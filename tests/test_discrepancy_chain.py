@@ -1,5 +1,7 @@
-"""The chain's masked-pair search (``pipeline.discrepancy.chain.Chain._masked``), driven
-through ``Chain.run`` with a scripted search in place of the real one.
+"""The chain's masked-pair search (``Chain._masked``), carried candidates
+(``Chain._carried``) and replaced compromises (``Chain._replaced``) of
+``pipeline.discrepancy.chain``, driven through ``Chain.run`` with a scripted search in
+place of the real one.
 
 The real search is exercised end to end by the pairs suite (``tests/test_hidden_effects.py``
 CI sample, ``tests/benchmarks/bench_discrepancy.py --suite pairs``); here the decision
@@ -29,11 +31,12 @@ def _cand(effect: Effect, *, passed: bool, delta_bic: float) -> Candidate:
                      holdout_rms_p=1.0, passed_by="")
 
 
-def _result(verdict: str, candidates=(), effect=None, gap_after=1.0, revised=()):
+def _result(verdict: str, candidates=(), effect=None, gap_after=1.0, revised=(),
+            gap_before=1.0, minor=()):
     return SimpleNamespace(
         verdict=verdict, effect=effect, candidates=tuple(candidates),
-        gap={"holdout_rms_before": 1.0, "holdout_rms_after": gap_after},
-        revised_prior=tuple(revised), minor_effects=(),
+        gap={"holdout_rms_before": gap_before, "holdout_rms_after": gap_after},
+        revised_prior=tuple(revised), minor_effects=tuple(minor),
         series=SimpleNamespace(fit_start=0, holdout_start=400))
 
 
@@ -104,3 +107,67 @@ def test_no_masked_search_without_a_strong_failing_candidate():
     chain, log = _chain(lambda prior, also: _result("no_significant_effect", [weak]))
     links, _ = chain.run()
     assert links == [] and log == [((), ())]
+
+
+# ------------------------------------------------- carried candidates, replaced compromises
+IR = Effect("inverse_response", "controller", {"tau_s": 16.0, "magnitude": 0.8},
+            equivalent_locations=("demand",))
+IR_LIKE = Effect("dead_time", "demand", {"delay_s": 30.0})  # the IR's look-alike
+GAIN = Effect("gain", "drum", {"factor": 1.6})
+LAG = Effect("extra_lag", "fuel", {"tau_s": 12.0})
+
+
+def _compromise_script(pair_gap: float):
+    """The first search accepts an inverse response (gap 1.0 -> 0.8); given it nothing
+    is practically significant, but the first search's gain stays significant (minor);
+    with the gain in the model a lag is accepted, and with the lag the gain again,
+    leaving `pair_gap`."""
+    def script(prior, also):
+        names = tuple(e.name for e in prior)
+        if names == ():
+            cands = [_cand(IR, passed=True, delta_bic=600.0),
+                     _cand(IR_LIKE, passed=True, delta_bic=560.0),
+                     _cand(GAIN, passed=True, delta_bic=330.0),
+                     _cand(LAG, passed=False, delta_bic=5.0)]  # below bic_margin
+            return _result("effect_found", cands, IR, gap_after=0.8)
+        if names == ("inverse_response",):
+            minor = [_cand(Effect("gain", "drum", {"factor": 1.3}), passed=True,
+                           delta_bic=100.0)]
+            return _result("no_significant_effect", minor, gap_before=0.8, minor=minor,
+                           revised=prior)
+        if names == ("gain",):
+            lag = _cand(LAG, passed=True, delta_bic=400.0)
+            return _result("effect_found", [lag], LAG, revised=prior)
+        if names == ("extra_lag",) and also:
+            again = _cand(Effect("gain", "drum", {"factor": 1.4}), passed=True,
+                          delta_bic=300.0)
+            return _result("effect_found", [again], again.effect, gap_after=pair_gap,
+                           revised=prior)
+        return _result("no_significant_effect", gap_before=pair_gap, revised=prior)
+    return script
+
+
+def test_later_searches_carry_the_first_searchs_candidates_at_other_locations():
+    chain, log = _chain(_compromise_script(pair_gap=0.5))
+    chain.run()
+    # the search on the model with the inverse response refits the gain jointly; not the
+    # dead time at the inverse response's equivalent location (its look-alike) nor the
+    # lag (it did not fit the nominal model significantly)
+    assert log[1] == (("inverse_response",), ("gain",))
+
+
+def test_a_compromise_is_replaced_by_a_pair_that_closes_more_of_the_gap():
+    chain, log = _chain(_compromise_script(pair_gap=0.5))
+    links, _ = chain.run()
+    assert [lk.effect.name for lk in links] == ["gain", "extra_lag"]
+    assert links[0].effect.parameters["factor"] == 1.4  # as refitted given the lag
+    assert log[2:4] == [(("gain",), ()), (("extra_lag",), ("gain",))]
+    assert log[4][0] == ("gain", "extra_lag")  # then the search for a third effect
+
+
+def test_a_pair_that_closes_too_little_more_keeps_the_single_effect():
+    # 0.8 - 0.05 * 1.0 = 0.75 needed (min_gap_reduction of the nominal gap more)
+    chain, log = _chain(_compromise_script(pair_gap=0.76))
+    links, _ = chain.run()
+    assert [lk.effect.name for lk in links] == ["inverse_response"]
+    assert len(log) == 4
