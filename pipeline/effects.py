@@ -160,6 +160,11 @@ class Effect:
         object.__setattr__(self, "parameters", dict(self.parameters))
         object.__setattr__(self, "equivalent_locations", tuple(self.equivalent_locations))
 
+    @property
+    def places(self) -> frozenset[str]:
+        """The location and every equivalent location: where this effect acts."""
+        return frozenset((self.location, *self.equivalent_locations))
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready ``{name, location, parameters, equivalent_locations}``.
 

@@ -7,6 +7,7 @@ import numpy as np
 
 from pipeline.discrepancy.analyse import _problem
 from pipeline.discrepancy.config import DiscrepancyConfig
+import pipeline.discrepancy.joint as joint_module
 from pipeline.discrepancy.joint import joint_refit
 from pipeline.effect_trials import trial_inputs
 from pipeline.effects import Effect, apply_effect
@@ -14,6 +15,26 @@ from pipeline.progress import quiet
 from pipeline.synthetic import make_discrepancy_demo
 from tests.benchmarks.bench_discrepancy import load_model
 from tests.plant_sim import simulate_plant
+
+
+def _problem_on_plant(model, truth, inputs, dt_s, prior, *, noise: float, seed: int):
+    """The search problem for `model` with `prior` on data from the independent plant
+    (`model` with the `truth` effects, tests/plant_sim.py) plus white sensor noise of
+    `noise` times each output's std; its noise model set to that known white noise."""
+    plant = model
+    for e in truth:
+        plant = apply_effect(plant, e, dt_s=dt_s)
+    out = simulate_plant(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s, substeps=10)
+    rng = np.random.default_rng(seed)
+    measured = {o: out[o] + noise * float(np.std(out[o])) * rng.standard_normal(out[o].size)
+                for o in model.outputs}
+    augmented = model
+    for e in prior:
+        augmented = apply_effect(augmented, e, dt_s=dt_s)
+    P, _, _ = _problem(augmented, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
+    P.ar = [np.array([1.0])] * P.n_y
+    P.sigma = np.array([noise * float(np.std(measured[o])) for o in P.outputs])
+    return P
 
 
 def test_a_dead_time_candidate_moves_the_earlier_effect_to_the_truth():
@@ -26,18 +47,8 @@ def test_a_dead_time_candidate_moves_the_earlier_effect_to_the_truth():
     truth = [Effect("gain", "controller", {"factor": 1.25}),
              Effect("dead_time", "demand", {"delay_s": 8.0})]
     inputs, _, dt_s = make_discrepancy_demo(model, seed=11, hours=4.0, dt_s=2.0, effects=())
-    plant = model
-    for e in truth:
-        plant = apply_effect(plant, e, dt_s=dt_s)
-    out = simulate_plant(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s, substeps=10)
-    rng = np.random.default_rng(3)
-    measured = {o: out[o] + 0.01 * float(np.std(out[o])) * rng.standard_normal(out[o].size)
-                for o in model.outputs}
     compromise = Effect("gain", "controller", {"factor": 1.0})
-    augmented = apply_effect(model, compromise, dt_s=dt_s)
-    P, _, _ = _problem(augmented, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
-    P.ar = [np.array([1.0])] * P.n_y
-    P.sigma = np.array([0.01 * float(np.std(measured[o])) for o in P.outputs])
+    P = _problem_on_plant(model, truth, inputs, dt_s, [compromise], noise=0.01, seed=3)
     joint = joint_refit(P, model, [compromise], Effect("dead_time", "fuel", {"delay_s": 8.0}))
     assert joint is not None
     (gain,), dead_time, y_pred = joint
@@ -52,45 +63,29 @@ def test_a_dead_time_candidate_moves_the_earlier_effect_to_the_truth():
     assert float(np.sum(after ** 2)) < 0.5 * float(np.sum(before ** 2))
 
 
-def test_a_candidate_that_counts_the_earlier_effect_twice_starts_weakened():
+def test_a_candidate_that_counts_the_earlier_effect_twice_starts_weakened(monkeypatch):
     """Each effect fitted alone took in the other: an inverse response at the feedwater
     flow (tau 21.4 s for a true 16 s) and an extra lag at the drum mass (30 s for a true
     8.7 s).  Added together as fitted they count the slow part twice -- the closed loop is
     unstable there and least squares never leaves it.  The joint refit must start from the
     candidate weakened and land where least squares started at the truth lands (tuning
     pairs trial 800013).  Truth from the independent plant; 5 % white sensor noise."""
-    import pipeline.discrepancy.joint as joint_module
-
     model = load_model("drum_level")
     truth = [Effect("inverse_response", "feedwater_flow", {"tau_s": 16.0, "magnitude": 0.42}),
              Effect("extra_lag", "drum_mass", {"tau_s": 8.7})]
     dt_s = 1.0
     inputs = trial_inputs(model.name, n=14_400, dt_s=dt_s, rng=np.random.default_rng(13))
-    plant = model
-    for e in truth:
-        plant = apply_effect(plant, e, dt_s=dt_s)
-    out = simulate_plant(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s, substeps=10)
-    rng = np.random.default_rng(5)
-    measured = {o: out[o] + 0.05 * float(np.std(out[o])) * rng.standard_normal(out[o].size)
-                for o in model.outputs}
     first = Effect("inverse_response", "feedwater_flow", {"tau_s": 21.4, "magnitude": 0.52})
-    augmented = apply_effect(model, first, dt_s=dt_s)
-    P, _, _ = _problem(augmented, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
-    P.ar = [np.array([1.0])] * P.n_y
-    P.sigma = np.array([0.05 * float(np.std(measured[o])) for o in P.outputs])
+    P = _problem_on_plant(model, truth, inputs, dt_s, [first], noise=0.05, seed=5)
     candidate = Effect("extra_lag", "drum_mass", {"tau_s": 30.0})
     joint = joint_refit(P, model, [first], candidate)
     assert joint is not None
     (ir,), lag, _ = joint
-    original = joint_module._WEAKER_STARTS
-    try:
-        joint_module._WEAKER_STARTS = ()
-        # the optimum, found independently: least squares started at the truth
-        reference = joint_refit(P, model, [truth[0]], truth[1])
-        # without the weakened starts the refit stays where the fits were (or gives up)
-        stuck = joint_refit(P, model, [first], candidate)
-    finally:
-        joint_module._WEAKER_STARTS = original
+    monkeypatch.setattr(joint_module, "_WEAKER_STARTS", ())
+    # the optimum, found independently: least squares started at the truth
+    reference = joint_refit(P, model, [truth[0]], truth[1])
+    # without the weakened starts the refit stays where the fits were (or gives up)
+    stuck = joint_refit(P, model, [first], candidate)
     assert reference is not None
     (ir_ref,), lag_ref, _ = reference
     for got, ref in [(lag, lag_ref), (ir, ir_ref)]:

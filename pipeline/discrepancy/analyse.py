@@ -278,14 +278,11 @@ def _nested_lags(fitted: list, chosen: list[int]) -> list[int]:
     0.01-0.03 -- the extra lag itself -- beat the lag fitted with the earlier effects
     held fixed and was named (3 of 100 published pair trials: a hidden lag reported as a
     wrong-way response)."""
-    def places(effect: Effect) -> set[str]:
-        return {effect.location, *effect.equivalent_locations}
-
     irs = [fitted[k][0].effect for k in chosen
            if fitted[k][0].effect.name == "inverse_response"]
     return [k for k, (fit, *_) in enumerate(fitted)
             if k not in chosen and fit.effect.name == "extra_lag"
-            and any(places(fit.effect) & places(ir) for ir in irs)]
+            and any(fit.effect.places & ir.places for ir in irs)]
 
 
 def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
@@ -552,8 +549,7 @@ def _pade_original(best: Candidate, c: Candidate, config: DiscrepancyConfig) -> 
     if best.effect.name != "inverse_response" or c.effect.name != "dead_time":
         return False
     p, q = best.effect.parameters, c.effect.parameters
-    locations = {best.effect.location, *best.effect.equivalent_locations}
-    if not locations & {c.effect.location, *c.effect.equivalent_locations}:
+    if not best.effect.places & c.effect.places:
         return False
     delay, tau = float(q["delay_s"]), float(p["tau_s"])
     return (abs(float(p["magnitude"]) - 1.0) <= _PADE_MAGNITUDE

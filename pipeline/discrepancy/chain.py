@@ -277,15 +277,12 @@ class Chain:
 
     def _carried(self, links: Sequence[Link]) -> tuple[Candidate, ...]:
         """The first search's candidates a later search refits too (:data:`N_CARRIED`)."""
-        def places(effect: Effect) -> set[str]:
-            return {effect.location, *effect.equivalent_locations}
-
-        taken = set().union(*(places(lk.effect) for lk in links))
+        taken = frozenset().union(*(lk.effect.places for lk in links))
         out = []
         for c in self.steps[0].candidates:
             if len(out) == N_CARRIED:
                 break
-            if c.delta_bic >= self.config.bic_margin and not places(c.effect) & taken \
+            if c.delta_bic >= self.config.bic_margin and not c.effect.places & taken \
                     and (link := _link(c, self.model)) is not None:
                 out.append(link.candidate)
         return tuple(out)
@@ -339,7 +336,7 @@ class Chain:
         """A compromise single effect replaced by a confirmed pair (see
         :data:`N_REPLACED`): the pair, the search that confirmed it and the budget left,
         or None.  `last` is the search that ended the chain, on the model with `only`."""
-        if last is self.steps[0] or tuple(last.revised_prior) != (only.effect,):
+        if tuple(last.revised_prior) != (only.effect,):
             return None  # not a search on the model with exactly `only`
         ref = self.steps[0].gap["holdout_rms_before"]
         # the pair must close min_gap_reduction of the nominal gap more than `only`

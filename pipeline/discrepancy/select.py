@@ -138,9 +138,7 @@ def same_class(a: Effect, b: Effect) -> bool:
     """
     if a.name != b.name:
         return False
-    locs_a = {a.location, *a.equivalent_locations}
-    locs_b = {b.location, *b.equivalent_locations}
-    if not locs_a & locs_b:
+    if not a.places & b.places:
         return False
     return a.parameters.get("signal") == b.parameters.get("signal")
 
