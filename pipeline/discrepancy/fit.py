@@ -361,13 +361,14 @@ class Fitter:
         return sim.signals[up][P.fit_start:]
 
     def _fit_unmodelled(self, s: Screen, mk: Callable[[dict], Effect]) -> Effect:
-        """k, tau_s, delay_s of an unmodelled input: exact, because the injection at the
-        output is linear; k in closed form, delay on the integer grid, tau refined by a
-        bounded scalar search around the best grid point."""
+        """k, tau_s, delay_s of an unmodelled input: exact for a linear model, because
+        the injection at the output is linear (a nonlinear one: along its trajectory,
+        :meth:`Screener.response`); k in closed form, delay on the integer grid, tau
+        refined by a bounded scalar search around the best grid point."""
         P, dt = self.P, self.P.dt_s
         scr = self._screener()
         signal, _, out = s.location.partition("->")
-        hs = scr.conv(scr.H(out, "output"), scr.ins[signal])
+        hs = scr.response(out, scr.ins[signal], f"input:{signal}")
 
         def sse_k(d: int, tau_samples: float) -> tuple[float, float]:
             shifted = np.zeros_like(hs)
