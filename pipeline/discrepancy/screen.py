@@ -159,24 +159,26 @@ class Screener:
         m = inject_model(P.model, block, side=side)
         base_key = ("trajectory", block, side, "")
         if base_key not in self._h:  # the same model with nothing injected
-            self._h[base_key] = self._simulate_injected(m, np.zeros(self.stop))
+            self._h[base_key] = self._outputs(m, None, {**self.ins,
+                                                        "__inject": np.zeros(self.stop)})
         base = self._h[base_key]
-        y = self._simulate_injected(m, _TRAJECTORY_STEP * x)
+        y = self._outputs(m, None, {**self.ins, "__inject": _TRAJECTORY_STEP * x})
         if base is None or y is None:
             return np.zeros((self.stop, P.n_y))
         return (y - base) / _TRAJECTORY_STEP
 
-    def _simulate_injected(self, m: Model, inject: np.ndarray) -> np.ndarray | None:
-        """Outputs (stop, n_y) of injection model `m` with the measured inputs and
-        `inject`; None when the simulation fails or is not finite."""
-        u = {k: self.ins[k] for k in m.inputs if k != "__inject"}
-        u["__inject"] = inject
+    def _outputs(self, model: Model, effect: Effect | None, inputs: dict[str, np.ndarray]
+                 ) -> np.ndarray | None:
+        """Measured outputs (stop, n_y) of `model` with `effect`
+        (:func:`pipeline.effects.predict_outputs`) driven by `inputs` on ``[0, stop)``;
+        None when the simulation fails or is not finite."""
         try:
             with np.errstate(all="ignore"):
-                sim = simulate(m, u, dt_s=self.P.dt_s, initial=self.P.config.initial)
+                out = predict_outputs(model, effect, inputs, dt_s=self.P.dt_s,
+                                      outputs=self.P.outputs, initial=self.P.config.initial)
         except PipelineError:
             return None
-        y = np.column_stack([sim.signals[o] for o in self.P.outputs])
+        y = np.column_stack([out[o] for o in self.P.outputs])
         return y if np.all(np.isfinite(y)) else None
 
     def w(self, d: np.ndarray) -> np.ndarray:
@@ -200,14 +202,8 @@ class Screener:
         """
         key = ("exact", effect.describe())
         if key not in self._h:
-            try:
-                with np.errstate(all="ignore"):
-                    out = predict_outputs(self.P.model, effect, self.ins, dt_s=self.P.dt_s,
-                                          outputs=self.P.outputs, initial=self.P.config.initial)
-                y = np.column_stack([out[o] for o in self.P.outputs])
-                self._h[key] = y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
-            except PipelineError:
-                self._h[key] = None
+            y = self._outputs(self.P.model, effect, self.ins)
+            self._h[key] = y if y is not None and np.max(np.abs(y)) < 1e12 else None
         return self._h[key]
 
     # scoring helpers -------------------------------------------------------------
