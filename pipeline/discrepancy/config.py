@@ -68,10 +68,11 @@ class DiscrepancyConfig:
         smaller corrections once the remaining gap is near the noise and nuisance
         floor), except that accepted sensor corrections (``sensor_bias_drift``) are
         taken off first: a measurement bias says nothing about the dynamics and would
-        make every later effect "minor" (:func:`pipeline.discrepancy.analyse._gap_reference`).
-        A statistically significant but smaller one is reported under ``minor_effects``.  Default 0.05: under realistic nuisance
-        mismatch (a plant simulated independently of the model, DCS delay, input noise)
-        spurious one-sample delays and 1 % gain changes pass every statistical test
+        make every later effect "minor"
+        (:func:`pipeline.discrepancy.analyse._gap_reference`).  A statistically
+        significant but smaller one is reported under ``minor_effects``.  Default 0.05:
+        under realistic nuisance mismatch (a plant simulated independently of the
+        model, DCS delay, input noise) spurious one-sample delays and 1 % gain changes pass every statistical test
         while shrinking the gap by 1–2 %; a real missing effect of engineering interest
         shrinks it by far more (controller gain +25 %: ~40 %).
     lookalike_gap : float
