@@ -472,10 +472,13 @@ def _gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
     stopped after one correct effect (pairs seeds 1 500 000+, now spent) the first was
     a sensor bias and the missing effect the best minor one, at 8-21 % of what remained.
     """
-    if all(e.name == "sensor_bias_drift" for e in prior):
+    def sensors_only(effects: Sequence[Effect]) -> bool:
+        return all(e.name == "sensor_bias_drift" for e in effects)
+
+    if sensors_only(prior):
         return None
     for s in reversed(steps):  # the first search (no prior) always qualifies
-        if all(e.name == "sensor_bias_drift" for e in s.revised_prior):
+        if sensors_only(s.revised_prior):
             return s.gap["holdout_rms_before"]
     return None
 

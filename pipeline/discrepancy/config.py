@@ -72,9 +72,10 @@ class DiscrepancyConfig:
         (:func:`pipeline.discrepancy.analyse._gap_reference`).  A statistically
         significant but smaller one is reported under ``minor_effects``.  Default 0.05:
         under realistic nuisance mismatch (a plant simulated independently of the
-        model, DCS delay, input noise) spurious one-sample delays and 1 % gain changes pass every statistical test
-        while shrinking the gap by 1–2 %; a real missing effect of engineering interest
-        shrinks it by far more (controller gain +25 %: ~40 %).
+        model, DCS delay, input noise) spurious one-sample delays and 1 % gain changes
+        pass every statistical test while shrinking the gap by 1–2 %; a real missing
+        effect of engineering interest shrinks it by far more (controller gain +25 %:
+        ~40 %).
     lookalike_gap : float
         A candidate with fewer parameters whose remaining held-out gap is at most
         ``1 + lookalike_gap`` times the best candidate's predicts as well and is
