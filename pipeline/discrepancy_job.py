@@ -358,7 +358,7 @@ def augmented_model_document(result: DiscrepancyResult) -> dict:
     measurement: dict[str, dict[str, float]] = {}
     for step in result.effects:  # every accepted effect's measurement-side part
         eff = step.candidate.effect
-        if eff.name == "sensor_bias_drift":
+        if eff.is_sensor_correction:
             m = measurement.setdefault(eff.location, {"bias": 0.0, "drift_per_h": 0.0})
             m["bias"] += float(eff.parameters["bias"])
             m["drift_per_h"] += float(eff.parameters["drift_per_h"])

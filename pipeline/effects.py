@@ -165,6 +165,13 @@ class Effect:
         """The location and every equivalent location: where this effect acts."""
         return frozenset((self.location, *self.equivalent_locations))
 
+    @property
+    def is_sensor_correction(self) -> bool:
+        """A measurement-side effect (``sensor_bias_drift``): it changes what the sensor
+        reports, not the plant -- added to the measured output (:func:`output_offsets`),
+        never simulated, and taken off the gap a process effect is judged against."""
+        return self.name == "sensor_bias_drift"
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready ``{name, location, parameters, equivalent_locations}``.
 
@@ -419,7 +426,7 @@ def output_offsets(effect: Effect | None, *, n: int, dt_s: float,
         Zeros except the biased output of a ``sensor_bias_drift`` effect.
     """
     out = {name: np.zeros(n) for name in outputs}
-    if effect is not None and effect.name == "sensor_bias_drift" and effect.location in out:
+    if effect is not None and effect.is_sensor_correction and effect.location in out:
         t_h = np.arange(n) * dt_s / 3600.0
         out[effect.location] = (
             float(effect.parameters["bias"]) + float(effect.parameters["drift_per_h"]) * t_h

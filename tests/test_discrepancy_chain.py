@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.demo import boiler_model
 from pipeline.discrepancy.analyse import _gap_reference
-from pipeline.discrepancy.chain import Chain
+from pipeline.discrepancy.chain import Chain, Link, prune
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.results import Candidate
 from pipeline.effects import Effect
@@ -190,3 +190,78 @@ def test_gap_reference_takes_off_sensor_corrections_only():
     assert _gap_reference([nominal, after_bias], (bias, gain)) == 0.4
     assert _gap_reference([nominal, after_bias, after_both], (bias, gain, gain)) == 0.4
     assert _gap_reference([nominal, step(1.0, gain)], (gain, bias)) == 4.0
+
+
+def test_a_single_effects_location_lookalike_does_not_lead_a_replacing_pair():
+    """A saturation one block away from the accepted one stays significant given it: it
+    is the accepted effect's location look-alike, not the first of a pair
+    (Chain._replaced tries other effects only)."""
+    near = Effect("saturation", "fuel", {"low": -0.3, "high": 0.5})
+
+    def script(prior, also):
+        names = tuple(e.name for e in prior)
+        if names == ():
+            cands = [_cand(SAT, passed=True, delta_bic=900.0),
+                     _cand(near, passed=True, delta_bic=800.0)]
+            return _result("effect_found", cands, SAT, gap_after=0.5)
+        minor = [_cand(near, passed=True, delta_bic=60.0)]
+        return _result("no_significant_effect", minor, gap_before=0.5, minor=minor,
+                       revised=prior)
+
+    chain, log = _chain(script)
+    links, _ = chain.run()
+    assert [lk.effect.location for lk in links] == ["drum"]
+    # the search given the saturation carried the look-alike (another location) ...
+    assert log[1] == (("saturation",), ("saturation",))
+    # ... but no search with it as a provisional first effect followed
+    assert len(log) == 2
+
+
+# ------------------------------------------------------------------ pruning the final chain
+def _pruned(effects, gaps):
+    """chain.prune on `effects` with scripted held-out gaps: `gaps` maps the frozenset of
+    effect names in a prediction to its held-out gap (the empty set: the nominal model)."""
+    said = []
+    chain = SimpleNamespace(
+        config=DiscrepancyConfig(), say=lambda *a: said.append(a),
+        prediction=lambda effs: (frozenset(e.name for e in effs), {}))
+    links = [Link(e, _cand(e, passed=True, delta_bic=100.0)) for e in effects]
+    kept, dropped = prune(chain, links,
+                          lambda key: {"holdout_rms_after": gaps[key or frozenset()]})
+    return [lk.effect.name for lk in kept], dropped, said
+
+
+def _sets(**gaps):
+    return {frozenset(k.split("__")) if k != "none" else frozenset(): v
+            for k, v in gaps.items()}
+
+
+def test_prune_drops_an_effect_the_final_chain_does_not_need():
+    # the gain closes half the gap; the lag, as finally fitted, 0.002 of 1.0 (bar 0.05)
+    gaps = _sets(none=1.0, gain=0.5, extra_lag=0.97, gain__extra_lag=0.498)
+    kept, dropped, said = _pruned([GAIN, LAG], gaps)
+    assert kept == ["gain"]
+    assert [c.effect.name for c in dropped] == ["extra_lag"]
+    assert dropped[0].holdout_gap == 0.498
+    assert np.isclose(dropped[0].gap_reduction, 1 - 0.498 / 0.5)
+    assert "minor effect" in said[0][1]
+
+
+def test_prune_keeps_a_masked_pair_and_a_later_effect_behind_a_sensor_bias():
+    # each of a masked pair alone leaves MORE of the gap; together 40 % less
+    masked = _sets(none=1.0, saturation=1.1, operating_point_gain=1.05,
+                   saturation__operating_point_gain=0.6)
+    assert _pruned([SAT, OPG], masked)[0] == ["saturation", "operating_point_gain"]
+    # behind a bias the bar is 5 % of the gap with the bias only (0.4 -> 0.02): the
+    # gain's 0.03 passes it, though it is < 5 % of the nominal 4.0
+    bias = Effect("sensor_bias_drift", "drum_level", {"bias": 1.0, "drift_per_h": 0.0})
+    behind = _sets(none=4.0, sensor_bias_drift=0.4, gain=3.9,
+                   sensor_bias_drift__gain=0.37)
+    assert _pruned([bias, GAIN], behind)[0] == ["sensor_bias_drift", "gain"]
+    behind[frozenset({"sensor_bias_drift", "gain"})] = 0.385  # 0.015 < 0.02
+    assert _pruned([bias, GAIN], behind)[0] == ["sensor_bias_drift"]
+
+
+def test_prune_always_keeps_the_last_effect():
+    gaps = _sets(none=1.0, gain=1.0, extra_lag=1.0, gain__extra_lag=1.0)
+    assert len(_pruned([GAIN, LAG], gaps)[0]) == 1

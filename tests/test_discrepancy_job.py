@@ -284,31 +284,12 @@ def test_masked_pair_is_named_through_the_cli(tmp_path, capsys):
     answer: the two hidden effects; tolerances: the trial's noise (10-30 % of each
     output's std over 1e4 samples) pins the limits and the response's magnitude to a
     few per cent (the pairs suite's median parameter error is 3 %); we allow 10 %."""
-    from pipeline.adapters.historian_writer import write_long_csv
     from tests.benchmarks.bench_discrepancy import make_trial
 
     trial, _ = make_trial("pairs", None, 800015)
     names = {e.name: e for e in trial.effects}
     assert set(names) == {"saturation", "inverse_response"}
-    n = trial.measured["drum_level"].size
-    time = (np.datetime64("2026-01-05T00:00:00") +
-            (np.arange(n) * trial.dt_s * 1e6).astype("timedelta64[us]"))
-    tags = {"steam_flow": "FI-201.PV", "level_setpoint": "LC-201.SP", "aux_flow": "FI-210.PV",
-            "drum_level": "LI-201.PV", "feedwater_flow": "FI-202.PV"}
-    (tmp_path / "drop").mkdir()
-    write_long_csv(tmp_path / "drop" / "drum.csv", time,
-                   {tags[k]: v for k, v in {**trial.inputs, **trial.measured}.items()})
-    job = {"job": "drum_pair", "source": {"path": "drop/*.csv", "timezone": "UTC"},
-           "signals": {"inputs": {k: {"tag": tags[k]} for k in trial.inputs},
-                       "outputs": {k: {"tag": tags[k]} for k in trial.measured}},
-           "storage": "storage", "rerun": {"enabled": False},
-           "model": "drum_level.yaml",
-           "discrepancy": {"operating_point": "none"}}
-    shipped = Path(__file__).parents[1] / "configs" / "models" / "drum_level.yaml"
-    (tmp_path / "drum_level.yaml").write_text(shipped.read_text())
-    (tmp_path / "job.yaml").write_text(yaml.safe_dump(job))
-    assert main(["discrepancy", str(tmp_path / "job.yaml"), "--no-prefect"]) == 0
-    d = _read(Path(capsys.readouterr().out.strip().splitlines()[-1]))
+    d, _ = _drum_export_run(tmp_path, capsys, trial.inputs, trial.measured, trial.dt_s)
     assert d["verdict"] == "effect_found"
     found = {e["name"]: e for e in d["effects"]}
     assert set(found) == {"saturation", "inverse_response"}, d["effects"]
@@ -318,3 +299,63 @@ def test_masked_pair_is_named_through_the_cli(tmp_path, capsys):
             assert found[name]["parameters"][key] == pytest.approx(value, rel=0.10), key
     # each step closes part of the gap, the pair most of it
     assert d["effects"][-1]["gap_after"] < 0.5 * d["effects"][0]["gap_before"]
+
+
+def _drum_export_run(tmp_path: Path, capsys, inputs: dict, measured: dict, dt_s: float
+                     ) -> tuple[dict, Path]:
+    """Write the drum-level loop's signals as a historian export (long CSV, tag names),
+    a job YAML on the shipped drum-level model with ``operating_point: none`` (the
+    outputs are deviations from the model's operating point), run ``plantdyn
+    discrepancy`` and return discrepancy.json and the run directory."""
+    from pipeline.adapters.historian_writer import write_long_csv
+
+    n = measured["drum_level"].size
+    time = (np.datetime64("2026-01-05T00:00:00") +
+            (np.arange(n) * dt_s * 1e6).astype("timedelta64[us]"))
+    tags = {"steam_flow": "FI-201.PV", "level_setpoint": "LC-201.SP", "aux_flow": "FI-210.PV",
+            "drum_level": "LI-201.PV", "feedwater_flow": "FI-202.PV"}
+    (tmp_path / "drop").mkdir()
+    write_long_csv(tmp_path / "drop" / "drum.csv", time,
+                   {tags[k]: v for k, v in {**inputs, **measured}.items()})
+    job = {"job": "drum", "source": {"path": "drop/*.csv", "timezone": "UTC"},
+           "signals": {"inputs": {k: {"tag": tags[k]} for k in inputs},
+                       "outputs": {k: {"tag": tags[k]} for k in measured}},
+           "storage": "storage", "rerun": {"enabled": False},
+           "model": "drum_level.yaml",
+           "discrepancy": {"operating_point": "none"}}
+    shipped = Path(__file__).parents[1] / "configs" / "models" / "drum_level.yaml"
+    (tmp_path / "drum_level.yaml").write_text(shipped.read_text())
+    (tmp_path / "job.yaml").write_text(yaml.safe_dump(job))
+    assert main(["discrepancy", str(tmp_path / "job.yaml"), "--no-prefect"]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    return _read(run_dir), run_dir
+
+
+def test_a_sensor_bias_and_an_effect_behind_it_through_the_cli(tmp_path, capsys):
+    """A drum-level sensor 17 units low drifting -3 units/h, and an operating-point gain
+    at the feedwater demand behind it (independent plant, see
+    ``tests/test_discrepancy_screen.py::sensor_bias_record``), run the way a user does:
+    export, job YAML, ``plantdyn discrepancy``.  discrepancy.json must name both in
+    order -- the gain closes under 5 % of the nominal gap but over 5 % of what the bias
+    leaves, the bar a later effect is held to (``analyse._gap_reference``) -- and
+    model_augmented.yaml must hold the gain in its blocks and the bias under
+    ``measurement``.  Tolerances as in the API test (bias 5 %, slope 10 %)."""
+    from tests.test_discrepancy_screen import BIAS_RECORD_TRUTH, sensor_bias_record
+
+    _, inputs, measured, dt_s = sensor_bias_record()
+    d, run_dir = _drum_export_run(tmp_path, capsys, inputs, measured, dt_s)
+    assert d["verdict"] == "effect_found"
+    chain = [(e["name"], e["location"]) for e in d["effects"]]
+    assert chain[:2] == [("sensor_bias_drift", "drum_level"),
+                         ("operating_point_gain", "feedwater_demand")], chain
+    bias, gain = d["effects"][0]["parameters"], d["effects"][1]["parameters"]
+    assert bias["bias"] == pytest.approx(-17.0, rel=0.05)
+    assert gain["signal"] == "steam_flow"
+    assert gain["slope"] == pytest.approx(BIAS_RECORD_TRUTH.parameters["slope"], rel=0.10)
+    second = d["effects"][1]
+    assert second["gap_before"] - second["gap_after"] < 0.05 * d["effects"][0]["gap_before"]
+    augmented = yaml.safe_load((run_dir / "model_augmented.yaml").read_text())
+    assert augmented["measurement"]["drum_level"]["bias"] == pytest.approx(bias["bias"])
+    [opg] = [b for b in augmented["model"]["blocks"] if b["type"] == "operating_point_gain"]
+    assert (opg["name"], opg["signal"]) == ("feedwater_demand", "steam_flow")
+    assert opg["slope"] == pytest.approx(gain["slope"])

@@ -47,6 +47,28 @@ def test_a_model_with_a_deadband_is_screened_along_its_own_trajectory():
     assert result.gap["reduction"] > 0.4
 
 
+#: The hidden process effect of :func:`sensor_bias_record`.
+BIAS_RECORD_TRUTH = Effect("operating_point_gain", "feedwater_demand",
+                           {"slope": -0.0234, "signal": "steam_flow"})
+
+
+def sensor_bias_record(n: int = 10_000):
+    """The drum-level loop with :data:`BIAS_RECORD_TRUTH` (truth from the independent
+    plant, Heun at dt/10), 13 % white sensor noise, and a drum-level sensor that reads 17
+    units low and drifts -3 units/h (pairs trial 1500001's excitation).  Returns the
+    nominal model, the inputs, the measured outputs and dt_s."""
+    model = load_model("drum_level")
+    dt_s = 2.0
+    inputs = trial_inputs(model.name, n=n, dt_s=dt_s, rng=np.random.default_rng(1500001))
+    plant = apply_effect(model, BIAS_RECORD_TRUTH, dt_s=dt_s)
+    out = simulate_plant(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s, substeps=10)
+    rng = np.random.default_rng(7)
+    measured = {o: out[o] + 0.13 * float(np.std(out[o])) * rng.standard_normal(n)
+                for o in model.outputs}
+    measured["drum_level"] = measured["drum_level"] - 17.0 - 3.0 * np.arange(n) * dt_s / 3600
+    return model, inputs, measured, dt_s
+
+
 def test_an_effect_behind_a_large_sensor_bias_is_a_finding():
     """A drum-level sensor that reads 17 units low and drifts -3 units/h, and an
     operating-point gain at the feedwater demand rising with steam flow.  The bias is 90 %
@@ -58,18 +80,7 @@ def test_an_effect_behind_a_large_sensor_bias_is_a_finding():
 
     Truth from the independent plant (continuous time, Heun at dt/10); 13 % white sensor
     noise as in that trial (its slope was fitted 2 % off: 10 % tolerance)."""
-    model = load_model("drum_level")
-    dt_s = 2.0
-    n = 10_000
-    inputs = trial_inputs(model.name, n=n, dt_s=dt_s, rng=np.random.default_rng(1500001))
-    truth = Effect("operating_point_gain", "feedwater_demand",
-                   {"slope": -0.0234, "signal": "steam_flow"})
-    plant = apply_effect(model, truth, dt_s=dt_s)
-    out = simulate_plant(plant, {k: inputs[k] for k in plant.inputs}, dt_s=dt_s, substeps=10)
-    rng = np.random.default_rng(7)
-    measured = {o: out[o] + 0.13 * float(np.std(out[o])) * rng.standard_normal(n)
-                for o in model.outputs}
-    measured["drum_level"] = measured["drum_level"] - 17.0 - 3.0 * np.arange(n) * dt_s / 3600
+    model, inputs, measured, dt_s = sensor_bias_record()
     result = analyse_discrepancy(model, inputs=inputs, measured=measured, dt_s=dt_s, seed=1)
     chain = [s.candidate.effect for s in result.effects]
     assert [(e.name, e.location) for e in chain[:2]] == [

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from pipeline._threads import single_threaded_blas
-from pipeline.discrepancy.chain import Chain, build, chain_steps
+from pipeline.discrepancy.chain import Chain, build, chain_steps, prune
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.fit import Fit, Fitter, predict_with, refit_nested_lags
 from pipeline.discrepancy.joint import N_JOINT, joint_refit
@@ -135,6 +135,8 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
         y_aug = y_nom if pred is None else np.column_stack([pred[o] for o in outputs])
         return _gap(y, outputs, s0.holdout_start, y - y_nom, y_aug)
 
+    links, pruned = prune(chain, links, gap)
+    minor = (*minor, *pruned)
     steps, pred, shift = chain_steps(chain, links, gap)
     effects = [lk.effect for lk in links]
     offsets = {o: np.zeros(y.shape[0]) for o in outputs}
@@ -473,7 +475,7 @@ def _gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
     a sensor bias and the missing effect the best minor one, at 8-21 % of what remained.
     """
     def sensors_only(effects: Sequence[Effect]) -> bool:
-        return all(e.name == "sensor_bias_drift" for e in effects)
+        return all(e.is_sensor_correction for e in effects)
 
     if sensors_only(prior):
         return None

@@ -341,8 +341,13 @@ class Chain:
         ref = self.steps[0].gap["holdout_rms_before"]
         # the pair must close min_gap_reduction of the nominal gap more than `only`
         must_close = last.gap["holdout_rms_before"] - self.config.min_gap_reduction * ref
-        tried = [c for c in self._carried([only])
-                 if any(same_class(c.effect, m.effect) for m in last.minor_effects)]
+        # not `only`'s own effect at another place: that is its location look-alike (a
+        # saturation one block upstream, still significant given the one accepted), and
+        # a pair it leads puts the effect in the wrong place plus a correction for that
+        # (nuisance trial 907037: the hidden feedwater-flow saturation was replaced by
+        # one on the demand and an operating-point gain at the feedforward)
+        tried = [c for c in self._carried([only]) if c.effect.name != only.effect.name
+                 and any(same_class(c.effect, m.effect) for m in last.minor_effects)]
         for cand in tried[:N_REPLACED]:
             self.say("chain", f"{cand.effect.describe()} stays significant given "
                      f"{only.effect.describe()}: trying it as the first of a pair")
@@ -371,6 +376,57 @@ class Chain:
                 links = others[:j] + [link] + others[j:]
             j += 1
         return links, budget
+
+
+def prune(chain: Chain, links: Sequence[Link],
+          gap: Callable[[dict[str, np.ndarray] | None], dict[str, Any]]
+          ) -> tuple[list[Link], list[Candidate]]:
+    """The chain without the effects it does not need as finally fitted, and those
+    effects as minor candidates.
+
+    Each search held its finding to ``min_gap_reduction`` of the reference gap
+    (:func:`pipeline.discrepancy.analyse._gap_reference`) on the model of that moment,
+    with the earlier effects refitted jointly.  That joint refit can be what closed the
+    gap: after a saturation (accepted first, its limits fitted on the static-map path) a
+    controller gain of x1.017 and an operating-point gain of slope -0.003 passed, while
+    in the final chain -- the saturation as refitted with them -- they closed -0.3 % and
+    -45 % of the gap (nuisance trials 907030, 907012).  So, once the chain is final,
+    every effect must still close ``min_gap_reduction`` of the gap with the chain's
+    sensor corrections only (the nominal gap when there are none): the held-out gap of
+    the chain without it, less that of the whole chain.  The weakest effect under the
+    bar is dropped and the rest checked again; the last effect always stays (the first
+    search held it to the bar on its own).  Leave-one-out, not the step-by-step
+    reduction of :func:`chain_steps`: two effects that mask each other on held-out
+    data (:data:`N_MASKED`) each close little alone but much together.
+
+    Parameters
+    ----------
+    chain : Chain
+    links : sequence of Link
+        The accepted effects in order.
+    gap : callable (prediction or None) -> gap dict
+        As in :func:`chain_steps`.
+    """
+    def held_out(effects: Sequence[Effect]) -> float:
+        pred = chain.prediction(effects)[0] if effects else None
+        return gap(pred)["holdout_rms_after"]
+
+    links, dropped = list(links), []
+    while len(links) >= 2:
+        bar = chain.config.min_gap_reduction * held_out(
+            [lk.effect for lk in links if lk.effect.is_sensor_correction])
+        full = held_out([lk.effect for lk in links])
+        without = [held_out([o.effect for o in links if o is not lk]) for lk in links]
+        k = int(np.argmin(without))
+        if without[k] - full >= bar:
+            break
+        lk = links.pop(k)
+        chain.say("chain", f"{lk.effect.describe()} closes {without[k] - full:.3g} of the "
+                  f"held-out gap in the final chain (bar {bar:.3g}): a minor effect")
+        dropped.append(dataclasses.replace(
+            lk.candidate, holdout_gap=full,
+            gap_reduction=1.0 - full / without[k] if without[k] > 0 else 0.0))
+    return links, dropped
 
 
 def chain_steps(chain: Chain, links: Sequence[Link],
