@@ -218,22 +218,27 @@ def test_a_single_effects_location_lookalike_does_not_lead_a_replacing_pair():
 
 
 # ------------------------------------------------------------------ pruning the final chain
-def _pruned(effects, gaps):
-    """chain.prune on `effects` with scripted held-out gaps: `gaps` maps the frozenset of
-    effect names in a prediction to its held-out gap (the empty set: the nominal model)."""
-    said = []
-    chain = SimpleNamespace(
-        config=DiscrepancyConfig(), say=lambda *a: said.append(a),
-        prediction=lambda effs: (frozenset(e.name for e in effs), {}))
-    links = [Link(e, _cand(e, passed=True, delta_bic=100.0)) for e in effects]
-    kept, dropped = prune(chain, links,
-                          lambda key: {"holdout_rms_after": gaps[key or frozenset()]})
-    return [lk.effect.name for lk in kept], dropped, said
-
-
 def _sets(**gaps):
+    """Scripted held-out gaps: ``gain__extra_lag=0.5`` is the gap of the model with a gain
+    and an extra lag; ``none`` the nominal model's."""
     return {frozenset(k.split("__")) if k != "none" else frozenset(): v
             for k, v in gaps.items()}
+
+
+def _scripted_gaps(chain, gaps):
+    """`chain` with Chain.held_out answering from `gaps` (:func:`_sets`)."""
+    chain.held_out = lambda effects: gaps[frozenset(e.name for e in effects)]
+    return chain
+
+
+def _pruned(effects, gaps):
+    said = []
+    chain, _ = _chain(lambda prior, also: _result("no_significant_effect"))
+    chain.say = lambda *a: said.append(a)
+    _scripted_gaps(chain, gaps)
+    links = [Link(e, _cand(e, passed=True, delta_bic=100.0)) for e in effects]
+    kept, dropped = prune(chain, links)
+    return [lk.effect.name for lk in kept], dropped, said
 
 
 def test_prune_drops_an_effect_the_final_chain_does_not_need():
@@ -265,3 +270,37 @@ def test_prune_keeps_a_masked_pair_and_a_later_effect_behind_a_sensor_bias():
 def test_prune_always_keeps_the_last_effect():
     gaps = _sets(none=1.0, gain=1.0, extra_lag=1.0, gain__extra_lag=1.0)
     assert len(_pruned([GAIN, LAG], gaps)[0]) == 1
+
+
+DB = Effect("deadband", "fuel", {"width": 0.1})
+
+
+def _backfit_script(prior, also):
+    """First search: a saturation; given it, a deadband; given the deadband alone the
+    saturation's refit fails (nothing accepted); nothing else."""
+    names = tuple(e.name for e in prior)
+    if names == ():
+        return _result("effect_found", [_cand(SAT, passed=True, delta_bic=600.0)], SAT)
+    if names == ("saturation",):
+        return _result("effect_found", [_cand(DB, passed=True, delta_bic=300.0)], DB,
+                       revised=prior)
+    return _result("no_significant_effect", revised=prior)
+
+
+def test_backfitting_keeps_an_effect_whose_refit_failed_but_the_chain_needs():
+    """Backfitting drops an effect whose re-search given the others accepts nothing only
+    when the others as fitted leave no more than ``min_gap_reduction`` of the held-out
+    gap more without it (Chain.needed) -- not when its refit failed (pairs tuning trial
+    800039: the saturation refitted given the deadband lost its upper limit)."""
+    chain, log = _chain(_backfit_script)
+    _scripted_gaps(chain, _sets(none=1.0, saturation=0.85, deadband=1.0,
+                                saturation__deadband=0.6))
+    links, _ = chain.run()
+    assert [lk.effect.name for lk in links] == ["saturation", "deadband"]
+    assert log[2] == (("deadband",), ())  # the backfit search ran and accepted nothing
+    # the deadband alone leaves 0.62: the saturation adds 0.02 < 0.05 -- dropped
+    chain, log = _chain(_backfit_script)
+    _scripted_gaps(chain, _sets(none=1.0, saturation=0.85, deadband=0.62,
+                                saturation__deadband=0.6))
+    links, _ = chain.run()
+    assert [lk.effect.name for lk in links] == ["deadband"]

@@ -135,7 +135,7 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
         y_aug = y_nom if pred is None else np.column_stack([pred[o] for o in outputs])
         return _gap(y, outputs, s0.holdout_start, y - y_nom, y_aug)
 
-    links, pruned = prune(chain, links, gap)
+    links, pruned = prune(chain, links)
     minor = (*minor, *pruned)
     steps, pred, shift = chain_steps(chain, links, gap)
     effects = [lk.effect for lk in links]

@@ -35,7 +35,7 @@ import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
-from pipeline.discrepancy.select import same_class
+from pipeline.discrepancy.select import pooled_rms, rms_of, same_class
 from pipeline.effects import Effect, apply_effect, original_location, output_offsets
 from pipeline.model import Model
 from pipeline.simulate import simulate
@@ -173,6 +173,7 @@ class Chain:
         self.fit = slice(0, 0)  # the fit part, known after the first search
         self.n = next(iter(self.measured.values())).size
         self.steps: list[DiscrepancyResult] = []
+        self._held: dict[tuple, float] = {}  # held_out's cache
 
     def prediction(self, effects: Sequence[Effect], recentre: bool = True
                    ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
@@ -201,6 +202,33 @@ class Chain:
                 shift[o] = float(np.mean((self.measured[o] - pred[o])[self.fit]))
                 pred[o] = pred[o] + shift[o]
         return pred, shift
+
+    def held_out(self, effects: Sequence[Effect]) -> float:
+        """Held-out gap (pooled RMS, as the result's ``gap``) of the nominal model with
+        `effects` (:meth:`prediction`; the nominal model's own when there are none)."""
+        key = tuple((e.name, e.location, tuple(sorted(e.parameters.items())))
+                    for e in effects)
+        if key not in self._held:  # prune asks for the same chains repeatedly
+            s0 = self.steps[0].series
+            pred = self.prediction(effects)[0] if effects else s0.nominal
+            h = slice(s0.holdout_start, None)
+            self._held[key] = pooled_rms(
+                [rms_of(s0.measured[o][h] - pred[o][h]) for o in self.outputs],
+                [float(np.std(s0.measured[o][h])) or 1.0 for o in self.outputs])
+        return self._held[key]
+
+    def needed(self, links: Sequence[Link], k: int) -> tuple[bool, float, float]:
+        """Whether the chain `links` as fitted needs its `k`-th effect: the held-out gap
+        without it, less that with all, must be at least ``min_gap_reduction`` of the
+        gap with the chain's sensor corrections only (the nominal gap when there are
+        none: the reference of :func:`pipeline.discrepancy.analyse._gap_reference`).
+        Returns (needed, gap without it, gap with all)."""
+        effects = [lk.effect for lk in links]
+        bar = self.config.min_gap_reduction * self.held_out(
+            [e for e in effects if e.is_sensor_correction])
+        full = self.held_out(effects)
+        without = self.held_out(effects[:k] + effects[k + 1:])
+        return without - full >= bar, without, full
 
     def search(self, effects: Sequence[Effect], also: Sequence[Candidate] = ()
                ) -> DiscrepancyResult:
@@ -367,9 +395,13 @@ class Chain:
             alt = self.search([lk.effect for lk in others])
             budget -= 1
             if alt.verdict == "no_significant_effect":
-                dropped.append(links[j].effect)  # the others explain it now
-                links = others
-                continue
+                if not self.needed(links, j)[0]:
+                    dropped.append(links[j].effect)  # the others explain it now
+                    links = others
+                    continue
+                # the others do not: its refit failed (a saturation's upper limit, met
+                # mostly in the held-out third, went to inf given a deadband; pairs
+                # tuning trial 800039) -- it stays as it was
             if alt.verdict == "effect_found" and (link := _accepted(alt, self.model)) and \
                     not any(same_class(link.effect, lk.effect) for lk in others):
                 others = _revise(others, alt.revised_prior)
@@ -378,9 +410,7 @@ class Chain:
         return links, budget
 
 
-def prune(chain: Chain, links: Sequence[Link],
-          gap: Callable[[dict[str, np.ndarray] | None], dict[str, Any]]
-          ) -> tuple[list[Link], list[Candidate]]:
+def prune(chain: Chain, links: Sequence[Link]) -> tuple[list[Link], list[Candidate]]:
     """The chain without the effects it does not need as finally fitted, and those
     effects as minor candidates.
 
@@ -391,9 +421,10 @@ def prune(chain: Chain, links: Sequence[Link],
     controller gain of x1.017 and an operating-point gain of slope -0.003 passed, while
     in the final chain -- the saturation as refitted with them -- they closed -0.3 % and
     -45 % of the gap (nuisance trials 907030, 907012).  So, once the chain is final,
-    every effect must still close ``min_gap_reduction`` of the gap with the chain's
-    sensor corrections only (the nominal gap when there are none): the held-out gap of
-    the chain without it, less that of the whole chain.  The weakest effect under the
+    every effect must still be needed (:meth:`Chain.needed`): the held-out gap of the
+    chain without it, less that of the whole chain, at least ``min_gap_reduction`` of
+    the gap with the chain's sensor corrections only.  Backfitting drops an effect by
+    the same rule.  The weakest effect under the
     bar is dropped and the rest checked again; the last effect always stays (the first
     search held it to the bar on its own).  Leave-one-out, not the step-by-step
     reduction of :func:`chain_steps`: two effects that mask each other on held-out
@@ -404,28 +435,20 @@ def prune(chain: Chain, links: Sequence[Link],
     chain : Chain
     links : sequence of Link
         The accepted effects in order.
-    gap : callable (prediction or None) -> gap dict
-        As in :func:`chain_steps`.
     """
-    def held_out(effects: Sequence[Effect]) -> float:
-        pred = chain.prediction(effects)[0] if effects else None
-        return gap(pred)["holdout_rms_after"]
-
     links, dropped = list(links), []
     while len(links) >= 2:
-        bar = chain.config.min_gap_reduction * held_out(
-            [lk.effect for lk in links if lk.effect.is_sensor_correction])
-        full = held_out([lk.effect for lk in links])
-        without = [held_out([o.effect for o in links if o is not lk]) for lk in links]
-        k = int(np.argmin(without))
-        if without[k] - full >= bar:
+        checks = [chain.needed(links, k) for k in range(len(links))]
+        k = int(np.argmin([without for _, without, _ in checks]))  # the least needed
+        needed, without, full = checks[k]
+        if needed:
             break
         lk = links.pop(k)
-        chain.say("chain", f"{lk.effect.describe()} closes {without[k] - full:.3g} of the "
-                  f"held-out gap in the final chain (bar {bar:.3g}): a minor effect")
+        chain.say("chain", f"{lk.effect.describe()} closes {without - full:.3g} of the "
+                  "held-out gap in the final chain: a minor effect")
         dropped.append(dataclasses.replace(
             lk.candidate, holdout_gap=full,
-            gap_reduction=1.0 - full / without[k] if without[k] > 0 else 0.0))
+            gap_reduction=1.0 - full / without if without > 0 else 0.0))
     return links, dropped
 
 
