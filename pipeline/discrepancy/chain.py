@@ -424,11 +424,11 @@ def prune(chain: Chain, links: Sequence[Link]) -> tuple[list[Link], list[Candida
     every effect must still be needed (:meth:`Chain.needed`): the held-out gap of the
     chain without it, less that of the whole chain, at least ``min_gap_reduction`` of
     the gap with the chain's sensor corrections only.  Backfitting drops an effect by
-    the same rule.  The weakest effect under the
-    bar is dropped and the rest checked again; the last effect always stays (the first
-    search held it to the bar on its own).  Leave-one-out, not the step-by-step
-    reduction of :func:`chain_steps`: two effects that mask each other on held-out
-    data (:data:`N_MASKED`) each close little alone but much together.
+    the same rule.  The least needed effect under the bar is dropped and the rest
+    checked again; the last effect always stays (the first search held it to the bar
+    on its own).  Leave-one-out, not the step-by-step reduction of
+    :func:`chain_steps`: two effects that mask each other on held-out data
+    (:data:`N_MASKED`) each close little alone but much together.
 
     Parameters
     ----------
