@@ -184,7 +184,8 @@ def _effects(doc: Mapping[str, Any]) -> list[str]:
                   f"{100 * json_number(cfg.get('min_gap_reduction')):.0f} % of the nominal "
                   "model's held-out gap (with the accepted sensor corrections taken off): "
                   "not a finding.  The gap reduction listed is of the model each was tried "
-                  "on (the augmented model when the chain holds effects).", ""]
+                  "on (the augmented model when the chain holds effects; for one dropped "
+                  "from the final chain, the chain without it).", ""]
         lines += [f"- {effect_text(e)}: gap reduction "
                   f"{100 * json_number(e.get('gap_reduction')):.1f} %, ΔBIC "
                   f"{fmt_number(e.get('delta_bic'))}, held-out z {fmt_number(e.get('holdout_z'), 3)}"
