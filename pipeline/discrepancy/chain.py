@@ -205,7 +205,13 @@ class Chain:
 
     def held_out(self, effects: Sequence[Effect]) -> float:
         """Held-out gap (pooled RMS, as the result's ``gap``) of the nominal model with
-        `effects` (:meth:`prediction`; the nominal model's own when there are none)."""
+        `effects` (:meth:`prediction`; the nominal model's own when there are none).
+
+        Parameters
+        ----------
+        effects : sequence of Effect
+            Effects with nominal locations (cached by name, location and values).
+        """
         key = tuple((e.name, e.location, tuple(sorted(e.parameters.items())))
                     for e in effects)
         if key not in self._held:  # prune asks for the same chains repeatedly
@@ -222,7 +228,15 @@ class Chain:
         without it, less that with all, must be at least ``min_gap_reduction`` of the
         gap with the chain's sensor corrections only (the nominal gap when there are
         none: the reference of :func:`pipeline.discrepancy.analyse._gap_reference`).
-        Returns (needed, gap without it, gap with all)."""
+        Returns (needed, gap without it, gap with all).
+
+        Parameters
+        ----------
+        links : sequence of Link
+            The chain, as fitted.
+        k : int
+            Index of the effect in question.
+        """
         effects = [lk.effect for lk in links]
         bar = self.config.min_gap_reduction * self.held_out(
             [e for e in effects if e.is_sensor_correction])
