@@ -1,7 +1,8 @@
 """The chain's masked-pair search (``Chain._masked``), carried candidates
-(``Chain._carried``) and replaced compromises (``Chain._replaced``) of
+(``Chain._carried``), replaced compromises (``Chain._replaced``), backfitting's drop
+rule (``Chain.needed``) and the final pruning (``prune``) of
 ``pipeline.discrepancy.chain``, driven through ``Chain.run`` with a scripted search in
-place of the real one.
+place of the real one (and scripted held-out gaps where the rule reads them).
 
 The real search is exercised end to end by the pairs suite (``tests/test_hidden_effects.py``
 CI sample, ``tests/benchmarks/bench_discrepancy.py --suite pairs``); here the decision
