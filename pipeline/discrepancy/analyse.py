@@ -19,6 +19,7 @@ from pipeline.discrepancy.results import Candidate, DiscrepancyResult, Discrepan
 from pipeline.discrepancy.screen import class_key, kept_classes, nested_partners, screen_all
 from pipeline.discrepancy.select import (
     criteria,
+    holdout_gap,
     holdout_rms_test,
     holdout_z_score,
     pooled_rms,
@@ -133,7 +134,7 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
 
     def gap(pred: dict[str, np.ndarray] | None) -> dict[str, Any]:
         y_aug = y_nom if pred is None else np.column_stack([pred[o] for o in outputs])
-        return _gap(y, outputs, s0.holdout_start, y - y_nom, y_aug)
+        return holdout_gap(y, outputs, s0.holdout_start, y - y_nom, y_aug)
 
     links, pruned = prune(chain, links)
     minor = (*minor, *pruned)
@@ -196,7 +197,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
     y_aug = {id(f.effect): f.y_pred for f, *_ in fitted}.get(id(effect), P.y_nominal)
     augmented = apply_effect(model, effect, dt_s=P.dt_s) if effect is not None else model
     y, outputs = P.y, P.outputs
-    gap = _gap(y, outputs, P.holdout_start, resid, y_aug)
+    gap = holdout_gap(y, outputs, P.holdout_start, resid, y_aug)
     series = DiscrepancySeries(
         t_s=nominal.t_s,
         measured={o: y[:, i] for i, o in enumerate(outputs)},
@@ -646,25 +647,3 @@ def _decide(candidates: list, findings: list, config: DiscrepancyConfig):
         # single out one effect
         return "inconclusive", None, (better, best)
     return "effect_found", best.effect, ()
-
-
-def _gap(y: np.ndarray, outputs: list[str], holdout_start: int, resid: np.ndarray,
-         y_aug: np.ndarray) -> dict[str, Any]:
-    """Held-out RMS gap before (``resid``) and after the augmented model, per output and
-    pooled."""
-    hold_slice = slice(holdout_start, y.shape[0])
-    hold_std = [float(np.std(y[hold_slice, i])) or 1.0 for i in range(len(outputs))]
-    per_output = {}
-    for i, o in enumerate(outputs):
-        before = rms_of(resid[hold_slice, i])
-        after = rms_of(y[hold_slice, i] - y_aug[hold_slice, i])
-        per_output[o] = {"holdout_rms_before": before, "holdout_rms_after": after,
-                         "reduction": 1.0 - after / before if before > 0 else 0.0}
-    before = pooled_rms([per_output[o]["holdout_rms_before"] for o in outputs], hold_std)
-    after = pooled_rms([per_output[o]["holdout_rms_after"] for o in outputs], hold_std)
-    gap = {"holdout_rms_before": before, "holdout_rms_after": after,
-           "reduction": 1.0 - after / before if before > 0 else 0.0,
-           "units": f"{outputs[0]} units" if len(outputs) == 1
-           else "relative to each output's held-out std (RMS over outputs)"}
-    gap["per_output"] = per_output
-    return gap

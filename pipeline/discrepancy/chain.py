@@ -35,7 +35,7 @@ import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
-from pipeline.discrepancy.select import pooled_rms, rms_of, same_class
+from pipeline.discrepancy.select import holdout_gap, same_class
 from pipeline.effects import Effect, apply_effect, original_location, output_offsets
 from pipeline.model import Model
 from pipeline.simulate import simulate
@@ -217,10 +217,10 @@ class Chain:
         if key not in self._held:  # prune asks for the same chains repeatedly
             s0 = self.steps[0].series
             pred = self.prediction(effects)[0] if effects else s0.nominal
-            h = slice(s0.holdout_start, None)
-            self._held[key] = pooled_rms(
-                [rms_of(s0.measured[o][h] - pred[o][h]) for o in self.outputs],
-                [float(np.std(s0.measured[o][h])) or 1.0 for o in self.outputs])
+            y, y_nom, y_aug = (np.column_stack([sig[o] for o in self.outputs])
+                               for sig in (s0.measured, s0.nominal, pred))
+            self._held[key] = holdout_gap(y, self.outputs, s0.holdout_start, y - y_nom,
+                                          y_aug)["holdout_rms_after"]
         return self._held[key]
 
     def needed(self, links: Sequence[Link], k: int) -> tuple[bool, float, float]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -168,3 +169,39 @@ def rms_of(e: np.ndarray) -> float:
         Errors, e.g. one output's held-out residual.
     """
     return float(np.sqrt(np.mean(e**2)))
+
+
+def holdout_gap(y: np.ndarray, outputs: list[str], holdout_start: int, resid: np.ndarray,
+         y_aug: np.ndarray) -> dict[str, Any]:
+    """Held-out RMS gap before (``resid``) and after the augmented model (``y_aug``), per
+    output and pooled (:func:`pooled_rms`): the result's ``gap``.
+
+    Parameters
+    ----------
+    y : ndarray (N, n_y)
+        Measured outputs.
+    outputs : list of str
+        Their names, in column order.
+    holdout_start : int
+        First held-out sample.
+    resid : ndarray (N, n_y)
+        Residual before (measured minus nominal).
+    y_aug : ndarray (N, n_y)
+        Prediction after.
+    """
+    hold_slice = slice(holdout_start, y.shape[0])
+    hold_std = [float(np.std(y[hold_slice, i])) or 1.0 for i in range(len(outputs))]
+    per_output = {}
+    for i, o in enumerate(outputs):
+        before = rms_of(resid[hold_slice, i])
+        after = rms_of(y[hold_slice, i] - y_aug[hold_slice, i])
+        per_output[o] = {"holdout_rms_before": before, "holdout_rms_after": after,
+                         "reduction": 1.0 - after / before if before > 0 else 0.0}
+    before = pooled_rms([per_output[o]["holdout_rms_before"] for o in outputs], hold_std)
+    after = pooled_rms([per_output[o]["holdout_rms_after"] for o in outputs], hold_std)
+    gap = {"holdout_rms_before": before, "holdout_rms_after": after,
+           "reduction": 1.0 - after / before if before > 0 else 0.0,
+           "units": f"{outputs[0]} units" if len(outputs) == 1
+           else "relative to each output's held-out std (RMS over outputs)"}
+    gap["per_output"] = per_output
+    return gap
