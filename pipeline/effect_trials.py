@@ -415,13 +415,57 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
                 break
             shown.append(_visibility(model, truth, reference, rel, n))
         if len(shown) == len(effects) and all(
-                v >= MIN_VISIBILITY and r >= TRIAL_GAP_REDUCTION for v, r in shown):
+                v >= MIN_VISIBILITY and r >= TRIAL_GAP_REDUCTION for v, r in shown) and (
+                len(effects) == 1 or _each_needed(model, effects, truth, nominal, inputs,
+                                                  dt_s=dt_s, rel=rel, n=n)):
             return tuple(effects), truth, redraws, shown[0][0]
         redraws += 1
     raise ConfigError(
         f"make_hidden_effect_trial: no stable, visible {'+'.join(names)} effect set in "
         f"{max_redraws} draws for model {model.name!r} (seed {seed})"
     )
+
+
+def _expected_gap(model: Model, truth: Mapping[str, np.ndarray],
+                  predicted: Mapping[str, np.ndarray], rel: float, n: int) -> float:
+    """Expected held-out gap of a model predicting `predicted` for a plant whose
+    noise-free outputs are `truth` (noise std ``rel * std(truth)``): each output's
+    expected mean square over its held-out variance, pooled as the workflow's ``gap``."""
+    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
+    ratios = []
+    for name in model.outputs:
+        sigma2 = (rel * float(np.std(truth[name]))) ** 2
+        error2 = float(np.mean((truth[name][held] - predicted[name][held]) ** 2))
+        ratios.append((sigma2 + error2) / (float(np.var(truth[name][held])) + sigma2))
+    return math.sqrt(sum(ratios) / len(ratios))
+
+
+def _each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np.ndarray],
+                 nominal: Any, inputs: Mapping[str, np.ndarray], *, dt_s: float,
+                 rel: float, n: int) -> bool:
+    """Whether every one of several effects is a finding by the workflow's own rule for
+    a chain (:meth:`pipeline.discrepancy.chain.Chain.needed`), in expected values with
+    the true parameters: the plant's model without it, less the plant's, leaves at least
+    :data:`TRIAL_GAP_REDUCTION` of the gap of the nominal model with the plant's sensor
+    corrections only (the nominal gap when there are none).
+
+    The workflow measures a later effect against that reference, not against the gap
+    of the model it is added to (:func:`pipeline.discrepancy.analyse._gap_reference`
+    says why), so an effect that closes 7.5 % of what the other one leaves can be a
+    minor effect by definition: 15 of the 100 pair trials of seeds 1 700 000 were (a
+    sensor drift closing 12 % of what a deadband left, 3 % of the nominal gap).  The
+    per-effect bar against the plant without it (:func:`_visibility`) still applies.
+    """
+    sensors = [e for e in effects if e.is_sensor_correction]
+    base = (nominal.signals if not sensors
+            else _plant_outputs(model, sensors, inputs, dt_s)[1])
+    bar = TRIAL_GAP_REDUCTION * _expected_gap(model, truth, base, rel, n)
+    full = _expected_gap(model, truth, truth, rel, n)
+    for k in range(len(effects)):
+        others = _plant_outputs(model, [*effects[:k], *effects[k + 1:]], inputs, dt_s)
+        if others is None or _expected_gap(model, truth, others[1], rel, n) - full < bar:
+            return False
+    return True
 
 
 def _location_blocks(effect: Effect) -> tuple[str, ...]:
@@ -435,15 +479,9 @@ def _visibility(model: Model, out: Mapping[str, np.ndarray],
     most (whole record), and the held-out gap reduction the effect would give with its
     true parameters (expected values: noise of std ``rel * std(output)``)."""
     vis = []
-    before, after = [], []
-    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
     for name in model.outputs:
         sigma = rel * float(np.std(out[name]))
-        diff = out[name] - reference[name]
-        vis.append(float(np.sqrt(np.mean(diff ** 2))) / sigma)
-        # the workflow pools outputs relative to each one's held-out (measured) std
-        scale2 = float(np.var(out[name][held])) + sigma ** 2
-        before.append((sigma ** 2 + float(np.mean(diff[held] ** 2))) / scale2)
-        after.append(sigma ** 2 / scale2)
-    reduction = 1.0 - math.sqrt(sum(after) / sum(before))
+        vis.append(float(np.sqrt(np.mean((out[name] - reference[name]) ** 2))) / sigma)
+    reduction = 1.0 - _expected_gap(model, out, out, rel, n) / _expected_gap(
+        model, out, reference, rel, n)
     return max(vis), reduction

@@ -297,6 +297,45 @@ def test_hidden_effects_are_visible_in_the_held_out_third(boiler):
     assert reduction >= TRIAL_GAP_REDUCTION
 
 
+def test_each_effect_of_a_pair_trial_is_a_finding_by_the_chains_rule(boiler):
+    """Pair trial 1 700 080 first drew a deadband at the controller (78 % of the
+    nominal gap) and a turbine-pressure sensor drift that closed 12 % of what the
+    deadband left but 3 % of the nominal gap: by the chain's rule (a later effect must
+    close ``min_gap_reduction`` of the nominal gap with the sensor corrections only) a
+    minor effect, so no trial.  The generator redraws such pairs: recomputed here from
+    the truth (expected held-out gaps, noise of the drawn std), every effect left out
+    opens the gap by at least TRIAL_GAP_REDUCTION of that reference."""
+    from pipeline.effect_trials import HOLDOUT_FRACTION, TRIAL_GAP_REDUCTION, \
+        make_hidden_effects_trial
+
+    trial = make_hidden_effects_trial(boiler, ("deadband", "sensor_bias_drift"),
+                                      seed=1_700_080, n=10_000)
+    held = slice(10_000 - round(HOLDOUT_FRACTION * 10_000), None)
+    (o,) = boiler.outputs
+    sigma2 = (trial.noise["relative_std"] * np.std(trial.truth[o])) ** 2
+    scale2 = np.var(trial.truth[o][held]) + sigma2
+
+    def gap(effects):  # expected held-out RMS of the plant's model with `effects`
+        model = boiler
+        for e in effects:
+            model = apply_effect(model, e, dt_s=trial.dt_s)
+        y = simulate(model, {k: trial.inputs[k] for k in model.inputs},
+                     dt_s=trial.dt_s).signals[o][held]
+        for e in effects:
+            if e.name == "sensor_bias_drift":
+                t_h = np.arange(10_000)[held] * trial.dt_s / 3600.0
+                y = y + e.parameters["bias"] + e.parameters["drift_per_h"] * t_h
+        return math.sqrt((sigma2 + np.mean((trial.truth[o][held] - y) ** 2)) / scale2)
+
+    deadband, drift = trial.effects
+    assert (deadband.name, drift.name) == ("deadband", "sensor_bias_drift")
+    full, reference = gap([deadband, drift]), gap([drift])
+    assert full == pytest.approx(math.sqrt(sigma2 / scale2), rel=1e-9)
+    assert gap([drift]) - full >= TRIAL_GAP_REDUCTION * reference
+    assert gap([deadband]) - full >= TRIAL_GAP_REDUCTION * reference
+    assert trial.redraws >= 1
+
+
 def test_one_sample_dead_time_and_a_very_short_lag_are_lookalikes(boiler):
     # With a zero-order hold, a first-order lag with tau << dt IS a one-sample delay, so
     # the data cannot tell dead_time (1 sample) from extra_lag (tiny tau) at the same
