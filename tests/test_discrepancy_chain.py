@@ -15,6 +15,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from pipeline.demo import boiler_model
 from pipeline.discrepancy.analyse import _gap_reference
@@ -305,3 +306,78 @@ def test_backfitting_keeps_an_effect_whose_refit_failed_but_the_chain_needs():
                                 saturation__deadband=0.6))
     links, _ = chain.run()
     assert [lk.effect.name for lk in links] == ["deadband"]
+
+
+# ------------------------------------------------------ dynamic look-alikes of a chain
+DT_A = Effect("dead_time", "fuel", {"delay_s": 20.0})
+DT_B = Effect("dead_time", "drum", {"delay_s": 16.0})
+IR_A = Effect("inverse_response", "fuel", {"tau_s": 11.0, "magnitude": 1.4})
+LAG_B = Effect("extra_lag", "drum", {"tau_s": 30.0})
+
+
+def _lookalike_script(prior, also):
+    """Dead times accepted at the fuel and then the drum; given the drum's dead time the
+    search accepts an inverse response at the fuel only when it is forced in, and given
+    that inverse response an extra lag at the drum likewise (each the look-alike of the
+    dead time it replaces, refitted jointly with the other effect)."""
+    p = tuple((e.name, e.location) for e in prior)
+    forced = {(c.effect.name, c.effect.location) for c in also}
+    if p == ():
+        return _result("effect_found", [_cand(DT_A, passed=True, delta_bic=900.0)], DT_A)
+    if p == (("dead_time", "fuel"),):
+        return _result("effect_found", [_cand(DT_B, passed=True, delta_bic=400.0)], DT_B,
+                       revised=prior)
+    if p == (("dead_time", "drum"),) and ("inverse_response", "fuel") in forced:
+        return _result("effect_found", [_cand(IR_A, passed=True, delta_bic=500.0)], IR_A,
+                       revised=prior)
+    if p == (("inverse_response", "fuel"),) and ("extra_lag", "drum") in forced:
+        return _result("effect_found", [_cand(LAG_B, passed=True, delta_bic=450.0)], LAG_B,
+                       revised=prior)
+    return _result("no_significant_effect", revised=prior)
+
+
+def test_a_dynamic_effects_re_search_fits_its_lookalikes_the_newest_included():
+    """Two dead times each fitted given the other (pairs tuning trial 800 007: a hidden
+    inverse response and extra lag named two dead times).  Every re-search of a dynamic
+    effect -- backfitting, and once more for each when the chain is final, the newest
+    included -- forces in its look-alikes at its location, started at its time scale
+    (a delay L: a lag of tau L, an inverse response of tau L/2 and magnitude 1, the
+    Pade form; an inverse response (tau, m): a delay (1 + m) tau).  What those searches
+    accept replaces it: here the inverse response at the fuel, then the lag at the drum."""
+    chain, log = _chain(_lookalike_script)
+    _scripted_gaps(chain, _sets(none=1.0, dead_time=0.8, inverse_response=0.7,
+                                extra_lag=0.8, inverse_response__dead_time=0.3,
+                                inverse_response__extra_lag=0.2))
+    forced = []
+    step = chain.step
+
+    def spy(prior, model, measured, also):
+        forced.append({c.effect.name: (c.effect.location, c.effect.parameters,
+                                       c.n_parameters) for c in also})
+        return step(prior, model, measured, also)
+
+    chain.step = spy
+    links, _ = chain.run()
+    assert [(lk.effect.name, lk.effect.location) for lk in links] == [
+        ("inverse_response", "fuel"), ("extra_lag", "drum")]
+    # the backfit of the fuel's dead time (20 s), given the drum's
+    assert log[2] == (("dead_time",), ("extra_lag", "inverse_response"))
+    assert forced[2] == {"extra_lag": ("fuel", {"tau_s": 20.0}, 1),
+                         "inverse_response": ("fuel", {"tau_s": 10.0, "magnitude": 1.0}, 2)}
+    # the final sweep: the inverse response (tau 11, magnitude 1.4: 26.4 s) given the
+    # drum's dead time, then the drum's dead time (16 s) given the inverse response
+    sweep = [f for f, (prior, _) in zip(forced, log) if f and prior != ("dead_time",)]
+    assert sweep[-1] == {"extra_lag": ("drum", {"tau_s": 16.0}, 1),
+                         "inverse_response": ("drum", {"tau_s": 8.0, "magnitude": 1.0}, 2)}
+    assert any(f.get("dead_time") == ("fuel", {"delay_s": 26.0}, 1) for f in forced)
+
+
+def test_a_chain_of_static_effects_is_not_swept_again():
+    """No dynamic effect in the chain: no final sweep (the searches are those of the
+    backfitting only, none forcing a candidate in)."""
+    chain, log = _chain(_backfit_script)
+    _scripted_gaps(chain, _sets(none=1.0, saturation=0.85, deadband=1.0,
+                                saturation__deadband=0.6))
+    chain.run()
+    assert all(also == () for _, also in log)
+    assert len(log) == 4  # first, given the saturation, the backfit, given both

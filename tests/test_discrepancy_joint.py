@@ -4,6 +4,7 @@ plant (tests/plant_sim.py: continuous time, Heun at dt/10 -- not pipeline.simula
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from pipeline.discrepancy.analyse import _problem
 from pipeline.discrepancy.config import DiscrepancyConfig
@@ -12,6 +13,7 @@ from pipeline.discrepancy.joint import joint_refit
 from pipeline.effect_trials import trial_inputs
 from pipeline.effects import Effect, apply_effect
 from pipeline.progress import quiet
+from pipeline.simulate import simulate
 from pipeline.synthetic import make_discrepancy_demo
 from tests.benchmarks.bench_discrepancy import load_model
 from tests.plant_sim import simulate_plant
@@ -99,3 +101,75 @@ def test_a_candidate_that_counts_the_earlier_effect_twice_starts_weakened(monkey
     assert abs(ir_ref.parameters["magnitude"] / 0.42 - 1.0) < 0.25
     assert stuck is None or abs(stuck[1].parameters["tau_s"] / lag_ref.parameters["tau_s"]
                                 - 1.0) > 0.5
+
+
+def _lstsq_ss(columns: np.ndarray, r: np.ndarray) -> float:
+    """Residual sum of squares of `r` regressed on `columns` (numpy lstsq)."""
+    beta, *_ = np.linalg.lstsq(columns, r, rcond=None)
+    e = r - columns @ beta
+    return float(e @ e)
+
+
+def test_prior_basis_spans_the_earlier_effects_sensitivities():
+    """The directions a later candidate is screened orthogonally to are the whitened
+    output changes the earlier effects' refitted parameters make: here a controller
+    gain's factor and a fuel lag's tau, recomputed by central differences of the
+    outputs with a step 100 times smaller (pipeline.simulate on the model with the
+    effects).  Each must lie in the basis' span (cosine with its projection ~1)."""
+    model = load_model("boiler_pressure")
+    truth = [Effect("gain", "controller", {"factor": 1.2})]
+    inputs, _, dt_s = make_discrepancy_demo(model, seed=11, hours=2.0, dt_s=2.0, effects=())
+    prior = [Effect("gain", "controller", {"factor": 1.1}),
+             Effect("extra_lag", "fuel", {"tau_s": 12.0})]
+    P = _problem_on_plant(model, truth, inputs, dt_s, prior, noise=0.02, seed=4)
+    basis = joint_module.prior_basis(P, model, prior)
+    assert basis is not None and basis.shape[1] == 2
+    assert np.allclose(basis.T @ basis, np.eye(2), atol=1e-10)
+    stop = P.holdout_start
+
+    def outputs(effects):
+        m = model
+        for e in effects:
+            m = apply_effect(m, e, dt_s=dt_s)
+        sim = simulate(m, {k: inputs[k][:stop] for k in m.inputs}, dt_s=dt_s)
+        return np.column_stack([sim.signals[o] for o in P.outputs])
+
+    for k, key in [(0, "factor"), (1, "tau_s")]:
+        value = prior[k].parameters[key]
+        up, down = ([dict(e.parameters) for e in prior] for _ in range(2))
+        up[k][key], down[k][key] = value * 1.0001, value / 1.0001
+        d = (outputs([Effect(e.name, e.location, p) for e, p in zip(prior, up)])
+             - outputs([Effect(e.name, e.location, p) for e, p in zip(prior, down)]))
+        d_w = P.whiten(d, P.fit_start, stop)
+        inside = basis @ (basis.T @ d_w)
+        assert float(inside @ d_w) / float(d_w @ d_w) > 0.999
+
+
+def test_screening_given_the_earlier_effects_scores_as_their_joint_least_squares():
+    """Screened with a fixed basis, a candidate's score is what it removes from the
+    whitened residual when the basis directions are refitted with it: for a direction
+    entering with coefficient 1, SS(r | B) - SS(r - d | B); for the best multiple of a
+    direction, SS(r | B) - SS(r | [B, d]) -- both recomputed with numpy lstsq."""
+    from pipeline.discrepancy.screen import Screener
+
+    model = load_model("boiler_pressure")
+    inputs, measured, dt_s = make_discrepancy_demo(model, seed=5, hours=1.0, dt_s=1.0)
+    P, _, resid = _problem(model, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
+    P.ar = [np.array([1.0, -0.8])] * P.n_y
+    P.sigma = np.array([0.05 * float(np.std(P.y[:, i])) for i in range(P.n_y)])
+    rng = np.random.default_rng(7)
+    r_w = P.whiten(resid, P.fit_start, P.holdout_start)
+    B = rng.standard_normal((r_w.size, 3))
+    Q = np.linalg.qr(B)[0]
+    plain, joint = Screener(P, resid), Screener(P, resid, fixed_basis=Q)
+    assert np.allclose(plain.r_w, r_w)
+    for _ in range(3):
+        d = 0.3 * r_w + rng.standard_normal(r_w.size) * float(np.std(r_w))
+        ss_b = _lstsq_ss(B, r_w)
+        assert joint.fixed(d) == pytest.approx(ss_b - _lstsq_ss(B, r_w - d), rel=1e-8)
+        removed, _ = joint.project(d)
+        assert removed == pytest.approx(ss_b - _lstsq_ss(np.column_stack([B, d]), r_w),
+                                        rel=1e-8)
+        # without a basis: the plain first-order scores
+        assert plain.fixed(d) == pytest.approx(float(r_w @ r_w) - float((r_w - d) @ (r_w - d)),
+                                               rel=1e-8)

@@ -12,7 +12,7 @@ from pipeline._threads import single_threaded_blas
 from pipeline.discrepancy.chain import Chain, build, chain_steps, prune
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.fit import Fit, Fitter, predict_with, refit_nested_lags
-from pipeline.discrepancy.joint import N_JOINT, joint_refit
+from pipeline.discrepancy.joint import N_JOINT, joint_refit, prior_basis
 from pipeline.discrepancy.localise import localise
 from pipeline.discrepancy.problem import Problem, settling_time, sigma_floor, validate_signals
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, DiscrepancySeries
@@ -180,7 +180,8 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
     localization, fir_res, rolling = localise(P, resid, np.random.default_rng(seed))
     noise = _initial_noise(P, fir_res)
     lap("localise")
-    preds, classes, fits_total = _search(P, resid, fir_res, noise, say)
+    preds, classes, fits_total, joint_classes = _search(P, resid, fir_res, noise, say, base,
+                                                        prior)
     screening = tuple(
         {"name": c.name, "location": c.location, "equivalent_locations": c.members,
          "score": float(c.score)} for c in classes
@@ -189,7 +190,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         localization[out]["locations"] = [dict(s) for s in screening[:10]]
     bic_nom, hold_nom = criteria(P, P.y_nominal, 0)
     noise["bic_nominal"] = bic_nom
-    fitted, revised = _fitted(P, preds, hold_nom, base, prior, say, also)
+    fitted, revised = _fitted(P, preds, hold_nom, base, prior, say, also, joint_classes)
     lap("search")
     say("select", "held-out comparison")
     candidates, verdict, effect, lookalikes, minor = _select(P, fitted, bic_nom, resid, seed,
@@ -221,7 +222,8 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
 
 def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
             prior: tuple[Effect, ...], say: Callable[[str, str], None],
-            also: tuple[Candidate, ...] = ()) -> tuple[list, dict[int, tuple[Effect, ...]]]:
+            also: tuple[Candidate, ...] = (), joint_classes: Sequence[Any] = ()
+            ) -> tuple[list, dict[int, tuple[Effect, ...]]]:
     """Criteria of every fitted candidate, plus -- in a later search of the chain -- the
     :data:`~pipeline.discrepancy.joint.N_JOINT` best (class and location; the better of
     two fits of one counts once), the dead times among the next N_JOINT (a dead time's
@@ -233,7 +235,9 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
     per joint candidate (by ``id`` of its effect), the prior effects as refitted.  The
     candidates `also` (nominal locations) are refitted jointly with the prior effects
     too, or -- when nothing of theirs is refitted (a dead time, a sensor bias) -- taken as
-    they are."""
+    they are.  So are the :data:`N_JOINT_SCREENED` best classes screened orthogonally to
+    the prior effects' own sensitivities (`joint_classes`, :func:`_search`) that are not
+    refitted already, from their screening's best point."""
     fitted = []
     for c, effect, y_pred in preds:
         bic, hold = criteria(P, y_pred, c.n_parameters)
@@ -244,8 +248,7 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
         return fitted, revised
     ranked, seen = [], set()  # best fit of each class (effect, location, schedule signal)
     for k in sorted(range(len(fitted)), key=lambda k: fitted[k][1]):
-        effect = fitted[k][0].effect
-        key = (effect.name, effect.location, effect.parameters.get("signal"))
+        key = _fit_key(fitted[k][0].effect)
         if key not in seen:
             seen.add(key)
             ranked.append(k)
@@ -256,6 +259,13 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
     # (fit, taken as it is when nothing of it can be refitted)
     joint_fits = [(fitted[k][0], False) for k in best] + [
         (Fit(c.effect, c.n_parameters, c.screening_score, None), True) for c in also]
+    taken = {_fit_key(fit.effect) for fit, _ in joint_fits}
+    screened = [c for c in joint_classes if c.name in _JOINT_SCREENED_NAMES
+                and _fit_key(Effect(c.name, c.location, dict(c.starts[0]))) not in taken]
+    joint_fits += [(Fit(Effect(c.name, c.location, dict(c.starts[0]),
+                               tuple(m for m in c.members if m != c.location)),
+                        c.n_parameters, c.score, None), True)
+                   for c in screened[:N_JOINT_SCREENED]]
     say("joint", f"refitting {len(joint_fits)} candidate(s) jointly with {len(prior)} "
         "earlier effect(s)")
     for fit, as_is in joint_fits:
@@ -271,6 +281,23 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
                        holdout_z_score(hold_nom, hold), hold))
         revised[id(effect)] = tuple(refitted_prior)
     return fitted, revised
+
+
+#: Classes screened orthogonally to the prior effects' sensitivities that a later search
+#: refits jointly with them besides its best fits (:func:`_fitted`,
+#: :func:`pipeline.discrepancy.joint.prior_basis` says why).
+N_JOINT_SCREENED = 3
+#: ... of the effects whose joint refit moves something: the prior's parameters with
+#: the candidate's continuous ones, or with a dead time's delay held at its screened
+#: value (a sensor bias has a closed-form fit on the residual and no dynamics).
+_JOINT_SCREENED_NAMES = frozenset(
+    {"gain", "dead_time", "extra_lag", "inverse_response", "operating_point_gain",
+     "deadband", "saturation", "unmodelled_input"})
+
+
+def _fit_key(effect: Effect) -> tuple[str, str, Any]:
+    """Class identity of a fitted effect: name, location, scheduling signal."""
+    return (effect.name, effect.location, effect.parameters.get("signal"))
 
 
 def _nested_lags(fitted: list, chosen: list[int]) -> list[int]:
@@ -340,14 +367,20 @@ def _initial_noise(P: Problem, fir_res: list[np.ndarray]) -> dict[str, Any]:
 
 
 def _search(P: Problem, resid: np.ndarray, fir_res: list[np.ndarray], noise: dict,
-            say: Callable[[str, str], None]):
+            say: Callable[[str, str], None], nominal: Model | None = None,
+            prior: tuple[Effect, ...] = ()):
     """Screen, fit the best classes exactly; up to three noise-model passes.
 
     The noise model comes from the FIR residual, which misses nonlinear discrepancies; if
     the best fitted candidate leaves a residual with clearly smaller innovation variance,
     that residual describes the noise better: refit the AR model on it and search again
-    (at most twice). Returns the fitted ``(class, effect, y_pred)`` list, the last
-    screening's classes and the number of fit simulations.
+    (at most twice). In a later search of the chain (`prior` effects added to the
+    `nominal` model), a last screening under the final noise model scores every
+    candidate orthogonally to the prior effects' sensitivities
+    (:func:`pipeline.discrepancy.joint.prior_basis`).  Returns the fitted
+    ``(class, effect, y_pred)`` list, the last screening's classes, the number of fit
+    simulations and the classes of that last screening (best first; empty without
+    `prior`).
     """
     config, outputs, y = P.config, P.outputs, P.y
     fits_total = 0
@@ -413,7 +446,11 @@ def _search(P: Problem, resid: np.ndarray, fir_res: list[np.ndarray], noise: dic
             break
     fits_total += white_fitter.n_eval
     noise["passes"] = noise_pass + 1
-    return preds, classes, fits_total
+    joint_classes: list = []
+    if prior and nominal is not None and (basis := prior_basis(P, nominal, prior)) is not None:
+        say("screen", "screening given the earlier effects refitted jointly")
+        joint_classes = screen_all(P, resid, h_cache, basis)[0]
+    return preds, classes, fits_total, joint_classes
 
 
 def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray

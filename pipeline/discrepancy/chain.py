@@ -84,6 +84,19 @@ N_CARRIED = 3
 N_REPLACED = 2
 
 
+#: Dynamic look-alikes: a dead time, an extra lag and an inverse response at one block
+#: stand in for one another (a first-order Pade approximant of a delay is an inverse
+#: response of magnitude 1; a lag of a few samples is a delay).  A chain of two dynamic
+#: effects each fitted given the other settles in the wrong pair of classes: both
+#: locations right but a hidden inverse response and extra lag named two dead times
+#: (pairs tuning trial 800 007), or the classes swapped between the two locations
+#: (800 009) -- each effect the best given the other's compromise, which
+#: backfitting one effect at a time (its re-search screens the others held fixed)
+#: cannot leave.  So every re-search of a dynamic effect also fits its look-alikes at
+#: its location, refitted jointly with the others (:func:`_lookalikes`).
+_DYNAMIC = ("dead_time", "extra_lag", "inverse_response")
+
+
 @dataclasses.dataclass(frozen=True)
 class Link:
     """One accepted effect of the chain: the effect (nominal-model location) and its
@@ -91,6 +104,28 @@ class Link:
 
     effect: Effect
     candidate: Candidate
+
+
+def _lookalikes(link: Link, dt_s: float) -> tuple[Candidate, ...]:
+    """The other dynamic classes (:data:`_DYNAMIC`) at `link`'s location, started at the
+    same time scale: a delay L, a lag of tau L and an inverse response of magnitude 1
+    and tau L/2 (its Pade form); an inverse response (tau, m) counts as L = (1 + m) tau,
+    the delay of its step response's zero crossing-and-settling scale.  Empty for
+    other effects."""
+    e = link.effect
+    if e.name not in _DYNAMIC:
+        return ()
+    p = e.parameters
+    scale = {"dead_time": lambda: p["delay_s"], "extra_lag": lambda: p["tau_s"],
+             "inverse_response": lambda: (1.0 + abs(p["magnitude"])) * p["tau_s"]}
+    length = max(float(scale[e.name]()), dt_s)
+    starts = {"dead_time": ({"delay_s": max(1, round(length / dt_s)) * dt_s}, 1),
+              "extra_lag": ({"tau_s": length}, 1),
+              "inverse_response": ({"tau_s": length / 2.0, "magnitude": 1.0}, 2)}
+    return tuple(
+        dataclasses.replace(link.candidate, n_parameters=n_par,
+                            effect=dataclasses.replace(e, name=name, parameters=params))
+        for name, (params, n_par) in starts.items() if name != e.name)
 
 
 def build(model: Model, effects: Sequence[Effect], dt_s: float) -> Model:
@@ -289,6 +324,9 @@ class Chain:
             if pair is not None:
                 links, last, budget = pair
                 links, last, budget = self._grow(links, dropped, last, budget)
+        if len(links) >= 2 and any(lk.effect.name in _DYNAMIC for lk in links):
+            # the newest effect was never re-searched with its look-alikes
+            links, _ = self._backfit(links, dropped, len(links), newest=True)
         names = (*self.model.block_names, *self.model.outputs)
         minor = []
         for c in last.minor_effects:  # in nominal names; none that has no counterpart
@@ -398,15 +436,21 @@ class Chain:
                 return *pair, budget
         return None
 
-    def _backfit(self, links: list[Link], dropped: list[Effect], budget: int
-                 ) -> tuple[list[Link], int]:
-        """Refit every effect but the newest given the others (see module docstring)."""
+    def _backfit(self, links: list[Link], dropped: list[Effect], budget: int,
+                 newest: bool = False) -> tuple[list[Link], int]:
+        """Refit every effect but the newest (`newest`: every dynamic one, the newest
+        included) given the others (see module docstring); a dynamic effect's
+        re-search fits its look-alikes too (:data:`_DYNAMIC`)."""
         j = 0
-        while j < len(links) - 1 and budget > 0:
+        while j < len(links) - (0 if newest else 1) and budget > 0:
+            if newest and links[j].effect.name not in _DYNAMIC:
+                j += 1
+                continue
             others = links[:j] + links[j + 1:]
             self.say("backfit", f"re-searching {links[j].effect.describe()} given the "
                      f"{len(others)} other effect(s)")
-            alt = self.search([lk.effect for lk in others])
+            alt = self.search([lk.effect for lk in others],
+                              also=_lookalikes(links[j], self.dt_s))
             budget -= 1
             if alt.verdict == "no_significant_effect":
                 if not self.needed(links, j)[0]:

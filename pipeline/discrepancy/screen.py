@@ -73,14 +73,22 @@ class Screener:
     h_cache : dict or None
         Cache of impulse responses, exact simulations and saturation paths, shared
         across screenings (None: a new one).
+    fixed_basis : ndarray (m, k) or None
+        Orthonormal whitened directions that are free alongside every candidate (the
+        chain's earlier effects refitted jointly,
+        :func:`pipeline.discrepancy.joint.prior_basis`): the residual and every
+        candidate's direction are scored orthogonally to them -- the SS a candidate
+        removes when those directions are refitted with it, to first order.
     """
 
     def __init__(self, P: Problem, resid: np.ndarray,
-                 h_cache: dict[tuple[str, str], np.ndarray] | None = None) -> None:
+                 h_cache: dict[tuple[str, str], np.ndarray] | None = None,
+                 fixed_basis: np.ndarray | None = None) -> None:
         self.P = P
         self.stop = P.holdout_start
         self.nfft = int(scipy.fft.next_fast_len(2 * self.stop))
-        self.r_w = P.whiten(resid, P.fit_start, self.stop)
+        self.basis = fixed_basis
+        self.r_w = self.perp(P.whiten(resid, P.fit_start, self.stop))
         self.penalty = math.log(self.r_w.size)
         self._h: dict[tuple[str, str], Any] = {} if h_cache is None else h_cache
         sig = P.nominal_signals
@@ -207,6 +215,19 @@ class Screener:
         return self._h[key]
 
     # scoring helpers -------------------------------------------------------------
+    def perp(self, d_w: np.ndarray) -> np.ndarray:
+        """`d_w` (a whitened direction, or columns of them) less its part in the
+        span of ``fixed_basis`` (unchanged when there is none).
+
+        Parameters
+        ----------
+        d_w : ndarray (m,) or (m, k)
+            Whitened change(s) of the outputs.
+        """
+        if self.basis is None:
+            return d_w
+        return d_w - self.basis @ (self.basis.T @ d_w)
+
     def fixed(self, d_w: np.ndarray) -> float:
         """Whitened SS removed when the direction enters with coefficient 1.
 
@@ -215,6 +236,7 @@ class Screener:
         d_w : ndarray
             Whitened change of the outputs (a direction), same length as ``r_w``.
         """
+        d_w = self.perp(d_w)
         return float(2.0 * d_w @ self.r_w - d_w @ d_w)
 
     def project(self, d_w: np.ndarray) -> tuple[float, float]:
@@ -225,6 +247,7 @@ class Screener:
         d_w : ndarray
             Whitened change of the outputs (a direction), same length as ``r_w``.
         """
+        d_w = self.perp(d_w)
         dd = float(d_w @ d_w)
         if dd <= 0:
             return 0.0, 0.0
@@ -292,8 +315,8 @@ class Screener:
             d[:, i] = c
             cols.append(self.w(d))
         d_w = np.column_stack(cols)
-        beta, *_ = np.linalg.lstsq(d_w, self.r_w, rcond=None)
-        gain = float(self.r_w @ d_w @ beta)
+        beta, *_ = np.linalg.lstsq(self.perp(d_w), self.r_w, rcond=None)
+        gain = float(self.r_w @ self.perp(d_w) @ beta)
         grid.append((gain, {"bias": float(beta[0]), "drift_per_h": float(beta[1])}, d_w @ beta))
         return 2
 
@@ -338,7 +361,8 @@ class Screener:
             n_par = 2
             for tau in taus:
                 dw = self.w(lag_filter(hv, tau) - hv)  # times (1 + magnitude)
-                dd, dr = float(dw @ dw), float(dw @ self.r_w)
+                dp = self.perp(dw)
+                dd, dr = float(dp @ dp), float(dp @ self.r_w)
                 c = max(dr / dd, 1.0) if dd > 0 else 1.0
                 grid.append((2 * c * dr - c * c * dd,
                              {"tau_s": float(tau * dt), "magnitude": c - 1.0}, c * dw))
@@ -383,7 +407,9 @@ class Screener:
                                            first=first_crossing(v, lows, highs))
             for m, j in enumerate(best):
                 dw = self.w(y_corr[:, :, m])
-                grid.append((rr - float(p_sse[j]),
+                # the profile's exact SSE, or -- scored orthogonally to fixed_basis --
+                # its correction as a direction
+                grid.append((rr - float(p_sse[j]) if self.basis is None else self.fixed(dw),
                              {"low": float(p_lows[j]), "high": float(p_highs[j])}, dw))
         pairs = () if profile is not None else (
             (0.05, 0.95), (0.12, 0.88), (0.25, 0.75), (0.0, 0.9), (0.1, 1.0))
@@ -424,8 +450,8 @@ def near(a: float, b: float, tol: float) -> bool:
 
 
 def screen_all(P: Problem, resid: np.ndarray,
-                h_cache: dict[tuple[str, str], np.ndarray] | None = None
-                ) -> tuple[list[Screen], Screener]:
+                h_cache: dict[tuple[str, str], np.ndarray] | None = None,
+                fixed_basis: np.ndarray | None = None) -> tuple[list[Screen], Screener]:
     """Screen every candidate; merge identical sensitivities into classes (best first).
 
     Parameters
@@ -437,8 +463,10 @@ def screen_all(P: Problem, resid: np.ndarray,
         Residual: measured minus nominal simulated outputs.
     h_cache : dict or None
         Cache shared across screenings (:class:`Screener`; None: a new one).
+    fixed_basis : ndarray (m, k) or None
+        Directions free alongside every candidate (:class:`Screener`).
     """
-    scr = Screener(P, resid, h_cache)
+    scr = Screener(P, resid, h_cache, fixed_basis)
     results: list[Screen] = []
     for name in P.config.effects:
         locations = applicable_locations(P.model, name, measured_outputs=P.outputs,
