@@ -354,9 +354,30 @@ def _with_unmodelled_input(model: Model, loc: str, p: Mapping[str, Any],
     )
 
 
+def _linear_core(model: Model, loc: str) -> str:
+    """The block a gain or a dead time at `loc` acts on: `loc` itself, or -- when an
+    earlier effect wrapped block `loc` in a nonlinear one (a saturation inserted after it
+    takes its name and reads ``loc__saturation_upstream``) -- the wrapped block, followed
+    upstream through the effects' own wrappers until a linear one.  A later search's
+    candidate at the wrapped block maps back to `loc` (:func:`original_location`), and
+    that is where it was fitted; applied to the wrapper it failed (a gain at ``fuel``
+    after a saturation there: pairs trial 1 800 040, an internal error).  A block that
+    is nonlinear in the model as given is left as it is (the caller's error stands)."""
+    name = loc
+    while not model.block(name).LINEAR:
+        inputs = model.block(name).inputs
+        if len(inputs) != 1 or original_location(inputs[0].signal, (loc,)) != loc \
+                or inputs[0].signal not in model.block_names:
+            return loc
+        name = inputs[0].signal
+    return name
+
+
 def _with_block_effect(model: Model, name: str, loc: str, p: Mapping[str, Any],
                        dt_s: float | None) -> Model:
     """`model` with effect `name` at block `loc` (every effect but the two above)."""
+    if name in ("gain", "dead_time"):
+        loc = _linear_core(model, loc)
     block = model.block(loc)
     if name == "gain":
         augmented = model.with_block(scale_gain(block, float(p["factor"])))

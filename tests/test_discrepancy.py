@@ -9,6 +9,7 @@ re-simulation of the augmented model.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -334,6 +335,34 @@ def test_each_effect_of_a_pair_trial_is_a_finding_by_the_chains_rule(boiler):
     assert gap([drift]) - full >= TRIAL_GAP_REDUCTION * reference
     assert gap([deadband]) - full >= TRIAL_GAP_REDUCTION * reference
     assert trial.redraws >= 1
+
+
+def test_a_gain_and_a_dead_time_act_on_the_block_a_saturation_wrapped(boiler):
+    """A later search fits a gain at ``fuel__saturation_upstream`` -- the fuel block as an
+    earlier saturation wrapped it -- and reports it at ``fuel``; rebuilt from the nominal
+    model the gain must act there too (pairs trial 1 800 040 stopped with an internal
+    error: the gain was applied to the saturation).  Checked against the blocks
+    themselves and against a simulation of the gain placed on the wrapped block by hand;
+    a block that is a saturation in the model as given still takes no gain."""
+    sat = Effect("saturation", "fuel", {"low": -5.0, "high": 8.0})
+    wrapped = apply_effect(boiler, sat, dt_s=2.0)
+    core = wrapped.block("fuel__saturation_upstream")
+    both = apply_effect(wrapped, Effect("gain", "fuel", {"factor": 1.3}), dt_s=2.0)
+    assert both.block("fuel") == wrapped.block("fuel")  # the saturation is untouched
+    by_hand = wrapped.with_block(dataclasses.replace(
+        core, **{core.GAIN_PARAMETER: 1.3 * getattr(core, core.GAIN_PARAMETER)}))
+    delayed = apply_effect(wrapped, Effect("dead_time", "fuel", {"delay_s": 4.0}), dt_s=2.0)
+    assert delayed.block("fuel__saturation_upstream").dead_time_s == core.dead_time_s + 4.0
+    rng = np.random.default_rng(1)
+    u = {k: np.cumsum(rng.standard_normal(600)) * 0.05 for k in boiler.inputs}
+    got = simulate(both, u, dt_s=2.0).signals
+    want = simulate(by_hand, u, dt_s=2.0).signals
+    for o in boiler.outputs:
+        assert np.array_equal(got[o], want[o])
+    with pytest.raises(ModelError, match="no gain to scale"):
+        apply_effect(by_hand.with_block(dataclasses.replace(wrapped.block("fuel"),
+                                                            name="fuel2")),
+                     Effect("gain", "fuel2", {"factor": 1.1}), dt_s=2.0)
 
 
 def test_one_sample_dead_time_and_a_very_short_lag_are_lookalikes(boiler):
