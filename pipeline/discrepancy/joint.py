@@ -146,11 +146,14 @@ def prior_basis(P: Problem, nominal: Model, prior: Sequence[Effect]) -> np.ndarr
 
     Why: the first accepted effect, fitted alone to two hidden ones, is a compromise;
     the second hidden effect added on top of it with the compromise held fixed explains
-    little (pairs trial 1 700 005: a hidden drum-level saturation found to 1 %, and a
-    hidden 8 s feedwater-flow dead time that, on top of it, made the held-out gap 40 %
-    WORSE and so never ranked among the screened candidates), while refitted jointly it
-    closed 73 % of the remaining gap.  Screening orthogonally to the prior's own
-    sensitivities scores each candidate as the joint refit would, to first order.
+    little and never ranks among the screened candidates, while refitted jointly it can
+    close most of what remains.  Screening orthogonally to the prior's own
+    sensitivities scores each candidate as the joint refit would, to first order: it
+    named pairs tuning trial 800 003's drum-mass gain beside a saturation.  First order
+    is not always enough: beside a drum-level saturation (a wound-up loop) a hidden 8 s
+    feedwater-flow dead time made the held-out gap 40 % worse on top of the found limits
+    and still scored nothing here, yet refitted jointly with them closed 73 % of the gap
+    (pairs trial 1 700 005, spent seeds).
 
     Parameters
     ----------
