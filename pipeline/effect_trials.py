@@ -407,17 +407,17 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
                     f"make_hidden_effect_trial: no stable {name} effect in {max_redraws} "
                     f"draws for model {model.name!r} (seed {seed})")
         truth = _plant_outputs(model, effects, inputs, dt_s)[1]
-        shown = []
+        shown, without = [], []  # each effect's visibility; the plant without it
         for k in range(len(effects)):
             others = _plant_outputs(model, effects[:k] + effects[k + 1:], inputs, dt_s)
-            reference = others[1] if others is not None else None
-            if reference is None:
+            if others is None:
                 break
-            shown.append(_visibility(model, truth, reference, rel, n))
+            without.append(others[1])
+            shown.append(_visibility(model, truth, others[1], rel, n))
         if len(shown) == len(effects) and all(
                 v >= MIN_VISIBILITY and r >= TRIAL_GAP_REDUCTION for v, r in shown) and (
-                len(effects) == 1 or _each_needed(model, effects, truth, nominal, inputs,
-                                                  dt_s=dt_s, rel=rel, n=n)):
+                len(effects) == 1 or _each_needed(model, effects, truth, without, nominal,
+                                                  inputs, dt_s=dt_s, rel=rel, n=n)):
             return tuple(effects), truth, redraws, shown[0][0]
         redraws += 1
     raise ConfigError(
@@ -441,11 +441,13 @@ def _expected_gap(model: Model, truth: Mapping[str, np.ndarray],
 
 
 def _each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np.ndarray],
-                 nominal: Any, inputs: Mapping[str, np.ndarray], *, dt_s: float,
-                 rel: float, n: int) -> bool:
+                 without: Sequence[Mapping[str, np.ndarray]], nominal: Any,
+                 inputs: Mapping[str, np.ndarray], *, dt_s: float, rel: float, n: int
+                 ) -> bool:
     """Whether every one of several effects is a finding by the workflow's own rule for
     a chain (:meth:`pipeline.discrepancy.chain.Chain.needed`), in expected values with
-    the true parameters: the plant's model without it, less the plant's, leaves at least
+    the true parameters: the plant's model without it (`without`, in effect order), less
+    the plant's, leaves at least
     :data:`TRIAL_GAP_REDUCTION` of the gap of the nominal model with the plant's sensor
     corrections only (the nominal gap when there are none).
 
@@ -461,11 +463,7 @@ def _each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np
             else _plant_outputs(model, sensors, inputs, dt_s)[1])
     bar = TRIAL_GAP_REDUCTION * _expected_gap(model, truth, base, rel, n)
     full = _expected_gap(model, truth, truth, rel, n)
-    for k in range(len(effects)):
-        others = _plant_outputs(model, [*effects[:k], *effects[k + 1:]], inputs, dt_s)
-        if others is None or _expected_gap(model, truth, others[1], rel, n) - full < bar:
-            return False
-    return True
+    return all(_expected_gap(model, truth, others, rel, n) - full >= bar for others in without)
 
 
 def _location_blocks(effect: Effect) -> tuple[str, ...]:

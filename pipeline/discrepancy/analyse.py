@@ -259,9 +259,10 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
     # (fit, taken as it is when nothing of it can be refitted)
     joint_fits = [(fitted[k][0], False) for k in best] + [
         (Fit(c.effect, c.n_parameters, c.screening_score, None), True) for c in also]
+    # a sensor bias has a closed-form fit on the residual and no dynamics to refit
     taken = {_fit_key(fit.effect) for fit, _ in joint_fits}
-    screened = [c for c in joint_classes if c.name in _JOINT_SCREENED_NAMES
-                and _fit_key(Effect(c.name, c.location, dict(c.starts[0]))) not in taken]
+    screened = [c for c in joint_classes if class_key(c) not in taken
+                and not Effect(c.name, c.location, dict(c.starts[0])).is_sensor_correction]
     joint_fits += [(Fit(Effect(c.name, c.location, dict(c.starts[0]),
                                tuple(m for m in c.members if m != c.location)),
                         c.n_parameters, c.score, None), True)
@@ -287,12 +288,6 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
 #: refits jointly with them besides its best fits (:func:`_fitted`,
 #: :func:`pipeline.discrepancy.joint.prior_basis` says why).
 N_JOINT_SCREENED = 3
-#: ... of the effects whose joint refit moves something: the prior's parameters with
-#: the candidate's continuous ones, or with a dead time's delay held at its screened
-#: value (a sensor bias has a closed-form fit on the residual and no dynamics).
-_JOINT_SCREENED_NAMES = frozenset(
-    {"gain", "dead_time", "extra_lag", "inverse_response", "operating_point_gain",
-     "deadband", "saturation", "unmodelled_input"})
 
 
 def _fit_key(effect: Effect) -> tuple[str, str, Any]:

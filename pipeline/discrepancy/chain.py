@@ -121,9 +121,13 @@ def _lookalikes(link: Link, dt_s: float) -> tuple[Candidate, ...]:
     if e.name not in _DYNAMIC:
         return ()
     p = e.parameters
-    scale = {"dead_time": lambda: p["delay_s"], "extra_lag": lambda: p["tau_s"],
-             "inverse_response": lambda: (1.0 + abs(p["magnitude"])) * p["tau_s"]}
-    length = max(float(scale[e.name]()), dt_s)
+    if e.name == "dead_time":
+        length = float(p["delay_s"])
+    elif e.name == "extra_lag":
+        length = float(p["tau_s"])
+    else:
+        length = (1.0 + abs(float(p["magnitude"]))) * float(p["tau_s"])
+    length = max(length, dt_s)
     starts = {"dead_time": ({"delay_s": max(1, round(length / dt_s)) * dt_s}, 1),
               "extra_lag": ({"tau_s": length}, 1),
               "inverse_response": ({"tau_s": length / 2.0, "magnitude": 1.0}, 2)}

@@ -80,6 +80,12 @@ def _free(effects: Sequence[Effect]) -> list[tuple[int, str, bool]]:
     return out
 
 
+def _values(effects: Sequence[Effect], free: list[tuple[int, str, bool]]) -> np.ndarray:
+    """The free parameters' values as :func:`_with` takes them (positive ones in log)."""
+    return np.array([math.log(effects[i].parameters[k]) if pos else effects[i].parameters[k]
+                     for i, k, pos in free])
+
+
 def _with(effects: Sequence[Effect], free: list[tuple[int, str, bool]], x: np.ndarray
           ) -> list[Effect]:
     params = [dict(e.parameters) for e in effects]
@@ -175,8 +181,7 @@ def prior_basis(P: Problem, nominal: Model, prior: Sequence[Effect]) -> np.ndarr
     if not free:
         return None
     stop = P.holdout_start
-    x0 = np.array([math.log(prior[i].parameters[k]) if pos else prior[i].parameters[k]
-                   for i, k, pos in free])
+    x0 = _values(prior, free)
     y0 = _outputs(P, nominal, prior, stop)
     if y0 is None:
         return None
@@ -227,8 +232,7 @@ def joint_refit(P: Problem, nominal: Model, prior: Sequence[Effect], candidate: 
     free = _free(effects)
     if not free:
         return None
-    x0 = np.array([math.log(effects[i].parameters[k]) if pos else effects[i].parameters[k]
-                   for i, k, pos in free])
+    x0 = _values(effects, free)
 
     def predict(x: np.ndarray, stop: int) -> np.ndarray | None:
         return _outputs(P, nominal, _with(effects, free, x), stop)

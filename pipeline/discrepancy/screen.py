@@ -315,8 +315,9 @@ class Screener:
             d[:, i] = c
             cols.append(self.w(d))
         d_w = np.column_stack(cols)
-        beta, *_ = np.linalg.lstsq(self.perp(d_w), self.r_w, rcond=None)
-        gain = float(self.r_w @ self.perp(d_w) @ beta)
+        d_perp = self.perp(d_w)
+        beta, *_ = np.linalg.lstsq(d_perp, self.r_w, rcond=None)
+        gain = float(self.r_w @ d_perp @ beta)
         grid.append((gain, {"bias": float(beta[0]), "drift_per_h": float(beta[1])}, d_w @ beta))
         return 2
 
