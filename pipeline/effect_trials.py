@@ -14,10 +14,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.optimize
 import scipy.signal
 
 from pipeline.effects import (
     MIN_GAP_REDUCTION,
+    PADE_MAGNITUDE,
     Effect,
     applicable_locations,
     apply_effect,
@@ -199,8 +201,13 @@ def _draw_effect(name: str, model: Model, nominal: Any, inputs: Mapping[str, np.
     if name == "extra_lag":
         return Effect(name, loc, {"tau_s": math.exp(rng.uniform(math.log(3 * dt_s), math.log(40 * dt_s)))})
     if name == "inverse_response":
+        # U(0.4, 2) less the delay-like band |magnitude - 1| < PADE_MAGNITUDE, where the
+        # catalogue's inverse response is a dead time's Padé form and the workflow names
+        # the dead time when it predicts as well (one draw: other trials keep theirs)
+        low, high = 1.0 - PADE_MAGNITUDE, 1.0 + PADE_MAGNITUDE
+        u = rng.uniform(0.4, 2.0 - (high - low))
         return Effect(name, loc, {"tau_s": math.exp(rng.uniform(math.log(4 * dt_s), math.log(30 * dt_s))),
-                                  "magnitude": rng.uniform(0.4, 2.0)})
+                                  "magnitude": u if u < low else u + (high - low)})
     if name == "sensor_bias_drift":
         std = float(np.std(sig[loc]))
         hours = n * dt_s / 3600.0
@@ -217,7 +224,10 @@ def _draw_effect(name: str, model: Model, nominal: Any, inputs: Mapping[str, np.
         u = sum(t.k * (sig[t.signal] if t.signal in sig else inputs[t.signal]) for t in block.inputs)
         return Effect(name, loc, {"width": rng.uniform(0.3, 1.5) * float(np.std(u))})
     if name == "saturation":
-        v = sig[loc]
+        # quantiles of the part the workflow fits on: a limit met only in the held-out
+        # third cannot be estimated (nuisance trials 2107019/023/034/037: a drifting
+        # drum mass or level met its upper limit only there; fitted inf, "none")
+        v = sig[loc][:n - int(round(HOLDOUT_FRACTION * n))]
         return Effect(name, loc, {"low": float(np.quantile(v, rng.uniform(0.03, 0.15))),
                                   "high": float(np.quantile(v, rng.uniform(0.85, 0.97)))})
     if name == "unmodelled_input":
@@ -266,11 +276,13 @@ def make_hidden_effect_trial(
     Effect sizes (uniform, random sign where it has one; location uniform over
     :func:`applicable_locations`): gain factor ``exp(±U(ln 1.15, ln 1.6))``; dead time
     2-15 samples; extra lag ``tau_s`` log-uniform 3-40 samples; inverse response
-    ``tau_s`` log-uniform 4-30 samples, ``magnitude`` U(0.4, 2); sensor bias
+    ``tau_s`` log-uniform 4-30 samples, ``magnitude`` uniform on 0.4-2 less the
+    delay-like band ``1 +- PADE_MAGNITUDE`` (0.8-1.2: the dead time's Padé form); sensor bias
     U(0.2, 1) output std and drift U(0.2, 1) output std per record length;
     operating-point gain: the gain changes by U(0.2, 0.6) at the signal's extreme;
     deadband width U(0.3, 1.5) std of the block's input; saturation limits at the
-    U(0.03, 0.15) and U(0.85, 0.97) quantiles of the block's nominal output; unmodelled
+    U(0.03, 0.15) and U(0.85, 0.97) quantiles of the block's nominal output over the
+    record less its held-out last third (each limit is met where the workflow fits); unmodelled
     input from ``aux_flow`` with a contribution of U(0.3, 1) output std per signal std,
     ``tau_s`` log-uniform 2-30 samples, delay 1-10 samples.
 
@@ -456,14 +468,67 @@ def _each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np
     says why), so an effect that closes 7.5 % of what the other one leaves can be a
     minor effect by definition: 15 of the 100 pair trials of seeds 1 700 000 were (a
     sensor drift closing 12 % of what a deadband left, 3 % of the nominal gap).  The
-    per-effect bar against the plant without it (:func:`_visibility`) still applies.
+    per-effect bar against the plant without it (:func:`_visibility`) still applies, and
+    the bar holds with the other effects refitted too (:func:`_refitted`).
     """
     sensors = [e for e in effects if e.is_sensor_correction]
     base = (nominal.signals if not sensors
             else _plant_outputs(model, sensors, inputs, dt_s)[1])
     bar = TRIAL_GAP_REDUCTION * _expected_gap(model, truth, base, rel, n)
     full = _expected_gap(model, truth, truth, rel, n)
-    return all(_expected_gap(model, truth, others, rel, n) - full >= bar for others in without)
+    for k, others in enumerate(without):
+        if _expected_gap(model, truth, others, rel, n) - full < bar:
+            return False
+        refitted = _refitted(model, [*effects[:k], *effects[k + 1:]], truth, inputs,
+                             dt_s=dt_s, n=n)
+        if refitted is not None and _expected_gap(model, truth, refitted, rel, n) - full < bar:
+            return False
+    return True
+
+
+def _refitted(model: Model, others: Sequence[Effect], truth: Mapping[str, np.ndarray],
+              inputs: Mapping[str, np.ndarray], *, dt_s: float, n: int
+              ) -> dict[str, np.ndarray] | None:
+    """Outputs of the plant's model with `others` (the effects but one) refitted to the
+    noise-free `truth` on the part the workflow fits (all but the held-out third), or
+    None when nothing is refitted.
+
+    The workflow refits each effect of a chain given the others (joint refits, the
+    backfit), so an effect the others absorb once refitted is not needed by its rule:
+    in pair trial 1 800 001 gains x1.40 and x0.74 on the feedwater demand and flow were
+    in series, and either one refitted closes the gap of both.  Least squares on the
+    outputs relative to their std (scipy's trust-region solver, finite differences)
+    from the true values; delays stay at theirs (integer samples: no gradient)."""
+    free = [(i, key) for i, e in enumerate(others) for key, v in e.parameters.items()
+            if isinstance(v, float) and key != "delay_s" and math.isfinite(v)]
+    if not free:
+        return None
+    x0 = np.array([others[i].parameters[key] for i, key in free])
+    scale = np.where(x0 != 0.0, np.abs(x0), 1.0)
+    fit = slice(0, n - int(round(HOLDOUT_FRACTION * n)))
+    std = {o: float(np.std(truth[o])) or 1.0 for o in model.outputs}
+
+    def effects_at(z: np.ndarray) -> list[Effect]:
+        values = [dict(e.parameters) for e in others]
+        for (i, key), v in zip(free, z * scale):
+            values[i][key] = float(v)
+        return [Effect(e.name, e.location, p) for e, p in zip(others, values)]
+
+    def residual(z: np.ndarray) -> np.ndarray:
+        try:
+            plant = _plant_outputs(model, effects_at(z), inputs, dt_s)
+        except (ConfigError, ModelError):  # e.g. a saturation's limits crossed
+            plant = None
+        if plant is None:
+            return np.full(len(model.outputs) * fit.stop, 1e3)
+        return np.nan_to_num(np.concatenate(
+            [(truth[o][fit] - plant[1][o][fit]) / std[o] for o in model.outputs]),
+            nan=1e3, posinf=1e3, neginf=-1e3)
+
+    z = scipy.optimize.least_squares(residual, x0 / scale, diff_step=1e-3,
+                                     max_nfev=40 * len(free)).x
+    plant = _plant_outputs(model, effects_at(z), inputs, dt_s)
+    return None if plant is None else plant[1]
 
 
 def _location_blocks(effect: Effect) -> tuple[str, ...]:

@@ -26,7 +26,7 @@ from pipeline.discrepancy.select import (
     rms_of,
     same_class,
 )
-from pipeline.effects import Effect, apply_effect, output_offsets
+from pipeline.effects import PADE_MAGNITUDE, Effect, apply_effect, output_offsets
 from pipeline.errors import InsufficientDataError
 from pipeline.model import Model
 from pipeline.noise_model import fit_ar
@@ -582,11 +582,8 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
 _BIC_SHARE = 0.03
 
 
-#: An inverse response is delay-like when its magnitude is within this of 1 (the
-#: nuisance 10 s fuel delay's look-alike has 1.175: under misspecification the
-#: approximant overshoots) ...
-_PADE_MAGNITUDE = 0.2
-#: ... and a dead time at its location lasts 2 tau within this fraction; the dead time
+#: An inverse response of magnitude within :data:`pipeline.effects.PADE_MAGNITUDE` of 1
+#: is delay-like when a dead time at its location lasts 2 tau within this fraction; the dead time
 #: then also needs this share of the inverse response's whitened BIC improvement.
 _PADE_DELAY = 0.3
 _PADE_BIC_SHARE = 0.95
@@ -612,7 +609,7 @@ def _pade_original(best: Candidate, c: Candidate, config: DiscrepancyConfig) -> 
     if not best.effect.places & c.effect.places:
         return False
     delay, tau = float(q["delay_s"]), float(p["tau_s"])
-    return (abs(float(p["magnitude"]) - 1.0) <= _PADE_MAGNITUDE
+    return (abs(float(p["magnitude"]) - 1.0) <= PADE_MAGNITUDE
             and abs(2.0 * tau - delay) <= _PADE_DELAY * delay
             and c.gap_reduction >= (1.0 - config.lookalike_gap) * best.gap_reduction
             and c.delta_bic >= _PADE_BIC_SHARE * best.delta_bic)
