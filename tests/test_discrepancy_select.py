@@ -99,11 +99,11 @@ def _cand(name, params, *, k, delta_bic, gap, reduction):
                      gap_reduction=reduction)
 
 
-def _named(best, other):
+def _named(best, other, dt_s=2.0):
     from pipeline.discrepancy.analyse import _decide
     from pipeline.discrepancy.config import DiscrepancyConfig
 
-    verdict, effect, _ = _decide([best, other], [best, other], DiscrepancyConfig())
+    verdict, effect, _ = _decide([best, other], [best, other], DiscrepancyConfig(), dt_s)
     assert verdict == "effect_found"
     return effect.name
 
@@ -130,6 +130,26 @@ def test_a_simpler_look_alike_wins_only_against_degenerate_inverse_responses():
                 delta_bic=637.0, gap=1.00, reduction=0.60)
     gain = _cand("gain", {"factor": 1.1}, k=1, delta_bic=623.0, gap=1.05, reduction=0.58)
     assert _named(opg, gain) == "gain"
+
+
+def test_a_short_sampled_delay_is_matched_by_its_pade_form_within_a_sample():
+    """A delay of a few samples is matched by an all-pass about a sample shorter (the
+    fitted tau is continuous, the delay whole samples; the DCS scan and the historian's
+    sampling add part of a sample).  Numbers of nuisance trial 2 201 012 (an 8 s fuel
+    path delay at 2 s: inverse response tau 2.40 s, magnitude 1.074, ΔBIC 4410 and gap
+    reduction 0.270; the dead time 8 s, 4260 and 0.261): 2 tau = 4.8 s is 3.2 s off 8 s,
+    more than 30 % of it but within that plus one sample -- the dead time.  At a 0.5 s
+    sample period the same numbers stay an inverse response, as does a tau a whole
+    sample further off."""
+    def ir(tau):
+        return _cand("inverse_response", {"tau_s": tau, "magnitude": 1.074}, k=2,
+                     delta_bic=4410.0, gap=0.0095, reduction=0.270)
+
+    dt = _cand("dead_time", {"delay_s": 8.0}, k=1, delta_bic=4260.0, gap=0.0096,
+               reduction=0.261)
+    assert _named(ir(2.40), dt, dt_s=2.0) == "dead_time"
+    assert _named(ir(2.40), dt, dt_s=0.5) == "inverse_response"
+    assert _named(ir(1.20), dt, dt_s=2.0) == "inverse_response"  # 5.6 s off: > 2.4 + 2
 
 
 def test_the_lag_nested_in_a_jointly_refitted_inverse_response_is_refitted_jointly_too():
