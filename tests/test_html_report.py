@@ -478,6 +478,8 @@ def _check_drawn(img: np.ndarray, region: tuple[int, int], *, colours: list[str]
 def _keep(png: Path, name: str, readme: str | None = None) -> None:
     from PIL import Image
 
+    from tests.readme_images import save_if_changed
+
     ARTEFACTS.mkdir(exist_ok=True)
     shutil.copy(png, ARTEFACTS / name)
     if readme:
@@ -486,7 +488,7 @@ def _keep(png: Path, name: str, readme: str | None = None) -> None:
             top = im.convert("RGB").crop((0, 0, 1400, min(im.height, 2300)))
             small = top.resize((900, top.height * 900 // 1400), Image.LANCZOS).quantize(
                 256, method=Image.Quantize.FASTOCTREE)
-            small.save(ARTEFACTS / "readme" / readme, optimize=True)
+            save_if_changed(small, ARTEFACTS / "readme" / readme)
         assert (ARTEFACTS / "readme" / readme).stat().st_size <= 300_000
 
 
