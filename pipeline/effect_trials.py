@@ -31,7 +31,7 @@ from pipeline.model import Model
 from pipeline.simulate import discrete_state_space, simulate
 
 __all__ = ["HiddenEffectTrial", "MIN_VISIBILITY", "TRIAL_GAP_REDUCTION", "HOLDOUT_FRACTION",
-           "trial_inputs", "make_hidden_effect_trial", "make_hidden_effects_trial", "unit_ar1"]
+           "holdout_start", "trial_inputs", "make_hidden_effect_trial", "make_hidden_effects_trial", "unit_ar1"]
 
 
 @dataclass(frozen=True)
@@ -103,6 +103,18 @@ TRIAL_GAP_REDUCTION = 1.5 * MIN_GAP_REDUCTION
 #: ~ 1e-14 for the rest of the record).  No held-out selection can judge such a trial;
 #: 4 of the first published run's 50 deadband trials were of this kind.
 HOLDOUT_FRACTION = 1.0 / 3.0
+
+
+def holdout_start(n: int) -> int:
+    """First sample of the held-out last :data:`HOLDOUT_FRACTION` of `n` samples (the
+    part before it is where the workflow fits).
+
+    Parameters
+    ----------
+    n : int
+        Samples in the record.
+    """
+    return n - int(round(HOLDOUT_FRACTION * n))
 
 
 def unit_ar1(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
@@ -227,7 +239,7 @@ def _draw_effect(name: str, model: Model, nominal: Any, inputs: Mapping[str, np.
         # quantiles of the part the workflow fits on: a limit met only in the held-out
         # third cannot be estimated (nuisance trials 2107019/023/034/037: a drifting
         # drum mass or level met its upper limit only there; fitted inf, "none")
-        v = sig[loc][:n - int(round(HOLDOUT_FRACTION * n))]
+        v = sig[loc][:holdout_start(n)]
         return Effect(name, loc, {"low": float(np.quantile(v, rng.uniform(0.03, 0.15))),
                                   "high": float(np.quantile(v, rng.uniform(0.85, 0.97)))})
     if name == "unmodelled_input":
@@ -443,7 +455,7 @@ def _expected_gap(model: Model, truth: Mapping[str, np.ndarray],
     """Expected held-out gap of a model predicting `predicted` for a plant whose
     noise-free outputs are `truth` (noise std ``rel * std(truth)``): each output's
     expected mean square over its held-out variance, pooled as the workflow's ``gap``."""
-    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
+    held = slice(holdout_start(n), n)
     ratios = []
     for name in model.outputs:
         sigma2 = (rel * float(np.std(truth[name]))) ** 2
@@ -505,7 +517,7 @@ def _refitted(model: Model, others: Sequence[Effect], truth: Mapping[str, np.nda
         return None
     x0 = np.array([others[i].parameters[key] for i, key in free])
     scale = np.where(x0 != 0.0, np.abs(x0), 1.0)
-    fit = slice(0, n - int(round(HOLDOUT_FRACTION * n)))
+    fit = slice(0, holdout_start(n))
     std = {o: float(np.std(truth[o])) or 1.0 for o in model.outputs}
 
     def effects_at(z: np.ndarray) -> list[Effect]:

@@ -40,9 +40,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from pipeline.effect_trials import (
-    HOLDOUT_FRACTION,
     TRIAL_GAP_REDUCTION,
     HiddenEffectTrial,
+    holdout_start,
     make_hidden_effects_trial,
     unit_ar1,
 )
@@ -110,7 +110,7 @@ def _held_gap_reduction(model: Model, effects: Sequence[Effect], others: Sequenc
     """Held-out gap reduction (pooled as the workflow pools outputs) when `effects` are
     in the model, against the model with only `others`, on the measured record."""
     n = next(iter(measured.values())).size
-    held = slice(n - int(round(HOLDOUT_FRACTION * n)), n)
+    held = slice(holdout_start(n), n)
 
     def rms(effs: Sequence[Effect]) -> float:
         m = _with_effects(model, effs, dt_s)

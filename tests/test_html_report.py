@@ -483,7 +483,6 @@ def _keep(png: Path, name: str, readme: str | None = None) -> None:
     ARTEFACTS.mkdir(exist_ok=True)
     shutil.copy(png, ARTEFACTS / name)
     if readme:
-        (ARTEFACTS / "readme").mkdir(exist_ok=True)
         with Image.open(png) as im:
             top = im.convert("RGB").crop((0, 0, 1400, min(im.height, 2300)))
             small = top.resize((900, top.height * 900 // 1400), Image.LANCZOS).quantize(

@@ -272,7 +272,6 @@ def _readme_copy(img: np.ndarray, name: str) -> Path:
     from tests.readme_images import save_if_changed
 
     out = ARTEFACTS / "readme" / name
-    out.parent.mkdir(parents=True, exist_ok=True)
     small = Image.fromarray(img).resize((1280, round(img.shape[0] * 1280 / img.shape[1])), Image.LANCZOS)
     save_if_changed(small.quantize(colors=256, method=Image.Quantize.MEDIANCUT), out)
     assert out.stat().st_size <= 300_000, out.stat().st_size
