@@ -173,3 +173,29 @@ def test_screening_given_the_earlier_effects_scores_as_their_joint_least_squares
         # without a basis: the plain first-order scores
         assert plain.fixed(d) == pytest.approx(float(r_w @ r_w) - float((r_w - d) @ (r_w - d)),
                                                rel=1e-8)
+
+
+def test_a_joint_refit_keeps_an_inverse_response_wrong_way():
+    """The catalogue's inverse response starts the wrong way (magnitude >= 0; its own fit
+    is bounded there).  A joint refit free to cross 0 turned an inverse response at the
+    turbine pressure into a lead-lag (magnitude -0.21) for a hidden lag there -- the
+    independent plant integrates the lag continuously, the model's lag holds its input
+    for a sample, and a small lead makes up the difference -- and the chain named a
+    wrong-way response where none is.  Bounded, the refit stops at magnitude 0: the lag
+    itself, which the search then refits as a lag (`analyse._lag_like`).  Shaped on fresh
+    pair trial 1 900 090 (drum saturation, 6.3 s turbine-pressure lag); 5 % white
+    sensor noise."""
+    model = load_model("boiler_pressure")
+    dt_s = 2.0
+    saturation = Effect("saturation", "drum", {"low": -0.2007, "high": 0.4082})
+    truth = [saturation, Effect("extra_lag", "turbine_pressure", {"tau_s": 6.288})]
+    inputs = trial_inputs(model.name, n=10_000, dt_s=dt_s, rng=np.random.default_rng(1_900_090))
+    P = _problem_on_plant(model, truth, inputs, dt_s, [saturation], noise=0.05, seed=3)
+    joint = joint_refit(P, model, [saturation], Effect(
+        "inverse_response", "turbine_pressure", {"tau_s": 6.0, "magnitude": 0.05}))
+    assert joint is not None
+    _, ir, _ = joint
+    assert ir.parameters["magnitude"] >= 0.0
+    # the time constant is the lag's less the model's one-sample hold (equal first
+    # moments: tau' + dt = tau; measured 4.06 s for 4.29 s), within half a sample
+    assert abs(ir.parameters["tau_s"] - (6.288 - dt_s)) < 0.5 * dt_s

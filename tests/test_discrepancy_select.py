@@ -175,3 +175,35 @@ def test_the_lag_nested_in_a_jointly_refitted_inverse_response_is_refitted_joint
     assert _nested_lags(fitted, [0, 1]) == [2, 4]
     assert _nested_lags(fitted, [0, 2]) == [4]  # a chosen lag is not repeated
     assert _nested_lags(fitted, [1, 3]) == []   # no inverse response chosen
+
+
+
+
+def test_a_lag_like_inverse_response_has_its_lag_refitted_beside_it():
+    """An inverse response that a later search refits jointly with the earlier effects
+    -- a carried or orthogonally screened class -- can reach magnitude ~0, the lag
+    itself, with no lag of its own fitted to compare.  Fresh pair trials 1 900 032,
+    068 and 090: hidden lags named inverse responses of magnitude 0.004, 0.0004 and
+    0.017 after a first effect elsewhere.  When such a response is the best fit (lowest
+    BIC), `_lag_like` gives the extra lag at its location, started at its tau (refitted
+    jointly like the others; BIC and `_decide`'s parsimony then choose); a best fit of a
+    real wrong-way magnitude or of another class gives none, nor does a lag-like
+    response that is not the best (tuning pair 800 019: such lags crowded out the
+    chain's carried candidates)."""
+    from pipeline.discrepancy.analyse import _lag_like
+    from pipeline.discrepancy.fit import Fit
+    from pipeline.effects import Effect
+
+    def entry(name, loc, params, bic):
+        return (Fit(Effect(name, loc, params), 2, 0.0, None), bic, 0.0, None)
+
+    lag_like = entry("inverse_response", "fuel", {"tau_s": 7.0, "magnitude": 0.01}, -900.0)
+    wrong_way = entry("inverse_response", "drum", {"tau_s": 7.0, "magnitude": 0.6}, -800.0)
+    gain = entry("gain", "controller", {"factor": 1.2}, -700.0)
+    lags = _lag_like([gain, lag_like, wrong_way])
+    assert [(f.effect.name, f.effect.location, f.effect.parameters["tau_s"], f.n_parameters)
+            for f in lags] == [("extra_lag", "fuel", 7.0, 1)]
+    lower = entry("gain", "controller", {"factor": 1.2}, -1000.0)
+    assert _lag_like([lower, lag_like, wrong_way]) == []
+    assert _lag_like([lag_like[:1] + (-700.0,) + lag_like[2:], wrong_way]) == []
+    assert _lag_like([]) == []

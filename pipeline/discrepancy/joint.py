@@ -41,6 +41,12 @@ _FREE: dict[str, dict[str, bool]] = {
     "saturation": {"low": False, "high": False},
     "unmodelled_input": {"k": False, "tau_s": True},
 }
+#: Parameters that may reach 0 but not cross it, as in the candidate's own fit
+#: (:meth:`pipeline.discrepancy.fit.Fitter`): an inverse response of negative magnitude
+#: starts the right way -- a lead-lag, not the catalogue's wrong-way response -- and, free
+#: to go there, a joint refit named one (magnitude -0.21) for a lag that an independently
+#: integrated plant holds (tests/test_discrepancy_select.py).
+_NONNEGATIVE = {("inverse_response", "magnitude")}
 #: How a candidate's parameter moves toward "no effect" (see :data:`_WEAKER_STARTS`):
 #: divided (a time constant, a width, a magnitude, a slope, a gain of an unmodelled
 #: input) or its log divided (a gain factor, toward 1).  Saturation limits have no one
@@ -259,10 +265,22 @@ def joint_refit(P: Problem, nominal: Model, prior: Sequence[Effect], candidate: 
     # positive parameters move at most a factor _LOG_RANGE either way (and exp never
     # overflows); the others are free
     span = np.array([_LOG_RANGE if pos else np.inf for _, _, pos in free])
+    lower = np.array([0.0 if (effects[i].name, key) in _NONNEGATIVE else -np.inf
+                      for i, key, _ in free])
+
+    def solve(low: np.ndarray):
+        return scipy.optimize.least_squares(residual, x_start, x_scale="jac", ftol=1e-6,
+                                            xtol=1e-6, bounds=(low, x0 + span),
+                                            max_nfev=_NFEV_PER_PARAMETER * len(free))
+
     try:
-        sol = scipy.optimize.least_squares(residual, x_start, x_scale="jac", ftol=1e-6, xtol=1e-6,
-                                           bounds=(x0 - span, x0 + span),
-                                           max_nfev=_NFEV_PER_PARAMETER * len(free))
+        sol = solve(x0 - span)
+        if np.any(sol.x < lower):
+            # refitted with the bound only when it binds: an active bound changes the
+            # trust-region steps everywhere (tuning pair 800 019's inverse response at
+            # the controller refitted elsewhere and was lost with it always on)
+            x_start = np.maximum(x_start, lower)
+            sol = solve(np.maximum(x0 - span, lower))
     except (ValueError, PipelineError):
         return None
     if not 2 * sol.cost < float(r0 @ r0):
