@@ -177,8 +177,6 @@ def test_the_lag_nested_in_a_jointly_refitted_inverse_response_is_refitted_joint
     assert _nested_lags(fitted, [1, 3]) == []   # no inverse response chosen
 
 
-
-
 def test_a_lag_like_inverse_response_has_its_lag_refitted_beside_it():
     """An inverse response that a later search refits jointly with the earlier effects
     -- a carried or orthogonally screened class -- can reach magnitude ~0, the lag

@@ -269,27 +269,25 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
                    for c in screened[:N_JOINT_SCREENED]]
     say("joint", f"refitting {len(joint_fits)} candidate(s) jointly with {len(prior)} "
         "earlier effect(s)")
-    for fit, as_is in joint_fits:
+
+    def refit(fit: Fit, as_is: bool) -> None:
+        """Refit `fit` jointly with the prior effects and add it to `fitted`."""
         joint = joint_refit(P, nominal, prior, fit.effect)
         if joint is None and as_is and (y_pred := predict_with(P, fit.effect, P.inputs)) \
                 is not None:
             joint = (list(prior), fit.effect, y_pred)
         if joint is None:
-            continue
+            return
         refitted_prior, effect, y_pred = joint
         bic, hold = criteria(P, y_pred, fit.n_parameters)
         fitted.append((Fit(effect, fit.n_parameters, fit.screening_score, y_pred), bic,
                        holdout_z_score(hold_nom, hold), hold))
         revised[id(effect)] = tuple(refitted_prior)
+
+    for fit, as_is in joint_fits:
+        refit(fit, as_is)
     for fit in _lag_like(fitted):
-        joint = joint_refit(P, nominal, prior, fit.effect)
-        if joint is None:
-            continue
-        refitted_prior, effect, y_pred = joint
-        bic, hold = criteria(P, y_pred, fit.n_parameters)
-        fitted.append((Fit(effect, fit.n_parameters, fit.screening_score, y_pred), bic,
-                       holdout_z_score(hold_nom, hold), hold))
-        revised[id(effect)] = tuple(refitted_prior)
+        refit(fit, False)
     return fitted, revised
 
 

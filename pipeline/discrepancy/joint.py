@@ -44,8 +44,8 @@ _FREE: dict[str, dict[str, bool]] = {
 #: Parameters that may reach 0 but not cross it, as in the candidate's own fit
 #: (:meth:`pipeline.discrepancy.fit.Fitter`): an inverse response of negative magnitude
 #: starts the right way -- a lead-lag, not the catalogue's wrong-way response -- and, free
-#: to go there, a joint refit named one (magnitude -0.21) for a lag that an independently
-#: integrated plant holds (tests/test_discrepancy_select.py).
+#: to go there, a joint refit named one (magnitude -0.19) for a lag that an independently
+#: integrated plant holds (tests/test_discrepancy_joint.py).
 _NONNEGATIVE = {("inverse_response", "magnitude")}
 #: How a candidate's parameter moves toward "no effect" (see :data:`_WEAKER_STARTS`):
 #: divided (a time constant, a width, a magnitude, a slope, a gain of an unmodelled
@@ -268,19 +268,18 @@ def joint_refit(P: Problem, nominal: Model, prior: Sequence[Effect], candidate: 
     lower = np.array([0.0 if (effects[i].name, key) in _NONNEGATIVE else -np.inf
                       for i, key, _ in free])
 
-    def solve(low: np.ndarray):
-        return scipy.optimize.least_squares(residual, x_start, x_scale="jac", ftol=1e-6,
+    def solve(start: np.ndarray, low: np.ndarray):
+        return scipy.optimize.least_squares(residual, start, x_scale="jac", ftol=1e-6,
                                             xtol=1e-6, bounds=(low, x0 + span),
                                             max_nfev=_NFEV_PER_PARAMETER * len(free))
 
     try:
-        sol = solve(x0 - span)
+        sol = solve(x_start, x0 - span)
         if np.any(sol.x < lower):
             # refitted with the bound only when it binds: an active bound changes the
             # trust-region steps everywhere (tuning pair 800 019's inverse response at
             # the controller refitted elsewhere and was lost with it always on)
-            x_start = np.maximum(x_start, lower)
-            sol = solve(np.maximum(x0 - span, lower))
+            sol = solve(np.maximum(x_start, lower), np.maximum(x0 - span, lower))
     except (ValueError, PipelineError):
         return None
     if not 2 * sol.cost < float(r0 @ r0):
