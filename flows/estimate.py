@@ -214,6 +214,8 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     create_table_artifact(
         [{"output": p["output"], "input": p["input"], "n_p": p["n_p"],
           "gain": None if p["gain"] is None else round(p["gain"], 6),
+          "gain_std": None if p["gain_std"] is None else float(f"{p['gain_std']:.3g}"),
+          "settled": p["settled"]["verdict"],
           "rate": None if p["rate"] is None else round(p["rate"], 9),
           "verdict": p["agreement"]["verdict"],
           "feedback": None if p["feedback"] is None else p["feedback"]["detected"],

@@ -11,6 +11,7 @@ from pipeline.job_types import Prepared, Summary, WindowFailure
 from pipeline.prediction import innovations, residuals
 from pipeline.quality import GRADE_MEANING, GRADE_RULE, grade_from_checks
 from pipeline.search import SearchResult
+from pipeline.settledness import gain_cell
 from pipeline.step_result import StepResponseEstimate, lag_times
 
 
@@ -170,22 +171,39 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
             fb = sr.feedback[i][j] if sr.feedback else None
             fbd = fb.to_dict() if fb is not None else None
             integ = bool(all_est.integrating[i])
+            st = _settledness(cfg, sr, all_est, i, j)
+            final, final_std = _reported(st, integ, all_est, i, j)
             pair = {"output": o, "input": u, "n_p": n, "n_k": int(all_est.n_k[i, j]),
-                    "settled": bool(sr.settled[i, j]), "integrating": integ,
-                    "gain": None if integ else float(all_est.step[i, j, n - 1]),
-                    "gain_std": None if integ else float(all_est.step_std[i, j, n - 1]),
-                    "rate": float(all_est.rate[i, j]) if integ else None,
-                    "rate_std": float(all_est.rate_std[i, j]) if integ else None,
+                    "settled": {"verdict": st.verdict, "tail_sum": _num(st.tail_sum),
+                                "tail_sum_std": _num(st.tail_sum_std),
+                                "tail_lags": st.tail_lags, "left_out": _num(st.left_out),
+                                "left_out_std": _num(st.left_out_std)},
+                    "integrating": integ,
+                    "gain": None if integ else final,
+                    "gain_std": None if integ else final_std,
+                    "gain_extrapolated": None if integ else st.gain_extrapolated,
+                    "sign_established": st.sign_established,
+                    "gain_note": st.note,
+                    "rate": final if integ else None,
+                    "rate_std": final_std if integ else None,
+                    "rate_extrapolated": st.gain_extrapolated if integ else None,
                     "method": all_est.method,
                     "agreement": agr, "feedback": fbd, "characteristics": chars}
+            if chars.get("gain") is not None and not integ:
+                # characteristics read the curve at the horizon; the reported gain (and
+                # its σ) is the settledness verdict's — one number everywhere
+                chars["gain"], chars["gain_std"] = final, final_std
             pair["warnings"] = pair_warnings(
                 inp=u, out=o, tag_in=tags[u], tag_out=tags[o], noise=cfg.estimation.noise,
                 noise_model=nm, whiteness_p=lb["p_value"], feedback=fbd,
                 feedback_mode=cfg.estimation.feedback, instruments=prep.instruments,
                 n_k=pair["n_k"], n_p=n, n_p_min=cfg.search.n_p_min,
-                settled=pair["settled"], significant=_significant(pair), dt_s=prep.dt_s,
+                settled=bool(sr.settled[i, j]) or st.verdict == "moving",
+                significant=_significant(pair), dt_s=prep.dt_s,
                 end_jump=end_jump_z(*_settling_increments(all_est, i, j)),
                 agreement=agr)
+            if st.verdict == "moving":
+                pair["warnings"].insert(0, {"code": "not_settled", "message": st.note})
             pairs.append(pair)
             metrics += _pair_metrics(o, u, pair)
     return pairs, metrics, whiteness, xcorr
@@ -282,7 +300,36 @@ def _significant(pair: dict) -> bool:
     """The pair's gain (rate) is more than 2 standard deviations from zero."""
     v, s = (pair["rate"], pair["rate_std"]) if pair["integrating"] else \
         (pair["gain"], pair["gain_std"])
-    return bool(abs(v) > 2 * s)
+    return v is not None and bool(abs(v) > 2 * s)
+
+
+def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: int):
+    """The pair's :func:`pipeline.settledness.settledness` with what its horizon leaves
+    out in the search's reference fit."""
+    from pipeline.settledness import settledness
+
+    lo = 0.0 if sr.left_out is None else float(sr.left_out[i, j])
+    lo_std = 0.0 if sr.left_out_std is None else float(sr.left_out_std[i, j])
+    outs, ins = list(cfg.signals.outputs), list(cfg.signals.inputs)
+    uo, ui = _unit(cfg, outs[i]), _unit(cfg, ins[j])
+    return settledness(est, i, j, left_out=lo, left_out_std=lo_std,
+                       unit=f"{uo}/{ui}" if uo and ui else "")
+
+
+def _reported(st, integrating: bool, est: StepResponseEstimate, i: int, j: int
+              ) -> tuple[float | None, float | None]:
+    """The reported gain (an integrating pair: the estimate's rate) and its σ including
+    what the horizon leaves out, or ``(None, None)`` when the pair has none (moving,
+    nothing to judge)."""
+    if st.gain is None:
+        return None, None
+    if integrating:
+        return float(est.rate[i, j]), float(est.rate_std[i, j])
+    return float(st.gain), float(st.gain_std)
+
+
+def _num(v: float) -> float | None:
+    return float(v) if v is not None and np.isfinite(v) else None
 
 
 def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
@@ -332,14 +379,14 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
              f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
              f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
              f"Estimator: {method}.", "",
-             "| output | input | grade | N_p | N_p·T (s) | gain ± σ | rate K ± σ (/s) "
-             "| windows (p) | feedback (p) | warnings |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| output | input | grade | N_p | N_p·T (s) | settled | gain ± σ "
+             "| rate K ± σ (/s) | windows (p) | feedback (p) | warnings |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for p in pairs:
         uo, ui = _unit(cfg, p["output"]), _unit(cfg, p["input"])
         unit = f" {uo}/{ui}" if uo and ui else ""
-        gain = "" if p["gain"] is None else f"{p['gain']:.4g} ± {p['gain_std']:.2g}{unit}"
-        rate = "" if p["rate"] is None else f"{p['rate']:.4g} ± {p['rate_std']:.2g}"
+        gain = "" if p["integrating"] else gain_cell(p, "gain", unit)
+        rate = "" if not p["integrating"] else gain_cell(p, "rate", "")
         a = p["agreement"]
         agr = a["verdict"] + (f" ({a['p_value']:.2g})" if a.get("p_value") is not None else "")
         fb = p["feedback"]
@@ -347,7 +394,7 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
             (f"**yes** ({fb['p_value']:.2g})" if fb["detected"] else f"no ({fb['p_value']:.2g})")
         codes = ", ".join(w["code"] for w in p["warnings"]) or "none"
         lines.append(f"| {p['output']} | {p['input']} | {grade_from_checks(p, checks).grade} "
-                     f"| {p['n_p']} | {p['n_p'] * prep.dt_s:g} "
+                     f"| {p['n_p']} | {p['n_p'] * prep.dt_s:g} | {p['settled']['verdict']} "
                      f"| {gain} | {rate} | {agr} | {fbs} | {codes} |")
     lines += ["", "Noise models (per output, chosen from the data):", ""]
     for o, nm in checks["noise_model"].items():

@@ -99,12 +99,16 @@ class RunReport:
     files: tuple[str, ...]
     recording: Path | None
     timings_s: dict = field(default_factory=dict)
+    results: dict = field(default_factory=dict)
+    """Per pair ``"out<-in"``: the reported gain (or rate) text and the grade."""
 
     def __str__(self) -> str:
         lines = [f"run {self.job}/{self.run_id}: {self.status}", f"  results: {self.run_dir}",
                  f"  dt = {self.dt_s:g} s, N_d per window = {self.n_d}"]
         for pair, v in self.verdicts.items():
-            lines.append(f"  {pair}: N_p={self.n_p[pair]}, windows {v}")
+            r = self.results.get(pair)
+            head = f"grade {r['grade']}, {r['gain']}, " if r else ""
+            lines.append(f"  {pair}: {head}N_p={self.n_p[pair]}, windows {v}")
         if self.recording:
             lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
         return "\n".join(lines)

@@ -11,7 +11,9 @@ Decisions (also in the README):
 
 * Grid and a configured sample period: :mod:`pipeline.recording` (shared by every
   workflow).
-* Sample period: α_T on the longest stretch where every signal is good; the record is
+* Sample period: α_T on the longest stretch where every signal is good (an integrating
+  output's first difference; step-wise signals do not set T; never a T at which the record
+  is too short for the N_p search — :mod:`pipeline.sampling`); the record is
   then averaged-then-decimated (a decimated sample is bad if any source sample is).
 * Conditioning with gaps: masked samples are filled by linear interpolation only to let
   the transform run (mean, detrend, high-pass need a gap-free series), then masked again
@@ -86,10 +88,15 @@ def prepare(cfg, rec: Recording) -> Prepared:
         # T is the model's: chosen on the inputs and outputs (instruments only explain
         # the inputs, and follow whatever T the model needs)
         model = [k for k, r in enumerate(rec.roles) if r in ("input", "output")]
+        # integrating outputs: α_T of the first difference (what eq. 3.15 regresses); the
+        # search sees every sample where the model's signals are good, not just [a, b)
         choice = choose_sample_period(
             {rec.names[k]: rec.values[a:b, k] for k in model}, dt_s=rec.dt_s,
             roles={rec.names[k]: rec.roles[k] for k in model},
-            target_input=cfg.sampling.target_input, target_output=cfg.sampling.target_output)
+            integrating={o: s.integrating for o, s in cfg.signals.outputs.items()},
+            target_input=cfg.sampling.target_input, target_output=cfg.sampling.target_output,
+            n_search_samples=int(rec.good[:, model].all(axis=1).sum()),
+            n_p_min=cfg.search.n_p_min)
         factor = int(choice.decimation)
         sampling = {**choice.to_dict(), "source": "alpha_t"}
     vals, good = resample_average_masked(np.nan_to_num(rec.values), rec.good, factor)
@@ -377,4 +384,25 @@ def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings:
     verdicts = {f"{p['output']}<-{p['input']}": p["agreement"]["verdict"]
                 for p in summary.checks["pairs"]}
     return RunReport(cfg.job, rid, run_dir, summary.status, prep.dt_s, n_p, sr.n_d, verdicts,
-                     prep.recording.files, rrd, timings)
+                     prep.recording.files, rrd, timings, pair_results(summary.checks))
+
+
+def pair_results(checks: dict) -> dict:
+    """Per pair ``"out<-in"`` the reported gain (rate) text and grade, as report.md
+    prints them (the terminal summary shows the same numbers).
+
+    Parameters
+    ----------
+    checks : dict
+        The run's checks.json document.
+    """
+    from pipeline.quality import grade_from_checks
+    from pipeline.settledness import gain_cell
+
+    out = {}
+    for p in checks["pairs"]:
+        key = "rate" if p["integrating"] else "gain"
+        out[f"{p['output']}<-{p['input']}"] = {
+            "gain": f"{key} {gain_cell(p, key)}",
+            "grade": grade_from_checks(p, checks).grade}
+    return out

@@ -74,6 +74,7 @@ __all__ = [
     "RATIONAL_DEGREES",
     "StepModelFit",
     "fit_step_model",
+    "gain_mismatch",
     "fopdt_step",
     "sopdt_step",
     "rational_step",
@@ -697,3 +698,43 @@ def _fit_integrating(h, s, dt_s, rate, noise, tol) -> StepModelFit:
                         "zero_time_constant_s": Ta}, "rms": ch.fit_rms}
     return _result(c, h, dt_s, noise, tol, "integrating output: the model of "
                    "characteristics.integrating_characteristics", [c])
+
+
+GAIN_TOLERANCE_SIGMAS = 2.0
+GAIN_TOLERANCE_REL = 0.10
+"""An exported transfer function's DC gain (rate) must be within
+``max(2 σ, 10 % of |gain|)`` of the reported gain, or the pair's transfer function is
+left out with the reason: the exported model is the reported model."""
+
+
+def gain_mismatch(fit: StepModelFit, *, value: float | None, std: float | None,
+                  integrating: bool = False, label: str = "the pair") -> str | None:
+    """Why a fitted transfer function is not the reported model (``None``: it is): the
+    pair has no reported gain (still moving at its horizon, or not judged), or the fit's
+    DC gain (rate, for an integrating pair) differs from it by more than
+    ``max(GAIN_TOLERANCE_SIGMAS σ, GAIN_TOLERANCE_REL |gain|)``.
+
+    Parameters
+    ----------
+    fit : StepModelFit
+        The pair's fitted transfer function.
+    value, std : float or None
+        The reported gain (rate) and its σ.
+    integrating : bool
+        The output is integrating (compare rates).
+    label : str
+        The pair in the message.
+    """
+    what = "rate" if integrating else "gain"
+    if value is None:
+        return f"the run reports no {what} for {label}, so no transfer function can match it"
+    model = fit.parameters.get(what)
+    if model is None:  # the fit's static gain from the polynomials
+        model = float(fit.num[-1] / fit.den[-1]) if fit.den[-1] != 0 else float("inf")
+    sd = std or 0.0
+    tol = max(GAIN_TOLERANCE_SIGMAS * sd, GAIN_TOLERANCE_REL * abs(value))
+    if not np.isfinite(model) or abs(model - value) > tol:
+        return (f"the fitted {fit.kind} transfer function's {what} {model:.4g} differs from "
+                f"the reported {what} {value:.4g} ± {sd:.2g} by more than {tol:.2g} "
+                f"(max({GAIN_TOLERANCE_SIGMAS:g}σ, {100 * GAIN_TOLERANCE_REL:g} %))")
+    return None

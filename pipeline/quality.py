@@ -15,7 +15,10 @@ the implemented one.  Each criterion caps the grade; the pair's grade is the wor
   input's effect, or the loop is closed);
 * feedback: none or not tested A, detected with instruments A, detected and handled by
   ``n_k ≥ 1`` B, detected and not handled C;
-* excitation (variance inflation factor of the input): ≤ 5 A, ≤ 10 B, above C.
+* excitation (variance inflation factor of the input): ≤ 5 A, ≤ 10 B, above C;
+* settled at the horizon (``settled.verdict``, :mod:`pipeline.settledness`): ``settled``
+  A, ``moving`` or ``insufficient_data`` C (no gain is read off the curve; lengthen the
+  horizon).
 
 Also here: the fit percentage of MATLAB's ``compare`` (:func:`fit_percent`), the
 relative gain array (:func:`relative_gain_array`) and the simulation of a step-response
@@ -57,6 +60,8 @@ GRADE_RULE: tuple[tuple[str, str, str, str, str, str], ...] = (
      f"> {REL_SIGMA_C:g} (|gain| < 2σ: sign not established)"),
     ("residual whiteness", "Ljung–Box p of the output's prediction errors",
      f"p ≥ {WHITENESS_ALPHA:g}", "—", f"p < {WHITENESS_ALPHA:g} (σ may be optimistic)", "—"),
+    ("settled at the horizon", "checks.json pairs[].settled.verdict",
+     "settled", "—", "moving / insufficient_data (no gain: lengthen search.n_p_max)", "—"),
     ("input–residual cross-correlation", "residuals.input_cross_correlation[pair].ok",
      "ok", "—", "not ok (input effect missed, or a closed loop)", "—"),
     ("feedback", "pairs[].feedback.detected, n_k, instruments",
@@ -138,7 +143,7 @@ def _feedback_cap(detected, handled_by) -> tuple[str | None, str]:
 def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
                whiteness_p: float | None = None, xcorr_ok: bool | None = None,
                feedback_detected: bool | None = None, feedback_handled_by: str | None = None,
-               vif: float | None = None) -> PairGrade:
+               vif: float | None = None, settled: str | None = None) -> PairGrade:
     """Grade one pair by the rule of the module (:data:`GRADE_RULE`).
 
     A criterion whose value is None is not judged (its cap is None) and does not lower
@@ -162,6 +167,8 @@ def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
         How a detected feedback was handled in the estimate (None: not handled).
     vif : float or None
         Variance inflation factor of the input among the inputs (1 = uncorrelated).
+    settled : ``"settled"``, ``"moving"``, ``"insufficient_data"`` or None
+        The settledness verdict at the horizon (:mod:`pipeline.settledness`).
     """
     if verdict not in (None, "pass", "fail", "insufficient_data"):
         raise ConfigError(f"verdict {verdict!r} is not one of 'pass', 'fail', "
@@ -188,6 +195,10 @@ def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
     caps["excitation"] = (None, None, "") if v is None else (
         ("A", v, "") if v <= VIF_A else ("B", v, f"input VIF {v:.3g} > {VIF_A:g}")
         if v <= VIF_B else ("C", v, f"input VIF {v:.3g} > {VIF_B:g} (nearly collinear)"))
+    caps["settled"] = (None, None, "") if settled is None else (
+        ("A", settled, "") if settled == "settled" else
+        ("C", settled, f"{settled} at the horizon: no gain is read off the curve — "
+                       "lengthen search.n_p_max (or supply more data)"))
     grade = "A"
     for cap, _, _ in caps.values():
         if cap is not None:
@@ -229,7 +240,9 @@ def grade_from_checks(pair: Mapping[str, Any], checks: Mapping[str, Any]) -> Pai
     return pair_grade(verdict=agreement.get("verdict"), value=value, std=std,
                       whiteness_p=white.get("p_value"), xcorr_ok=xcorr.get("ok"),
                       feedback_detected=None if fb is None else fb.get("detected"),
-                      feedback_handled_by=handled, vif=vif)
+                      feedback_handled_by=handled, vif=vif,
+                      settled=(pair.get("settled") or {}).get("verdict")
+                      if isinstance(pair.get("settled"), Mapping) else None)
 
 
 def fit_percent(y, y_hat) -> float:

@@ -1,40 +1,90 @@
 """Sample period from the signals themselves: the α_T criterion (method.md §3).
 
-α_T (eq. 5.23) is the relative mean-square error of the sampled-and-held
-reconstruction of a signal::
-
-    e(t) = x(t) - x*(t),    alpha_t = mean(e**2) / mean(x**2)
-
-measured, as the thesis does, with a zero-order hold of the *half* period
-``T' = T/2``; the sample period is ``T = 2 T'``.  Targets: about 5 % on inputs and 1 %
-on outputs, and the smallest ``T`` over all channels wins.  For a first-order low-pass
-signal (correlation ``exp(-w0 |tau|)``) the closed form is
-``alpha_t = 2 [1 - (1 - exp(-u)) / u]`` with ``u = w0 T / 2``, so 5 % is ``w0 T ≈ 0.1``.
-
-Discrete holds and the hold period
-----------------------------------
-A record is itself sampled (period ``dt``).  Holding it for ``m`` samples compares
-``x(k m + j)`` with ``x(k m)`` at offsets ``j = 0 .. m-1``, whose mean offset
-``(m-1) dt / 2`` equals that of a continuous hold of length ``(m-1) dt``.  So a hold of
-``m`` record samples measures the continuous-time α_T of the hold period
-``T' = (m - 1) dt`` — exactly for signals whose increments grow linearly with the offset
-(first-order low-pass, random walks), to second order otherwise.  Mapping it to ``m dt``
-instead would bias the chosen ``T`` by ``1/m`` (``m = 10``: 10 %).  :func:`alpha_t`
-works in samples; :func:`choose_sample_period` applies this mapping.
+α_T of one signal — the relative mean-square error of its half-period hold, the mapping of
+a hold of ``m`` record samples to a hold period, the spectral form used above a noise
+floor — is measured by :mod:`pipeline.hold_error` (its functions are re-exported here).
+Targets: about 5 % on inputs and 1 % on outputs, and the smallest ``T`` over the signals
+that set it wins (:func:`choose_sample_period`).
 
 Resampling to ``T`` is average-then-decimate (:func:`resample_average`), which is the
 anti-alias filter the thesis' recorders had.
+
+Integrating outputs: α_T of the first difference
+-------------------------------------------------
+For an integrating output (a drum level, a tank) the estimator regresses the first
+difference ``Δy(k) = y(k) - y(k-1)`` (method.md §1, eq. 3.15), so that is the signal whose
+reconstruction ``T`` must keep accurate, and α_T is measured on ``Δy`` (``integrating=``).
+The level itself is a random-walk-like signal: its spectrum is the rate's divided by
+``ω²``, so its slow wander dominates ``mean(y²)`` and α_T on the level tolerates holds
+far longer than the fast part of the response (a boiler drum with a 15 s swell/shrink
+got ``T = 22 s``, the simulated one in tests/test_sampling_integrating.py 24 s; measured
+on ``Δy`` of the noise-free record, 4.4 s).  ``Δy`` is sampled every ``dt`` like the
+level, so the hold-period mapping is unchanged; α_T is scale-free, so ``Δy ≈ ẏ·dt``
+measures ``ẏ``.
+
+A first difference amplifies sample-to-sample noise: a level sensor's white noise of
+half a millimetre already dominates ``Δy`` of that drum at a 1 s record period, and α_T
+of ``Δy`` then measures the noise (it misses a 1 % target at every hold).  The record
+period is then a poor answer, not a safe one: with slowly moving inputs the per-lag
+estimates at 1 s scatter, and the simulated drum's wrong-way peak read off the data came
+out 0.51 instead of 0.32 (0.32 at the 5 s chosen here).  α_T is defined on the signal,
+not on the sensor's noise, so when an integrating output's ``Δy`` misses its target at
+the record period, α_T is measured on the part of ``Δy``'s spectrum that stands above
+the noise floor (:func:`pipeline.hold_error.alpha_above_noise_floor`: the spectral form
+of the hold error on the Welch spectrum minus a floor of white level noise).  What hides
+under the floor is not seen, so ``T`` lengthens as the noise grows — on the drum
+simulation (swell time constant 15 s, six records each): 4.4-4.6 s noise-free, 5.5-5.9 s
+with 2 mm of noise, 6.4-7.3 s with 1 cm.  A rate that truly changes every sample (a
+random-walk level) is not mistaken for noise: its flat spectrum stands above the floor's
+rising one, and the record period is used as before.  Self-regulating outputs and inputs
+are measured as before (their noise is not amplified by a difference); when one of them
+misses its target at the record period and its lag-1 autocorrelation (near +1 for a
+signal the record resolves, near 0 for white noise) is below :data:`NOISE_RHO1`, the
+note blames the noise rather than the record.
+
+Step-wise (held) signals do not set T
+-------------------------------------
+A piecewise-constant signal — a held setpoint, an exception-reported tag gridded with
+hold — has at least :data:`STEPWISE_UNCHANGED_FRACTION` of its consecutive samples equal.
+Its α_T is made by its few step instants alone (a hold is wrong only across a step), so
+it measures how often the signal steps, not a frequency content the model could miss:
+rare steps give an absurdly long preferred ``T`` (15-46 min for the fractionator
+export's setpoints, 99.5 % unchanged, on its 60 s record), frequent steps an absurdly
+short one.  The model (3.12) holds such an input exactly apart from where inside a
+sample each step falls, which average-then-decimate turns into a one-sample ramp — an
+error of one sample of the response, whatever ``T``.  So step-wise signals are measured
+and reported but do not set ``T``; the continuously moving signals do.  Only when every
+signal is step-wise do they set it (with a note).
+
+A sample period the N_p search can use
+--------------------------------------
+A ``T`` is not chosen when the record at ``T`` is too short for the default N_p search
+(:func:`search_fits`): the largest decimation that still fits is taken instead, and
+``SamplePeriodChoice.reduced_reason`` says so (written to ``checks.json`` → ``sampling``).
+A shorter ``T`` keeps the α_T targets (α_T rises with ``T``); a longer one with a
+search that cannot run gives no result at all.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.signal
 
 from pipeline.errors import ConfigError, DataQualityError
+from pipeline.hold_error import (
+    alpha_above_noise_floor,
+    alpha_t,
+    alpha_t_curve,
+    alpha_t_first_order,
+    as_signal,
+    check_hold,
+    crossing_hold,
+    hold_error_ratio,
+    hold_period_s,
+)
 
 __all__ = [
     "SamplePeriodChoice",
@@ -45,172 +95,63 @@ __all__ = [
     "hold_period_s",
     "resample_average",
     "resample_average_masked",
+    "search_fits",
+    "NOISE_RHO1",
+    "SEARCH_N_P_MIN",
+    "SEARCH_OBS_PER_UNKNOWN",
+    "STEPWISE_UNCHANGED_FRACTION",
 ]
 
 ROLES = ("input", "output")
 
+STEPWISE_UNCHANGED_FRACTION = 0.9
+"""A signal with at least this fraction of consecutive samples unchanged is step-wise
+(held) and does not set ``T`` (module notes).  Held setpoints on the fractionator export
+are 99.5-99.7 % unchanged, its continuously moving flows and analysers 0-0.1 %."""
 
-# ------------------------------------------------------------------------ α_T itself
-def _as_signal(x, name: str = "x") -> np.ndarray:
-    arr = np.asarray(x, dtype=float)
-    if arr.ndim != 1:
-        raise DataQualityError(f"{name} must be a 1-D signal; got shape {arr.shape}")
-    if arr.size < 2:
-        raise DataQualityError(f"{name} has {arr.size} sample(s); α_T needs at least 2")
-    if not np.all(np.isfinite(arr)):
-        bad = np.flatnonzero(~np.isfinite(arr))
-        raise DataQualityError(
-            f"{name} has {bad.size} NaN/inf value(s) (first at sample {bad[0]}); α_T needs "
-            "a gap-free signal: interpolate short gaps or measure α_T on a clean stretch"
-        )
-    return arr
+NOISE_RHO1 = 0.5
+"""Below this lag-1 autocorrelation the analysed signal is dominated by sample-to-sample
+noise (white: 0, differenced white: -0.5; a first-order signal sampled at a tenth of its
+time constant: 0.9); a missed α_T target is then blamed on the noise in the note."""
 
+SEARCH_N_P_MIN = 3
+"""Shortest horizon (lags) the default N_p search must be able to try (``search.n_p_min``'s
+default)."""
 
-def _hold_error_ratio(x: np.ndarray, m: int, sum_sq: float) -> float:
-    """α for a hold of ``m`` samples of the zero-mean signal ``x`` (hold starts at 0).
-
-    Uses ``sum e^2 = sum x^2 - 2 sum_k x0_k S_k + sum_k n_k x0_k^2`` with block sums
-    ``S_k`` from a reshape (pairwise summation: accurate), so one pass over the data per
-    hold length instead of three.  Cancellation costs ``log10(1/alpha)`` digits only.
-    """
-    n = x.size
-    k_full = n // m
-    x0 = x[::m]  # held values, one per (full or partial) block
-    sums = np.empty(x0.size)
-    counts = np.full(x0.size, float(m))
-    if k_full:
-        sums[:k_full] = x[: k_full * m].reshape(k_full, m).sum(axis=1)
-    if x0.size > k_full:  # incomplete last block: the hold continues to the end
-        sums[k_full] = x[k_full * m :].sum()
-        counts[k_full] = n - k_full * m
-    sum_e2 = sum_sq - 2.0 * float(x0 @ sums) + float((counts * x0) @ x0)
-    return max(sum_e2, 0.0) / sum_sq
+SEARCH_OBS_PER_UNKNOWN = 20
+"""Observations per unknown the record at ``T`` must hold for the default N_p search
+(:func:`search_fits`): two disjoint windows (method.md §5 judges N_d by comparing them) of
+10 observations per unknown each (method.md §5: N_d starts around 10·N_p for each of an
+output's N_p·N_x unknowns)."""
 
 
-def alpha_t(x, *, hold_samples: int) -> float:
-    """α_T of a zero-order hold of ``hold_samples`` samples (eq. 5.23).
+def search_fits(n_samples: int, n_inputs: int, *, n_p_min: int = SEARCH_N_P_MIN) -> bool:
+    """Whether a record of ``n_samples`` at ``T`` can hold the default N_p search.
+
+    The rule (kept simple on purpose; the search's own defaults may change): the record
+    must hold ``SEARCH_OBS_PER_UNKNOWN · n_p_min · n_inputs`` observations — two disjoint
+    windows of 10 observations per unknown at the shortest horizon ``n_p_min`` — after the
+    ``n_p_min`` lead-in samples an observation needs (``n_p_min - 1`` lags and one for the
+    first difference of an integrating output).
 
     Parameters
     ----------
-    x : array_like, shape (N,)
-        Signal sampled at the record's own period; its mean is removed here (the
-        criterion is defined on the mean-free signal).  Remove slow trends beforehand
-        if the record has them (:func:`choose_sample_period` does).
-    hold_samples : int
-        Hold length ``m`` in record samples, ``>= 1``.  The hold starts at sample 0 and
-        the last incomplete block is held too.  ``m = 1`` reproduces ``x`` (α = 0); a
-        hold of ``m`` samples measures the continuous hold period ``(m-1)·dt`` (module
-        notes).
+    n_samples : int
+        Samples of the record at the sample period ``T``.
+    n_inputs : int
+        Number of inputs (each output has ``N_p · n_inputs`` unknowns); at least 1 is
+        assumed.
+    n_p_min : int
+        Shortest horizon the search must be able to try (lags), default
+        :data:`SEARCH_N_P_MIN`.
 
     Returns
     -------
-    float
-        ``mean(e**2) / mean(x**2)`` (dimensionless).
-
-    Raises
-    ------
-    DataQualityError
-        ``x`` not 1-D, shorter than 2 samples, non-finite, or constant.
-    ConfigError
-        ``hold_samples`` not a positive integer.
+    bool
+        True when the record is long enough.
     """
-    xs = _as_signal(x)
-    m = _check_hold(hold_samples, xs.size)
-    xs = xs - xs.mean()
-    sum_sq = float(xs @ xs)
-    if sum_sq == 0.0:
-        raise DataQualityError("x is constant; α_T is undefined for a signal that never moves")
-    return _hold_error_ratio(xs, m, sum_sq)
-
-
-def _check_hold(m, n: int) -> int:
-    if isinstance(m, (bool, np.bool_)) or not float(m).is_integer() or int(m) < 1:
-        raise ConfigError(f"hold_samples must be a positive integer; got {m!r}")
-    if int(m) > n:
-        raise ConfigError(
-            f"hold_samples={int(m)} exceeds the record length of {n} samples; use a hold "
-            "shorter than the record (at least ~20 holds per record for a stable α_T)"
-        )
-    return int(m)
-
-
-def alpha_t_curve(
-    x, *, max_hold_samples: int | None = None, hold_samples=None
-) -> tuple[np.ndarray, np.ndarray]:
-    """α_T as a function of the hold length.
-
-    Parameters
-    ----------
-    x : array_like, shape (N,)
-        Signal (mean removed here).
-    max_hold_samples : int, optional
-        Evaluate every hold ``1 .. max_hold_samples``.  Default ``N // 20`` (at least
-        20 holds in the record).
-    hold_samples : array_like of int, optional
-        Explicit hold lengths instead (e.g. a geometric grid); overrides
-        ``max_hold_samples``.
-
-    Returns
-    -------
-    holds : ndarray of int, shape (M,)
-        Hold lengths in samples.
-    alpha : ndarray, shape (M,)
-        α_T for each hold.  Each hold costs one vectorised pass over the record.
-    """
-    xs = _as_signal(x)
-    if hold_samples is not None:
-        holds = np.asarray(hold_samples)
-        if holds.ndim != 1 or holds.size == 0:
-            raise ConfigError(f"hold_samples must be a non-empty 1-D list; got {hold_samples!r}")
-        holds = np.array([_check_hold(m, xs.size) for m in holds], dtype=int)
-    else:
-        top = max(2, xs.size // 20) if max_hold_samples is None else max_hold_samples
-        holds = np.arange(1, _check_hold(top, xs.size) + 1)
-    xs = xs - xs.mean()
-    sum_sq = float(xs @ xs)
-    if sum_sq == 0.0:
-        raise DataQualityError("x is constant; α_T is undefined for a signal that never moves")
-    alpha = np.array([_hold_error_ratio(xs, int(m), sum_sq) for m in holds])
-    return holds, alpha
-
-
-def alpha_t_first_order(omega0_t) -> np.ndarray:
-    """Closed-form α_T of a first-order low-pass signal: ``2[1 - (1 - e^-u)/u]``.
-
-    Parameters
-    ----------
-    omega0_t : array_like
-        ``w0·T`` (dimensionless: corner frequency in rad/s times sample period in s);
-        the hold is ``T/2`` so ``u = w0 T / 2``.
-
-    Returns
-    -------
-    ndarray
-        α_T; the series ``u - u²/3 + …`` is used for ``u < 1e-4`` (no cancellation).
-    """
-    u = 0.5 * np.asarray(omega0_t, dtype=float)
-    small = u < 1e-4
-    us = np.where(small, 1.0, u)
-    exact = 2.0 * (1.0 - (-np.expm1(-us)) / us)
-    return np.where(small, u - u * u / 3.0, exact)
-
-
-def hold_period_s(hold_samples, *, dt_s: float) -> np.ndarray:
-    """Continuous hold period measured by a hold of ``m`` record samples: ``(m-1)·dt_s``.
-
-    Parameters
-    ----------
-    hold_samples : array_like of int
-        Hold lengths ``m`` (record samples).
-    dt_s : float
-        Sample period of the record (s).
-
-    Returns
-    -------
-    ndarray
-        Hold periods ``T'`` (s); the sample period they correspond to is ``2 T'``.
-    """
-    return (np.asarray(hold_samples, dtype=float) - 1.0) * dt_s
+    return int(n_samples) - int(n_p_min) >= (
+        SEARCH_OBS_PER_UNKNOWN * int(n_p_min) * max(int(n_inputs), 1))
 
 
 # ------------------------------------------------------------ choosing the period
@@ -237,9 +178,21 @@ class SamplePeriodChoice:
     roles : dict[str, str]
         ``"input"`` or ``"output"`` per signal.
     limiting_signal : str
-        The signal whose preferred ``T`` is smallest.
+        The signal whose preferred ``T`` is smallest among those that set ``T`` (step-wise
+        signals do not, module notes).
     notes : tuple of str
         Human-readable remarks (record sampled too slowly, target not reached, ...).
+    measured_on : dict[str, str]
+        Per signal, what α_T was measured on: ``"signal"``, ``"first difference"``
+        (integrating outputs) or ``"first difference above the noise floor"`` (module
+        notes).
+    stepwise : tuple of str
+        Signals recognised as step-wise (held); they do not set ``T``.
+    alpha_t_dt_s : float or None
+        The ``T`` the α_T targets alone chose (s); ``None`` means the same as ``dt_s``.
+    reduced_reason : str or None
+        Why ``dt_s`` is shorter than ``alpha_t_dt_s`` (the record at that ``T`` could not
+        hold the default N_p search, :func:`search_fits`); ``None`` when it is not.
     """
 
     dt_s: float
@@ -251,6 +204,10 @@ class SamplePeriodChoice:
     roles: dict[str, str]
     limiting_signal: str
     notes: tuple[str, ...] = field(default_factory=tuple)
+    measured_on: dict[str, str] = field(default_factory=dict)
+    stepwise: tuple[str, ...] = field(default_factory=tuple)
+    alpha_t_dt_s: float | None = None
+    reduced_reason: str | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (``inf`` preferred periods become ``None``)."""
@@ -264,7 +221,11 @@ class SamplePeriodChoice:
             },
             "targets": dict(self.targets),
             "roles": dict(self.roles),
+            "measured_on": dict(self.measured_on),
+            "stepwise": list(self.stepwise),
             "limiting_signal": self.limiting_signal,
+            "alpha_t_dt_s": self.dt_s if self.alpha_t_dt_s is None else self.alpha_t_dt_s,
+            "reduced_reason": self.reduced_reason,
             "notes": list(self.notes),
         }
 
@@ -273,11 +234,16 @@ class SamplePeriodChoice:
             f"sample period T = {self.dt_s:g} s (decimation {self.decimation} of "
             f"{self.record_dt_s:g} s), limited by {self.limiting_signal}"
         ]
+        if self.reduced_reason:
+            lines.append(f"  shorter than the α_T choice: {self.reduced_reason}")
         for name in self.alpha_t:
+            on = self.measured_on.get(name, "signal")
             lines.append(
-                f"  {name} ({self.roles[name]}): alpha_t = {self.alpha_t[name]:.4f} "
-                f"(target {self.targets[name]:.3f}), preferred T = "
-                f"{self.preferred_dt_s[name]:g} s"
+                f"  {name} ({self.roles[name]}"
+                f"{', ' + on if on != 'signal' else ''}"
+                f"{', step-wise: does not set T' if name in self.stepwise else ''}): "
+                f"alpha_t = {self.alpha_t[name]:.4f} (target {self.targets[name]:.3f}), "
+                f"preferred T = {self.preferred_dt_s[name]:g} s"
             )
         lines.extend(f"  note: {n}" for n in self.notes)
         return "\n".join(lines)
@@ -335,56 +301,19 @@ def _roles_dict(roles, names: Sequence[str]) -> dict[str, str]:
     return out
 
 
-def _crossing_hold(x: np.ndarray, target: float, max_hold: int, sum_sq: float):
-    """Continuous hold ``T'`` (in samples, ``m - 1``) where α first reaches ``target``.
-
-    Scans a geometric grid of hold lengths until α >= target, then bisects the integer
-    bracket (each evaluation is one pass over the data, so ~2·log(m*) passes instead of
-    m*), and interpolates linearly in ``T'`` between the two neighbouring integers.
-    Returns ``(t_hold_samples, reached)``; ``t_hold_samples`` is ``max_hold - 1`` when
-    the target is not reached.
-    """
-    cache: dict[int, float] = {1: 0.0}
-
-    def a(m: int) -> float:
-        if m not in cache:
-            cache[m] = _hold_error_ratio(x, m, sum_sq)
-        return cache[m]
-
-    lo, hi = 1, None
-    m = 2
-    while m <= max_hold:
-        if a(m) >= target:
-            hi = m
-            break
-        lo = m
-        m = max(m + 1, int(np.ceil(m * 1.25)))
-    if hi is None:
-        if lo < max_hold and a(max_hold) >= target:
-            hi = max_hold
-        else:
-            return float(max_hold - 1), False
-    while hi - lo > 1:  # first crossing inside the bracket (α is rising here)
-        mid = (lo + hi) // 2
-        if a(mid) >= target:
-            hi = mid
-        else:
-            lo = mid
-    a_lo, a_hi = a(lo), a(hi)
-    frac = (target - a_lo) / (a_hi - a_lo) if a_hi > a_lo else 1.0
-    return (lo - 1) + frac, True
-
-
 def choose_sample_period(
     signals,
     *,
     dt_s: float,
     roles,
     names: Sequence[str] | None = None,
+    integrating: Mapping[str, bool] | None = None,
     target_input: float = 0.05,
     target_output: float = 0.01,
     max_hold_samples: int | None = None,
     detrend: bool = True,
+    n_search_samples: int | None = None,
+    n_p_min: int = SEARCH_N_P_MIN,
 ) -> SamplePeriodChoice:
     """Choose the sample period ``T`` from α_T targets (method.md §3).
 
@@ -398,14 +327,24 @@ def choose_sample_period(
         ``"input"`` or ``"output"`` per signal (by name, or in column order).
     names : sequence of str, optional
         Column names when ``signals`` is a 2-D array.
+    integrating : mapping of str to bool, optional
+        Per output, whether it is integrating (the job's ``signals.outputs.<name>.
+        integrating``); α_T of an integrating output is measured on its first difference
+        (module notes).  Missing names are not integrating; only outputs may be.
     target_input, target_output : float
         α_T targets (defaults 5 % and 1 %, the thesis' values).
     max_hold_samples : int, optional
         Longest hold examined (record samples); default ``N // 20`` so that at least
         20 holds fit in the record.
     detrend : bool
-        Remove each signal's mean and linear trend first (the criterion concerns the
-        fluctuations; a trend would dominate mean(x²)).
+        Remove each analysed signal's mean and linear trend first (the criterion concerns
+        the fluctuations; a trend would dominate mean(x²)).
+    n_search_samples : int, optional
+        Samples (at ``dt_s``) the N_p search will have — the whole record's usable
+        samples when α_T is measured on a clean stretch of it; default ``N``.
+    n_p_min : int
+        Shortest horizon the search must be able to try at ``T`` (:func:`search_fits`);
+        default :data:`SEARCH_N_P_MIN`.
 
     Returns
     -------
@@ -416,46 +355,66 @@ def choose_sample_period(
     Per signal, the hold ``T'`` at which α_T reaches its target is found by linear
     interpolation between integer hold lengths (a hold of ``m`` samples measures
     ``T' = (m-1)·dt_s``, see the module notes); its preferred period is ``2 T'``.
-    The chosen ``T`` is the smallest preferred period, rounded **down** to an integer
+    The chosen ``T`` is the smallest preferred period of the signals that set ``T``
+    (all but the step-wise ones, module notes), rounded **down** to an integer
     multiple of ``dt_s`` (α_T rises with ``T``, so rounding down keeps every signal at or
     below its target), and never below ``dt_s``: when a signal needs ``T < dt_s`` the
-    record is sampled too slowly for its target, ``T = dt_s`` and a note says so.  When a
-    signal stays below target over every hold examined, its preferred period is ``inf``
-    and it does not limit ``T``; if no signal reaches its target, ``T`` is the longest
-    period examined, ``2 (max_hold_samples - 1) dt_s``, with a note.
+    record is sampled too slowly for its target (or the signal is noise-dominated — the
+    note tells which), ``T = dt_s`` and a note says so.  When a signal stays below target
+    over every hold examined, its preferred period is ``inf`` and it does not limit
+    ``T``; if no signal reaches its target, ``T`` is the longest period examined,
+    ``2 (max_hold_samples - 1) dt_s``, with a note.  Finally, when the record at ``T``
+    cannot hold the default N_p search (:func:`search_fits` with ``n_search_samples``
+    and the number of inputs), ``T`` is lowered to the largest multiple of ``dt_s`` at
+    which it can, and ``reduced_reason`` says so.
 
     Raises
     ------
     ConfigError
-        Bad ``dt_s``, roles, targets or names.
+        Bad ``dt_s``, roles, targets, names or ``integrating``.
     DataQualityError
-        A signal is non-finite, too short or constant after detrending.
+        A signal is non-finite, too short or constant after detrending (for an integrating
+        output: its first difference is).
     """
     _check_period_and_targets(dt_s, target_input, target_output)
     sig = _signals_dict(signals, names)
     role = _roles_dict(roles, list(sig))
+    diff = _integrating_dict(integrating, role)
     n = next(iter(sig.values())).size
     if n < 40:
         raise DataQualityError(
             f"record has {n} samples; α_T needs at least 40 (20 holds of 2 samples) to "
             "choose a sample period — supply a longer record"
         )
-    max_hold = n // 20 if max_hold_samples is None else _check_hold(max_hold_samples, n)
+    max_hold = n // 20 if max_hold_samples is None else check_hold(max_hold_samples, n)
     max_hold = max(max_hold, 2)
     targets = {k: (target_input if role[k] == "input" else target_output) for k in sig}
     notes: list[str] = []
-    prepared, preferred = _preferred_periods(sig, targets, max_hold, dt_s, detrend, notes)
-    limiting, decimation = _decimation(preferred, targets, max_hold, dt_s, notes)
+    stepwise = tuple(k for k, x in sig.items() if _is_stepwise(as_signal(x, k)))
+    measured, preferred = _measure(sig, diff, targets, max_hold, dt_s, detrend, notes)
+    setting = [k for k in sig if k not in stepwise] or list(sig)  # all step-wise: they do
+    if stepwise:
+        notes.append(_stepwise_note(stepwise, preferred, dt_s,
+                                    all_stepwise=len(setting) == len(sig)))
+    limiting, decimation = _decimation({k: preferred[k] for k in setting}, targets, max_hold,
+                                       dt_s, notes, measured)
+    n_inputs = sum(r == "input" for r in role.values())
+    n_search = n if n_search_samples is None else int(n_search_samples)
+    final, reason = _search_decimation(decimation, n_search, n_inputs, n_p_min, dt_s)
     return SamplePeriodChoice(
-        dt_s=decimation * float(dt_s),
-        decimation=decimation,
+        dt_s=final * float(dt_s),
+        decimation=final,
         record_dt_s=float(dt_s),
-        alpha_t=_alpha_at_decimation(prepared, decimation, n),
+        alpha_t=_alpha_at_decimation(measured, final),
         preferred_dt_s=preferred,
         targets=targets,
         roles=role,
         limiting_signal=limiting,
         notes=tuple(notes),
+        measured_on={k: m.measured_on for k, m in measured.items()},
+        stepwise=stepwise,
+        alpha_t_dt_s=decimation * float(dt_s),
+        reduced_reason=reason,
     )
 
 
@@ -468,25 +427,109 @@ def _check_period_and_targets(dt_s, target_input, target_output) -> None:
             raise ConfigError(f"{label} must lie in (0, 1) (a fraction, 0.05 = 5 %); got {tgt!r}")
 
 
-def _preferred_periods(sig: dict[str, np.ndarray], targets: dict[str, float], max_hold: int,
-                       dt_s: float, detrend: bool, notes: list[str]
-                       ) -> tuple[dict[str, tuple[np.ndarray, float]], dict[str, float]]:
-    """Per signal, the detrended signal with its sum of squares and the preferred ``T``
-    (``inf`` with a note when the target is not reached)."""
-    prepared: dict[str, tuple[np.ndarray, float]] = {}
+def _integrating_dict(integrating, role: dict[str, str]) -> dict[str, bool]:
+    """Per signal, whether α_T is measured on its first difference (outputs only)."""
+    out = {k: False for k in role}
+    if integrating is None:
+        return out
+    if not isinstance(integrating, Mapping):
+        raise ConfigError(
+            f"integrating must be a mapping of output name to bool; got {integrating!r}")
+    unknown = sorted(set(map(str, integrating)) - set(role))
+    if unknown:
+        raise ConfigError(
+            f"integrating names signal(s) {unknown} that are not among the signals; "
+            f"allowed: {', '.join(k for k, r in role.items() if r == 'output')}")
+    for k, v in integrating.items():
+        if not isinstance(v, (bool, np.bool_)):
+            raise ConfigError(f"integrating[{k!r}] must be True or False; got {v!r}")
+        if v and role[str(k)] != "output":
+            raise ConfigError(
+                f"integrating[{k!r}] is True but {k!r} is an {role[str(k)]}; only outputs "
+                "integrate (their first difference is what the estimator regresses)")
+        out[str(k)] = bool(v)
+    return out
+
+
+def _is_stepwise(x: np.ndarray) -> bool:
+    """At least :data:`STEPWISE_UNCHANGED_FRACTION` of consecutive samples equal (to
+    round-off of the signal's magnitude)."""
+    tol = 1e-12 * float(np.max(np.abs(x)))
+    return float(np.mean(np.abs(np.diff(x)) <= tol)) >= STEPWISE_UNCHANGED_FRACTION
+
+
+def _stepwise_note(stepwise: tuple[str, ...], preferred: dict[str, float], dt_s: float,
+                   *, all_stepwise: bool) -> str:
+    """The note on step-wise signals: they do not set T (or, all step-wise, they do)."""
+    pref = ", ".join(f"{k} {preferred[k]:.4g} s" if np.isfinite(preferred[k]) else f"{k} -"
+                     for k in stepwise)
+    if all_stepwise:
+        return (f"every signal is step-wise (held: >= {STEPWISE_UNCHANGED_FRACTION:.0%} of "
+                f"samples unchanged; preferred T {pref}); with no continuously moving "
+                "signal they set T, though their α_T reflects how often they step, not "
+                "the dynamics — set sampling.dt_s in the job YAML if the plant's response "
+                "times are known")
+    return (f"step-wise signal(s) {', '.join(stepwise)} (held: >= "
+            f"{STEPWISE_UNCHANGED_FRACTION:.0%} of samples unchanged) do not set T: their "
+            f"α_T reflects how often they step, not the dynamics (preferred T {pref})")
+
+
+def _analysed(raw: np.ndarray, name: str, integrating: bool, detrend: bool
+              ) -> tuple[np.ndarray, float]:
+    """The signal α_T is measured on (the first difference of an integrating output),
+    detrended or mean-free, with its sum of squares."""
+    x = np.diff(raw) if integrating else raw
+    x = scipy.signal.detrend(x, type="linear") if detrend else x - x.mean()
+    sum_sq = float(x @ x)
+    scale = float(raw @ raw) if not integrating else float(np.diff(raw) @ np.diff(raw))
+    if sum_sq <= 1e-24 * max(scale, 1e-300):
+        what = (" (an integrating output): its first difference" if integrating else "")
+        raise DataQualityError(
+            f"signal {name!r}{what} is constant (after removing mean"
+            f"{' and trend' if detrend else ''}); α_T is undefined: drop it from the job "
+            "or pick a window where it moves"
+        )
+    return x, sum_sq
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """How α_T of one signal is measured: ``alpha_of(m)`` for a hold of ``m`` samples."""
+
+    x: np.ndarray  # the analysed signal (mean-free)
+    alpha_of: Callable[[int], float]
+    measured_on: str
+
+
+def _measure(sig: dict[str, np.ndarray], diff: dict[str, bool], targets: dict[str, float],
+             max_hold: int, dt_s: float, detrend: bool, notes: list[str]
+             ) -> tuple[dict[str, _Measured], dict[str, float]]:
+    """Per signal, how α_T is measured and the preferred ``T`` (``inf`` with a note when
+    the target is not reached).  An integrating output whose first difference misses its
+    target at the record period is measured above its noise floor (module notes)."""
+    measured: dict[str, _Measured] = {}
     preferred: dict[str, float] = {}
     for name, raw in sig.items():
-        x = _as_signal(raw, name)
-        x = scipy.signal.detrend(x, type="linear") if detrend else x - x.mean()
-        sum_sq = float(x @ x)
-        if sum_sq <= 1e-24 * max(float(raw @ raw), 1e-300):
-            raise DataQualityError(
-                f"signal {name!r} is constant (after removing mean"
-                f"{' and trend' if detrend else ''}); α_T is undefined: drop it from the job "
-                "or pick a window where it moves"
-            )
-        prepared[name] = (x, sum_sq)
-        t_hold, reached = _crossing_hold(x, targets[name], max_hold, sum_sq)
+        x, sum_sq = _analysed(as_signal(raw, name), name, diff[name], detrend)
+        m = _Measured(x, lambda k, x=x, s=sum_sq: hold_error_ratio(x, k, s),
+                      "first difference" if diff[name] else "signal")
+        hold = min(max_hold, x.size)
+        t_hold, reached = crossing_hold(m.alpha_of, targets[name], hold)
+        if diff[name] and reached and 2.0 * t_hold < 1.0:
+            floor = alpha_above_noise_floor(x)
+            if floor is not None:
+                t2, r2 = crossing_hold(floor[0], targets[name], hold)
+                notes.append(
+                    f"{name}: α_T of its first difference reaches {targets[name]:g} already "
+                    f"at T = {2 * t_hold * dt_s:.3g} s, below the record period; a floor of "
+                    f"white level noise (a sensor's, amplified by the difference) holds "
+                    f"{floor[1]:.0%} of its variance (lag-1 autocorrelation "
+                    f"{_lag1_correlation(x):.2f}), so α_T is measured on the part of its "
+                    "spectrum above that floor (dynamics hidden under the floor are not "
+                    "seen: the noisier the level, the longer this T)")
+                m = _Measured(x, floor[0], "first difference above the noise floor")
+                t_hold, reached = t2, r2
+        measured[name] = m
         if reached:
             preferred[name] = 2.0 * t_hold * dt_s
         else:
@@ -496,11 +539,17 @@ def _preferred_periods(sig: dict[str, np.ndarray], targets: dict[str, float], ma
                 f"{max_hold} samples (T up to {2 * (max_hold - 1) * dt_s:g} s); it does not "
                 "limit T"
             )
-    return prepared, preferred
+    return measured, preferred
+
+
+def _lag1_correlation(x: np.ndarray) -> float:
+    """Lag-1 autocorrelation of a mean-free signal."""
+    return float(x[1:] @ x[:-1]) / max(float(x @ x), 1e-300)
 
 
 def _decimation(preferred: dict[str, float], targets: dict[str, float], max_hold: int,
-                dt_s: float, notes: list[str]) -> tuple[str, int]:
+                dt_s: float, notes: list[str],
+                measured: dict[str, _Measured]) -> tuple[str, int]:
     """The limiting signal and the decimation: its preferred ``T`` rounded down to whole
     record samples, at least 1 (notes when no target is reached or the record is slow)."""
     limiting = min(preferred, key=preferred.get)
@@ -515,26 +564,59 @@ def _decimation(preferred: dict[str, float], targets: dict[str, float], max_hold
     decimation = int(np.floor(t_pref / dt_s * (1 + 1e-9)))
     if decimation < 1:
         decimation = 1
-        notes.append(
-            f"record sampled too slowly for {limiting}: α_T target {targets[limiting]:g} "
-            f"needs T = {t_pref:.4g} s but the record has dt_s = {dt_s:g} s; T = dt_s "
-            "(the record's own period) is used and α_T there exceeds the target"
-        )
+        note = (f"record sampled too slowly for {limiting}: α_T target {targets[limiting]:g} "
+                f"needs T = {t_pref:.4g} s but the record has dt_s = {dt_s:g} s; T = dt_s "
+                "(the record's own period) is used and α_T there exceeds the target")
+        rho = _lag1_correlation(measured[limiting].x)
+        if measured[limiting].measured_on.endswith("noise floor"):
+            note += (". Even above its noise floor its first difference moves faster than "
+                     "the record resolves")
+        elif rho < NOISE_RHO1:
+            note += (f". Its analysed signal's lag-1 autocorrelation is {rho:.2f} (a signal "
+                     "the record resolves has one near +1): sample-to-sample noise dominates "
+                     "it, so α_T measures the noise, not the dynamics; set sampling.dt_s in "
+                     "the job YAML if the dynamics are known to be slower (a T much shorter "
+                     "than the inputs' scatters the per-lag estimates)")
+        notes.append(note)
     return limiting, decimation
 
 
-def _alpha_at_decimation(prepared: dict[str, tuple[np.ndarray, float]], decimation: int,
-                         n: int) -> dict[str, float]:
+def _search_decimation(decimation: int, n_search: int, n_inputs: int, n_p_min: int,
+                       dt_s: float) -> tuple[int, str | None]:
+    """The largest decimation ``<= decimation`` whose record holds the default N_p search
+    (:func:`search_fits`), and the reason when it is smaller (None when not)."""
+    if search_fits(n_search // decimation, n_inputs, n_p_min=n_p_min):
+        return decimation, None
+    need = SEARCH_OBS_PER_UNKNOWN * n_p_min * max(n_inputs, 1) + n_p_min
+    fits = [d for d in range(decimation - 1, 0, -1)
+            if search_fits(n_search // d, n_inputs, n_p_min=n_p_min)]
+    final = fits[0] if fits else 1
+    why = (f"at the α_T choice T = {decimation * dt_s:g} s the record holds "
+           f"{n_search // decimation} samples, fewer than the {need} the N_p search needs "
+           f"({SEARCH_OBS_PER_UNKNOWN} observations per unknown x {n_p_min} lags x "
+           f"{max(n_inputs, 1)} input(s) + {n_p_min} lead-in: two disjoint windows of 10 "
+           "per unknown at the shortest horizon); ")
+    if fits:
+        why += (f"T = {final * dt_s:g} s, the longest at which it fits "
+                f"({n_search // final} samples), is used (α_T is lower there)")
+    else:
+        why += (f"even the record period {dt_s:g} s gives only {n_search} samples, so T = "
+                f"{dt_s:g} s is used and the search will report the shortage — supply a "
+                "longer record")
+    return final, why
+
+
+def _alpha_at_decimation(measured: dict[str, _Measured], decimation: int
+                         ) -> dict[str, float]:
     """Per signal, α_T at the chosen ``T`` (hold ``T/2``, interpolated between integer holds)."""
     t_hold = 0.5 * decimation  # T' = T/2 in record samples, i.e. m - 1
     alpha_chosen = {}
-    for name, (x, sum_sq) in prepared.items():
+    for name, m in measured.items():
         lo = int(np.floor(t_hold)) + 1  # hold m with (m-1) <= T' (m>=1)
-        a_lo = 0.0 if lo == 1 else _hold_error_ratio(x, lo, sum_sq)
+        a_lo = 0.0 if lo == 1 else m.alpha_of(lo)
         frac = t_hold - (lo - 1)
-        if frac > 0 and lo + 1 <= n:
-            a_hi = _hold_error_ratio(x, lo + 1, sum_sq)
-            alpha_chosen[name] = float(a_lo + frac * (a_hi - a_lo))
+        if frac > 0 and lo + 1 <= m.x.size:
+            alpha_chosen[name] = float(a_lo + frac * (m.alpha_of(lo + 1) - a_lo))
         else:
             alpha_chosen[name] = float(a_lo)
     return alpha_chosen

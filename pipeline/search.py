@@ -16,16 +16,22 @@ Truncation test (noise-model searches): a flat tail alone is not enough.  A resp
 has not started yet (dead time) has a flat tail, and a noise-model fit does not let the
 last coefficient absorb the missing response the way white least squares does on slow
 inputs.  So an order ``m`` also needs the fit at ``n_p_max`` to show nothing significant
-beyond lag ``m`` (:func:`_truncation_test`, level :data:`TRUNCATION_ALPHA`), and the chosen
+beyond lag ``m`` (:func:`_truncation_test`, level :data:`TRUNCATION_ALPHA`: the next half
+of the response summed, every increment jointly, and the whole left-out part of the gain
+summed — Bonferroni over the three), and the chosen
 order is then lengthened by :data:`NOISE_MODEL_N_P_MARGIN`.  Without them the truncation
 bias exceeded the band: with AR noise N_p stopped inside the dead time (N_p = 3 for a
 3-sample delay).  The thesis' white-noise search keeps its rule (N_p·T ≈ the 98 %
 settling time, its last coefficient absorbing the rest; the report flags that jump).
 
-Stage 2 — N_d, by disjoint-window agreement:
-  start at ``N_d = 10 * N_p_max`` observations per window, estimate on two disjoint
-  windows and compare (:func:`pipeline.checks.window_agreement`); while any pair is not
-  ``pass`` and two windows of twice the size fit in the record, double N_d.
+Stage 2 — N_d, by disjoint-window agreement (method.md §5, §11):
+  the window check runs at the orders stage 1 chose — it never shortens them.  It starts
+  at ``N_d = 10 * N_p_max`` observations per window, or at the largest two disjoint
+  windows the record holds when that is less; while any pair is not ``pass`` and two
+  windows of twice the size fit, N_d doubles.  When not even two windows of
+  :data:`WINDOW_MIN_OBS_PER_UNKNOWN` observations per unknown fit, there is no window
+  check (every pair's agreement is ``insufficient_data``) and the all-data estimate
+  stands on its own.
 
 With a noise model (``noise="auto"`` or an AR order, method.md §10) the search runs on the
 lag Gram: the noise model of each output is fitted once at ``n_p_max`` (where the FIR is
@@ -45,9 +51,15 @@ value was chosen.
 
 Options of :func:`search`:
 
-* ``n_p_max`` defaults to ``N // (22 * n_x)`` capped at 300, so that two disjoint windows
-  of ``10 * N_p`` observations (plus ``N_p - 1`` lead-in samples each) still fit — with
-  ``N // 20`` a record whose response needs the largest order could not be judged at all.
+* ``n_p_max`` (the longest horizon tried) defaults to what the record supports, not to
+  what the window check needs: ``N // (OBS_PER_UNKNOWN * n_x)`` capped at
+  :data:`N_P_MAX_CAP` (:func:`default_n_p_max`).  The fit at ``n_p_max`` is the
+  reference the truncation test reads the response beyond a candidate order from, so it
+  must reach past the settling time; five observations per unknown keep its residual
+  degrees of freedom at 80 % of N, so its noise variance and covariance stay calibrated.
+  (Until 2026-12 the default was ``N // (22 * n_x)``, sized so that two windows of
+  ``10 * N_p`` fit: on the real steam generator, 6,400 samples with 4 inputs, that capped
+  N_p at 72 lags = 216 s for a pressure that settles in 320-500 s.)
 * ``feedback="auto"``: test every pair and give pairs with detected feedback
   ``n_k >= 1`` when there are no instruments; ``"report"``: test, change nothing;
   ``"off"`` (the default, the thesis' search): no test.  Jobs default to ``auto``.
@@ -79,9 +91,22 @@ from pipeline.step_result import StepResponseEstimate
 from pipeline._threads import single_threaded_blas
 from pipeline.feedback import FEEDBACK_LEADS, feedback_test
 from pipeline.progress import Tick, silent
+from pipeline.settledness import TRUNCATION_ALPHA, left_out_of, pair_curve, tail_moving
 
 __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
-           "TAIL_FRACTION", "TAIL_BAND"]
+           "default_n_p_max", "TAIL_FRACTION", "TAIL_BAND", "N_P_MAX_CAP",
+           "OBS_PER_UNKNOWN"]
+
+N_P_MAX_CAP = 300
+"""Longest default horizon in lags (the search's cost grows with the square of N_p;
+raise ``search.n_p_max`` or the sample period beyond it)."""
+OBS_PER_UNKNOWN = 5
+"""The default longest horizon keeps at least this many observations per unknown of an
+output (``N // (5 * n_x)`` lags): residual degrees of freedom >= 80 % of N."""
+WINDOW_MIN_OBS_PER_UNKNOWN = 2
+"""A disjoint window is estimated only with at least this many observations per unknown
+of its largest output (half its degrees of freedom left for the residual); fewer, and the
+window check says ``insufficient_data`` instead of shortening the model."""
 
 TAIL_FRACTION = 0.2
 TAIL_BAND = 0.02
@@ -95,13 +120,6 @@ would bias every lag beyond N_p.  1.4 x is the 99.5 %-settling time of a first-o
 (5.3 tau against 3.9 tau); a longer N_p costs only variance, which grows slowly with N_p
 (measured: 40 / 60 / 80 / 120 lags of a 45 s-settling plant gave median max errors
 0.078 / 0.041 / 0.039 / 0.044 at AR(1) 0.9 noise)."""
-TRUNCATION_ALPHA = 0.01
-"""Significance of the truncation test: an order ``m`` qualifies only when the longest
-fit's increments beyond lag ``m`` (``delta_h``; ``delta_g`` for integrating outputs) are
-jointly indistinguishable from zero at this level (a Wald test with that fit's
-covariance)."""
-
-
 @dataclass(frozen=True)
 class SearchResult:
     """Outcome of the N_p/N_d search.
@@ -139,6 +157,11 @@ class SearchResult:
         The estimator's ``noise`` setting (windows use the same).
     instruments : bool
         Whether the estimates are instrument-based.
+    left_out, left_out_std : ndarray (n_y, n_x)
+        What each pair's horizon leaves out of its gain (of ``rate * dt`` for an
+        integrating output), read from the reference fit at ``n_p_max``: the step there
+        minus the step at the pair's N_p, with its standard deviation (zero when the
+        orders were fixed and no reference was fitted).
     """
 
     n_p: np.ndarray
@@ -155,6 +178,8 @@ class SearchResult:
     noise_model: tuple = ()
     noise: str | int = "white"
     instruments: bool = False
+    left_out: np.ndarray | None = None
+    left_out_std: np.ndarray | None = None
 
 
 def _truncate(ne: NormalEquations, m: int) -> NormalEquations:
@@ -233,7 +258,7 @@ def choose_orders(
         return np.ones((ne.n_y, ne.n_x))
 
     n_p, settled, trace = _tail_rule(est_at, info_at, no_test, P, ne.n_y, ne.n_x, n_p_min,
-                                     candidates)
+                                     candidates, settle=False)
     return n_p, settled, trace, bic_order
 
 
@@ -291,7 +316,13 @@ def _truncation_test(ref: StepResponseEstimate):
                 ok = w > 1e-12 * max(w.max(), 1e-300)
                 zz = V[:, ok].T @ b
                 p_all = float(scipy.stats.chi2.sf(float(np.sum(zz**2 / w[ok])), int(ok.sum())))
-            out[i, j] = min(1.0, 2 * min(p_sum, p_all))  # Bonferroni over the two
+            # (c) everything the horizon m leaves out of the gain: the sum of every
+            # increment beyond m, 1 df — the power against a slow or weak response whose
+            # tail is small per lag but adds up (a gain read off an unsettled curve)
+            var_out = float(Cm.sum())
+            p_out = float(scipy.stats.chi2.sf(b.sum() ** 2 / var_out, 1)) \
+                if var_out > 0 else 1.0
+            out[i, j] = min(1.0, 3 * min(p_sum, p_all, p_out))  # Bonferroni over the three
         return out
 
     return p_at
@@ -303,9 +334,11 @@ def _clip_n_k(n_k, m: int, n_y: int, n_x: int) -> np.ndarray:
 
 
 def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
-               candidates: int, rel_band: float = TAIL_BAND) -> tuple[np.ndarray, np.ndarray, list]:
-    """The tail-flatness choice (with the truncation test ``trunc``) over a candidate
-    grid, then refined (module doc)."""
+               candidates: int, rel_band: float = TAIL_BAND, settle: bool = True
+               ) -> tuple[np.ndarray, np.ndarray, list]:
+    """The tail-flatness choice (with the truncation test ``trunc`` and, with ``settle``,
+    the settledness verdict's tail rule :func:`pipeline.settledness.tail_moving`) over a
+    candidate grid, then refined (module doc)."""
     cands = _candidates(n_p_min, P, candidates)
     flat = np.zeros((len(cands), n_y, n_x), dtype=bool)
     trace = []
@@ -317,11 +350,12 @@ def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
             for j in range(n_x):
                 q, s = _pair_curve(est, i, j, m)
                 rng, band, tail_ok = _tail_flatness(q, s, rel_band)
-                ok = tail_ok and p_tr[i, j] >= TRUNCATION_ALPHA
+                moving = settle and tail_moving(*pair_curve(est, i, j, m))
+                ok = tail_ok and p_tr[i, j] >= TRUNCATION_ALPHA and not moving
                 flat[ci, i, j] = ok
                 pairs.append({"output": i, "input": j, "tail_range": rng, "band": band,
                               "tail_flat": bool(tail_ok), "truncation_p": float(p_tr[i, j]),
-                              "flat": bool(ok)})
+                              "tail_moving": bool(moving), "flat": bool(ok)})
         trace.append({"n_p": m, "pairs": pairs, **info_at(m),
                       "sigma2": est.sigma2.tolist()})
     n_p = np.full((n_y, n_x), P, dtype=int)
@@ -351,10 +385,11 @@ def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
                     continue
                 q, s = _pair_curve(est, i, j, m)
                 rng, band, tail_ok = _tail_flatness(q, s, rel_band)
-                ok = tail_ok and p_tr[i, j] >= TRUNCATION_ALPHA
+                moving = settle and tail_moving(*pair_curve(est, i, j, m))
+                ok = tail_ok and p_tr[i, j] >= TRUNCATION_ALPHA and not moving
                 rows.append({"output": i, "input": j, "tail_range": rng, "band": band,
                              "tail_flat": bool(tail_ok), "truncation_p": float(p_tr[i, j]),
-                             "flat": bool(ok)})
+                             "tail_moving": bool(moving), "flat": bool(ok)})
                 if ok:
                     n_p[i, j] = m
                 else:
@@ -478,7 +513,7 @@ def search(
     mask : bool array (N,) or (N, n_x+n_y), optional
         Good samples.
     n_p_max : int, optional
-        Largest order tried; default ``N // (22 * n_x)`` capped at 300 (module notes).
+        Largest order tried; default :func:`default_n_p_max` (module notes).
     n_p_min : int
         Smallest order tried.
     n_p : int or int array (n_y, n_x), optional
@@ -524,24 +559,34 @@ def search(
         n_p_max=n_p_max, P0=P0, dt=dt, nk=nk, integrating=integrating, mask=mask,
         fit_cap=(n // 2 + 1 - extra) // 11, step=steps.step)
     nk = np.minimum(nk, npm - 1)
+    left, left_std = _left_out(x, y, est_max, npm, fixed=fixed, order=order, P0=P0, dt=dt,
+                               integrating=integrating, mask=mask, nk=nk)
     P = int(npm.max())
-    n_d = int(n_d_start or 10 * P)
     kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
-    chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d, P=P,
-                                      extra=extra, step=steps.step)
-    if chosen is None:
-        _too_short(n, P, extra)
+    # stage 2 at the chosen orders: the largest two windows that fit when 10 N_p do not
+    n_d = min(int(n_d_start or 10 * P), n // 2 - (P - 1 + extra))
+    need = WINDOW_MIN_OBS_PER_UNKNOWN * int(npm.sum(axis=1).max())
+    if n_d < need:
+        chosen, nd_trace = None, [{
+            "n_d": max(n_d, 0), "window_samples": max(n_d + P - 1 + extra, 0),
+            "error": f"two disjoint windows of the record's {n} samples hold at most "
+                     f"{max(n_d, 0)} observations each, fewer than the {need} the "
+                     f"{int(npm.sum(axis=1).max())} unknowns of an output need "
+                     f"({WINDOW_MIN_OBS_PER_UNKNOWN} per unknown): no window check"}]
+    else:
+        steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
+        chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d,
+                                          P=P, extra=extra, step=steps.step)
     tick(steps.total, steps.total)
-    n_d, length = chosen
-    wins = split_windows_by_length(n, length, max_windows)
+    n_d, length = chosen if chosen is not None else (0, 0)
+    wins = split_windows_by_length(n, length, max_windows) if length else []
     agreement = []
-    if estimate_windows:
+    if estimate_windows and wins:
         agreement = window_agreement(
             _usable_window_estimates(x, y, mask, wins, npm, dt, integrating, **kw))
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
                         bic_order, wins, nk, fb, noise_models, noise,
-                        instruments is not None)
+                        instruments is not None, left, left_std)
 
 
 def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
@@ -551,6 +596,20 @@ def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
         return fixed, np.ones((y.shape[1], x.shape[1]), dtype=bool), [], None
     return _stage1_orders(x, y, ctx, est_max, n_p_min=max(n_p_min, int(np.max(n_k)) + 1),
                           **stage1)
+
+
+def _left_out(x, y, est_max, npm: np.ndarray, *, fixed, order, P0: int, dt: float,
+              integrating, mask, nk: np.ndarray):
+    """:func:`left_out_of` the reference fit at ``n_p_max`` (the noise-model fit stage 1
+    judged against; for a white search the thesis' least squares there); zeros when the
+    orders were fixed (no reference)."""
+    if fixed is not None:
+        return np.zeros(npm.shape), np.zeros(npm.shape)
+    ref = est_max
+    if order == 0 or ref is None:
+        ref = estimate_step_responses(x, y, n_p=P0, dt=dt, integrating=integrating,
+                                      mask=mask, n_k=_clip_n_k(nk, P0, *npm.shape))
+    return left_out_of(ref, npm)
 
 
 def _as_columns(a) -> np.ndarray:
@@ -573,6 +632,19 @@ class _Steps:
         self.tick(self.done, self.total)
 
 
+def default_n_p_max(n: int, n_x: int) -> int:
+    """The default longest horizon: ``min(N_P_MAX_CAP, n // (OBS_PER_UNKNOWN * n_x))``.
+
+    Parameters
+    ----------
+    n : int
+        Samples in the record (at the sample period T).
+    n_x : int
+        Number of inputs.
+    """
+    return int(min(N_P_MAX_CAP, n // (OBS_PER_UNKNOWN * max(n_x, 1))))
+
+
 def _checked_setup(x, y, *, n_p, n_p_max, n_p_min: int, noise, feedback: str, integrating,
                    mask, instruments):
     """Arguments checked before any fit: the noise order, ``n_p_max``, fixed orders, the
@@ -583,7 +655,7 @@ def _checked_setup(x, y, *, n_p, n_p_max, n_p_min: int, noise, feedback: str, in
         raise ConfigError(f"feedback={feedback!r} is not allowed; use 'auto', 'report' or 'off'")
     order = noise_order(noise)
     if n_p_max is None:
-        n_p_max = int(min(300, n // (22 * max(n_x, 1))))
+        n_p_max = default_n_p_max(n, n_x)
     if n_p is None and n_p_max < max(1, n_p_min):
         raise InsufficientDataError(
             f"record of {n} samples is too short for the N_p search with {n_x} input(s): "
@@ -597,8 +669,15 @@ def _checked_setup(x, y, *, n_p, n_p_max, n_p_min: int, noise, feedback: str, in
             raise ConfigError(f"n_p must be >= 1 for every pair; got {fixed.tolist()}")
     P0 = int(fixed.max()) if fixed is not None else int(n_p_max)
     extra = 1 if np.any(np.broadcast_to(np.asarray(integrating), (n_y,))) else 0
-    if fixed is not None and n < 2 * (10 * P0 + P0 - 1 + extra):
-        _too_short(n, P0, extra)
+    if fixed is not None:
+        unknowns = int(fixed.sum(axis=1).max())
+        obs = n - (P0 - 1) - extra
+        if obs < 2 * unknowns:
+            raise InsufficientDataError(
+                f"record of {n} samples holds {max(obs, 0)} observations for n_p={P0} with "
+                f"{n_x} input(s): fewer than twice the {unknowns} unknowns of an output; lower "
+                "search.n_p (or search.settling_time_s), lengthen sampling.dt_s, or supply "
+                "more data")
     if instruments is not None:  # up front: a useless instrument is the user's error
         check_instruments(lag_gram_context(x, y, integrating=integrating, mask=mask,
                                            instruments=instruments, n_lags=2 * P0 + 1,
@@ -648,8 +727,10 @@ def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: 
 
 
 def _window_trials(n: int, n_d: int, P: int, extra: int) -> int:
-    """Most N_d values stage 2 can try from ``n_d`` (doubling while two windows fit)."""
-    return 1 + sum(1 for k in range(1, 30) if 2 * (2**k * n_d + P - 1 + extra) <= n)
+    """Most N_d values stage 2 can try from ``n_d`` (doubling while two windows fit, the
+    last one at the largest that fits)."""
+    most = n // 2 - (P - 1 + extra)
+    return 1 + sum(1 for k in range(1, 30) if 2**(k - 1) * n_d < most)
 
 
 def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,
@@ -657,6 +738,7 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
     """Stage 2: N_d doubled from ``n_d`` until two disjoint windows agree or data runs
     out; the chosen ``(n_d, window samples)`` (None: no two windows fit) and the trace."""
     n, n_y, n_x = x.shape[0], y.shape[1], x.shape[1]
+    most = n // 2 - (P - 1 + extra)  # the largest N_d two disjoint windows hold
     nd_trace: list = []
     chosen = None
     while True:
@@ -671,7 +753,9 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
             # a window may hold too few observations (masks) or an input that does not
             # move there (singular): record the trial, try longer windows
             nd_trace.append({"n_d": n_d, "window_samples": length, "error": str(exc)})
-            n_d *= 2
+            if n_d >= most:
+                break
+            n_d = min(2 * n_d, most)
             continue
         agr = window_agreement(ests)
         verdicts = [[a.verdict for a in row] for row in agr]
@@ -686,16 +770,7 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
         chosen = (n_d, length)
         if all(v == "pass" for row in verdicts for v in row):
             break
-        if 2 * (2 * n_d + P - 1 + extra) > n:
+        if n_d >= most:
             break
-        n_d *= 2
+        n_d = min(2 * n_d, most)
     return chosen, nd_trace
-
-
-def _too_short(n: int, P: int, extra: int):
-    need = 2 * (10 * P + P - 1 + extra)
-    raise InsufficientDataError(
-        f"record of {n} samples cannot hold two disjoint windows of {10 * P} "
-        f"observations for n_p={P} (needs {need} samples); supply more data or lower "
-        "n_p_max"
-    )

@@ -197,10 +197,14 @@ def _agreement_warnings(agreement: dict) -> list[dict]:
                   "the disjoint windows are too noisy to compare (a 30 % gain change would "
                   "not stand out at 2σ): supply a longer record, or raise search.n_d_start"})
     elif verdict == "fail":
-        p = agreement.get("p_value")
+        from pipeline.checks import GAIN_AGREEMENT_ALPHA
+
+        p, gp = agreement.get("p_value"), agreement.get("gain_p_value")
         w.append({"code": "windows_disagree", "message":
-                  f"the disjoint windows disagree (Wald test p = {p:.2g}, false-alarm rate "
-                  f"{agreement.get('alpha', 0.01):g}): the plant changed over the record or "
+                  f"the disjoint windows disagree (Wald test of the step p = {p:.2g} at "
+                  f"false-alarm rate {agreement.get('alpha', 0.01):g}"
+                  + ("" if gp is None else f"; their gains p = {gp:.2g} at "
+                     f"{GAIN_AGREEMENT_ALPHA:g}") + "): the plant changed over the record or "
                   "responds nonlinearly; estimate shorter periods separately or check the "
                   "operating point"})
     return w

@@ -13,7 +13,8 @@ from tests.conftest import write_job, write_plant_csv
 
 def test_window_where_the_input_does_not_move_is_recorded_not_fatal(tmp_path):
     write_plant_csv(tmp_path / "drop" / "export.csv", seed=5, hours=2.0)
-    cfg = load_job(write_job(tmp_path))
+    # a fixed horizon: four windows of 10 N_p fit in the 2-hour record
+    cfg = load_job(write_job(tmp_path, search={"n_p": 60}))
     prep = prepare(cfg, load_recording(cfg))
     sr = search_orders(cfg, prep)
     assert len(sr.windows) >= 3

@@ -18,7 +18,7 @@ from pipeline.quality import (
 )
 
 CLEAN = dict(verdict="pass", value=2.0, std=0.1, whiteness_p=0.5, xcorr_ok=True,
-             feedback_detected=False, feedback_handled_by=None, vif=1.2)
+             feedback_detected=False, feedback_handled_by=None, vif=1.2, settled="settled")
 
 
 def test_a_pair_that_passes_everything_is_an_a():

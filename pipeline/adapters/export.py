@@ -9,14 +9,19 @@ writes one file, atomically (a temporary file in the target folder, then ``os.re
     The DMC-style step-coefficient table: a ``#`` comment header — lines ``# key: value``
     for ``schema``, ``job``, ``run_id``, ``window``, ``dt_s``, ``rows`` (the time
     convention), ``padding`` (the rule and the padded pairs), then the rows
-    ``# output_unit,,…``, ``# input_unit,,…``, ``# n_p,,…``, ``# tail,,…`` (``hold`` or
-    ``ramp``) aligned with the columns — then the columns
+    ``# output_unit,,…``, ``# input_unit,,…``, ``# output_tag,,…``, ``# input_tag,,…``,
+    ``# n_p,,…``, ``# tail,,…`` (``hold`` or ``ramp``), ``# settled,,…`` (the settledness
+    verdict), ``# grade,,…``, ``# gain,,…``, ``# gain_std,,…`` (the rate for integrating
+    pairs; empty when the run reports none) aligned with the columns — then the columns
     ``lag,time_s,<output><-<input>,…``, one row per lag:
     row ``lag = k`` holds coefficient ``k``, the step response at lag ``k`` (lag 1 is the
     same-sample term, ``time_s = (lag - 1/2)·dt_s``).  All pairs share the rows
-    ``1..max n_p``; a pair with a shorter ``n_p`` is padded by holding its last value
-    (its response has settled — that is how ``n_p`` was chosen), an integrating pair by
-    continuing its last increment (its final slope); ``# n_p`` says where padding starts.
+    ``1..max n_p``; a pair with a shorter ``n_p`` is padded by holding its last value, an
+    integrating pair by continuing its last increment (its final slope); ``# n_p`` says
+    where padding starts, and the padding is the model only where ``# settled`` says
+    ``settled``.  An MPC package's step-response (FSR/DMC) model reads row ``lag = k`` as
+    its coefficient ``S_k``: the output change ``k`` samples after a unit input step held
+    from sample 0 (``# mpc`` header line).
     Numbers are written with Python's shortest round-trip ``repr``: they read back equal.
 ``json`` (:data:`SCHEMA_MODEL`)
     Everything: run metadata, signals with units, and per pair the lags, ``time_s``,
@@ -34,6 +39,12 @@ writes one file, atomically (a temporary file in the target folder, then ``os.re
 ``control`` (:data:`SCHEMA_CONTROL`)
     The fitted transfer functions only, for :func:`load_control`, which builds one
     ``control.TransferFunction`` per pair.
+
+The exported model is the reported model: a pair's transfer function is written only
+when its DC gain (rate) agrees with the run's reported gain within
+``max(2σ, 10 %)`` (:func:`gain_mismatch`); otherwise, and for a pair that reports no gain
+(still moving at its horizon), it is left out and ``fit_error`` says why.  Every file
+carries units, tags, the settledness verdict, the grade and the gain with its σ.
 
 A pair's ``transfer_function``: ``kind``, ``num``/``den`` of ``G(s)`` without the delay
 (highest power first), ``delay_s``, ``parameters``, ``fit_rms`` (RMS of fitted minus stored
@@ -113,6 +124,15 @@ class PairData:
         From ``checks.json``.
     warnings : list of dict
         ``checks.json`` ``pairs[].warnings``.
+    settled : str or None
+        ``checks.json`` ``pairs[].settled.verdict`` (``settled``, ``moving``,
+        ``insufficient_data``).
+    grade : str or None
+        The pair's quality grade (:func:`pipeline.quality.grade_from_checks`).
+    gain_note : str
+        ``checks.json`` ``pairs[].gain_note``.
+    gain_extrapolated : dict or None
+        ``checks.json`` ``pairs[].gain_extrapolated`` (``rate_extrapolated``).
     """
 
     output: str
@@ -129,6 +149,10 @@ class PairData:
     rate: float | None
     rate_std: float | None
     warnings: list = field(default_factory=list)
+    settled: str | None = None
+    grade: str | None = None
+    gain_note: str = ""
+    gain_extrapolated: dict | None = None
 
     @property
     def label(self) -> str:
@@ -304,6 +328,8 @@ def read_run(run_dir: str | os.PathLike) -> RunData:
     dts = table["dt_s"].unique().to_list()
     if len(dts) != 1:
         raise DataQualityError(f"{steps_file}: window '{WINDOW}' has several dt_s {dts}")
+    from pipeline.quality import grade_from_checks
+
     by_pair = {(p["output"], p["input"]): p for p in checks.get("pairs", [])}
     outputs = tuple(dict.fromkeys(p["output"] for p in checks.get("pairs", [])))
     inputs = tuple(dict.fromkeys(p["input"] for p in checks.get("pairs", [])))
@@ -317,7 +343,13 @@ def read_run(run_dir: str | os.PathLike) -> RunData:
             n_k=int(c.get("n_k") or 0), integrating=bool(c.get("integrating", False)),
             gain=_finite_or_none(c.get("gain")), gain_std=_finite_or_none(c.get("gain_std")),
             rate=_finite_or_none(c.get("rate")), rate_std=_finite_or_none(c.get("rate_std")),
-            warnings=list(c.get("warnings") or []))
+            warnings=list(c.get("warnings") or []),
+            settled=(c.get("settled") or {}).get("verdict")
+            if isinstance(c.get("settled"), dict) else None,
+            grade=grade_from_checks(c, checks).grade if c else None,
+            gain_note=str(c.get("gain_note") or ""),
+            gain_extrapolated=c.get("rate_extrapolated" if c.get("integrating")
+                                    else "gain_extrapolated"))
     outputs += tuple(o for o, _ in pairs if o not in outputs)
     inputs += tuple(u for _, u in pairs if u not in inputs)
     signals = (manifest.get("config") or {}).get("signals") or {}
@@ -366,15 +398,28 @@ def _csv_bytes(run: RunData) -> bytes:
         "rows: row lag = k holds coefficient k, the response of the output to a unit step of "
         "the input at time_s = (lag - 1/2) * dt_s after it (lag 1 is the same-sample term), "
         "in output unit per input unit",
-        "padding: rows past a pair's n_p repeat its last value (the response has settled); "
-        "integrating pairs (tail ramp) continue their last increment. Padded: "
+        "padding: rows past a pair's n_p repeat its last value; integrating pairs (tail "
+        "ramp) continue their last increment. That is the model only where the pair's "
+        "'settled' row says settled: a 'moving' pair's response had not settled at its n_p "
+        "(its gain is empty; see the gain_note in checks.json). Padded: "
         + (", ".join(short) if short else "none"),
+        "mpc: an MPC package's step-response model (DMC, e.g. a FSR matrix S_1..S_N) takes "
+        "row lag = k as S_k: the output change k samples after a unit input step applied "
+        "at sample 0 (sample-and-hold), i.e. lag 1 is the same-sample coefficient; pairs "
+        "graded C or D or not settled should not go into a controller as they are",
     ):
         buf.write(f"# {line}\n")
     for name, values in (("output_unit", [run.units[p.output] for p in pairs]),
                          ("input_unit", [run.units[p.input] for p in pairs]),
+                         ("output_tag", [run.tags[p.output] for p in pairs]),
+                         ("input_tag", [run.tags[p.input] for p in pairs]),
                          ("n_p", [p.n_p for p in pairs]),
-                         ("tail", ["ramp" if p.integrating else "hold" for p in pairs])):
+                         ("tail", ["ramp" if p.integrating else "hold" for p in pairs]),
+                         ("settled", [p.settled or "" for p in pairs]),
+                         ("grade", [p.grade or "" for p in pairs]),
+                         ("gain", [_text(p.rate if p.integrating else p.gain) for p in pairs]),
+                         ("gain_std", [_text(p.rate_std if p.integrating else p.gain_std)
+                                       for p in pairs])):
         row = io.StringIO()
         csv.writer(row, lineterminator="").writerow([name, "", *values])
         buf.write(f"# {row.getvalue()}\n")
@@ -383,6 +428,10 @@ def _csv_bytes(run: RunData) -> bytes:
         w.writerow([int(lag), repr(float(tab["time_s"][k])),
                     *(repr(float(tab["step"][k, i, j])) for i, j in idx)])
     return buf.getvalue().encode("utf-8")
+
+
+def _text(v: float | None) -> str:
+    return "" if v is None else repr(float(v))
 
 
 # ----------------------------------------------------------------------------- fits
@@ -407,9 +456,10 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
     fits = {}
     for p in run.pair_list():
         try:
-            fits[(p.output, p.input)] = fit_step_model(
-                p.step, dt_s=run.dt_s, step_std=p.step_std, integrating=p.integrating,
-                rate=p.rate)
+            fit = fit_step_model(p.step, dt_s=run.dt_s, step_std=p.step_std,
+                                 integrating=p.integrating, rate=p.rate)
+            why = gain_mismatch(p, fit)
+            fits[(p.output, p.input)] = fit if why is None else f"left out: {why}"
             msg = str(fits[(p.output, p.input)])
         except PipelineError as exc:
             fits[(p.output, p.input)] = f"no transfer function: {exc}"
@@ -417,6 +467,25 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
         if progress is not None:
             progress("export", f"{p.label}: {msg}")
     return fits
+
+
+def gain_mismatch(p: PairData, fit) -> str | None:
+    """:func:`pipeline.lti_fit.gain_mismatch` of a stored pair (``None``: the fit is the
+    reported model).
+
+    Parameters
+    ----------
+    p : PairData
+        The pair as stored.
+    fit : StepModelFit
+        Its fitted transfer function.
+    """
+    from pipeline.lti_fit import gain_mismatch as mismatch
+
+    value, std = (p.rate, p.rate_std) if p.integrating else (p.gain, p.gain_std)
+    return mismatch(fit, value=value, std=std, integrating=p.integrating,
+                    label=f"{p.label} ({p.settled or 'not judged'} at its horizon of "
+                          f"{p.n_p} lags)")
 
 
 def _tf_dict(fit, dt_s: float) -> dict | None:
@@ -449,7 +518,11 @@ def _header(run: RunData, schema: str) -> dict:
 def _pair_head(run: RunData, p: PairData) -> dict:
     return {"output": p.output, "input": p.input, "label": p.label,
             "output_unit": run.units[p.output], "input_unit": run.units[p.input],
-            "dt_s": run.dt_s, "n_p": p.n_p, "n_k": p.n_k, "integrating": p.integrating}
+            "output_tag": run.tags[p.output], "input_tag": run.tags[p.input],
+            "dt_s": run.dt_s, "n_p": p.n_p, "n_k": p.n_k, "integrating": p.integrating,
+            "gain": p.rate if p.integrating else p.gain,
+            "gain_std": p.rate_std if p.integrating else p.gain_std,
+            "settled": p.settled, "grade": p.grade}
 
 
 def _json_text(obj: dict) -> bytes:
@@ -467,7 +540,9 @@ def _json_bytes(run: RunData, fits: dict) -> bytes:
             **_pair_head(run, p), "lag": p.lag.tolist(), "time_s": p.time_s.tolist(),
             "step": p.step.tolist(), "step_std": p.step_std.tolist(),
             "delta_h": p.delta_h.tolist(), "gain": p.gain, "gain_std": p.gain_std,
-            "rate": p.rate, "rate_std": p.rate_std, "warnings": p.warnings,
+            "rate": p.rate, "rate_std": p.rate_std, "settled": p.settled,
+            "grade": p.grade, "gain_note": p.gain_note,
+            "gain_extrapolated": p.gain_extrapolated, "warnings": p.warnings,
             "transfer_function": _tf_dict(fit, run.dt_s),
             **({"fit_error": fit} if isinstance(fit, str) else {})})
     return _json_text({**_header(run, SCHEMA_MODEL), "pairs": pairs})
@@ -515,6 +590,12 @@ def _mat_bytes(run: RunData, fits: dict) -> bytes:
         "outputs": _cells(run.outputs, (ny, 1)), "inputs": _cells(run.inputs, (nx, 1)),
         "output_units": _cells([run.units[o] for o in run.outputs], (ny, 1)),
         "input_units": _cells([run.units[u] for u in run.inputs], (nx, 1)),
+        "output_tags": _cells([run.tags[o] for o in run.outputs], (ny, 1)),
+        "input_tags": _cells([run.tags[u] for u in run.inputs], (nx, 1)),
+        "settled": _cells([run.pairs[k].settled or "" if k in run.pairs else ""
+                           for k in grid], (ny, nx)),
+        "grade": _cells([run.pairs[k].grade or "" if k in run.pairs else "" for k in grid],
+                        (ny, nx)),
         "tf_kind": _cells([t["kind"] if t else "none" for t in tfs], (ny, nx)),
         "tf_num": _cells(tf_field("num", []), (ny, nx)),
         "tf_den": _cells(tf_field("den", []), (ny, nx)),

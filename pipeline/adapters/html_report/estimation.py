@@ -28,6 +28,7 @@ from pipeline.adapters.html_report.stored import (
     residual_correlations,
 )
 from pipeline.quality import GRADE_MEANING, GRADE_RULE, grade_from_checks, relative_gain_array
+from pipeline.settledness import gain_cell
 
 __all__ = ["render_run_html"]
 
@@ -144,18 +145,26 @@ def gain_table(run: StoredRun, units: dict[str, str]) -> str:
                 row.append("–")
                 continue
             unit = ratio_unit(units.get(o, ""), units.get(u, ""))
+            key = "rate" if p.get("integrating") else "gain"
+            if p.get(key) is not None:
+                cell = fmt_pm(p.get(key), p.get(f"{key}_std"))
+                if p.get("sign_established") is False:
+                    cell += " (sign not established)"
+            else:  # no bare number off an unsettled curve (pipeline.settledness)
+                cell = esc(gain_cell(p, key))
             if p.get("integrating"):
-                cell = f"rate {fmt_pm(p.get('rate'), p.get('rate_std'))}"
+                cell = f"rate {cell}"
                 unit += " per s"
             else:
-                cell = fmt_pm(p.get("gain"), p.get("gain_std"))
                 G[i, j] = np.nan if p.get("gain") is None else float(p["gain"])
             grade = grade_from_checks(p, run.checks or {}).grade
             row.append(f"{cell} {grade_badge(grade)}<br><span class=\"unit\">{esc(unit)}</span>")
         rows.append(row)
     out = [table(head, rows, table_id="gain-matrix"),
            "<p>Gain = the final value of the all-data step response (the FIR model's static "
-           "gain) ± its σ; integrating outputs have a rate (slope per unit input step) "
+           "gain) ± its σ, which includes what the horizon leaves out; a pair still moving "
+           "at its horizon has no gain (an extrapolated one, labelled, when its tail "
+           "decays); integrating outputs have a rate (slope per unit input step) "
            "instead. The letter is the pair's quality grade (below).</p>"]
     rga = relative_gain_array(G)
     if rga is not None:
