@@ -199,7 +199,7 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     say(start, "search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
          f"{len(sr.windows)} windows")
     windows = [None] + [tuple(w) for w in sr.windows]
-    ests = stage("estimate", _estimate_windows, prep, windows, jobs.estimate_settings(cfg, sr))
+    ests = stage("estimate", _estimate_windows, prep, windows, jobs.estimate_settings(cfg, sr, prep.x.shape[0]))
     update_progress_artifact(progress, 80.0, description=f"{len(windows)} estimates done")
     summary = stage("summarise", summarise_task, cfg, prep, sr, ests[0], ests[1:])
     if cfg.monitor is not None:  # the baseline is read before the new run is written

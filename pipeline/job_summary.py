@@ -49,9 +49,18 @@ def _characteristics(est: StepResponseEstimate, i: int, j: int) -> dict:
         return {"error": str(exc)}
 
 
-def _window_table(sr: SearchResult, window_results: list) -> tuple[list, list]:
+def _window_table(sr: SearchResult, window_results: list, time: np.ndarray
+                  ) -> tuple[list, list]:
+    """Per disjoint window its samples, time range, status and error; and the estimated
+    windows with their labels."""
     labelled = [(f"w{k}", e) for k, e in enumerate(window_results)]
+
+    def span(a: int, b: int) -> list[str]:
+        return [str(np.datetime_as_string(np.asarray(time)[i], unit="s")) + "Z"
+                for i in (a, min(b, len(time)) - 1)]
+
     status = [{"window": lab, "samples": list(map(int, sr.windows[k])),
+               "time": span(*map(int, sr.windows[k])),
                "status": "failed" if isinstance(e, WindowFailure) else "ok",
                **({"error": e.error} if isinstance(e, WindowFailure) else {"n_d": int(e.n_d)})}
               for k, (lab, e) in enumerate(labelled)]
@@ -108,7 +117,7 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
         One per ``sr.windows``, in order.
     """
     ins, outs = prep.inputs, prep.outputs
-    window_status, labelled = _window_table(sr, window_results)
+    window_status, labelled = _window_table(sr, window_results, prep.time)
     window_ests = [e for _, e in labelled]
     steps = _step_table([("all", all_est)] + labelled, outs, ins)
     agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
@@ -187,6 +196,7 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
                     "rate": final if integ else None,
                     "rate_std": final_std if integ else None,
                     "rate_extrapolated": st.gain_extrapolated if integ else None,
+                    "peak": None if integ else float(np.max(np.abs(all_est.step[i, j, :n]))),
                     "method": all_est.method,
                     "agreement": agr, "feedback": fbd, "characteristics": chars}
             if chars.get("gain") is not None and not integ:
@@ -220,6 +230,7 @@ def _checks(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate
         "sampling": prep.sampling,
         "conditioning": prep.conditioning,
         "estimation": {"method": all_est.method, "noise": cfg.estimation.noise,
+                       "method_choice": _method_choice(cfg, sr, prep).to_dict(),
                        "feedback": cfg.estimation.feedback,
                        "instruments": {r: tags[r] for r in prep.instruments},
                        **({"first_stage": {ins[k]: v for k, v in
@@ -303,13 +314,22 @@ def _significant(pair: dict) -> bool:
     return v is not None and bool(abs(v) > 2 * s)
 
 
+def _method_choice(cfg, sr: SearchResult, prep: Prepared):
+    from pipeline.jobs import method_choice
+
+    return method_choice(cfg, sr, prep.x.shape[0])
+
+
 def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: int):
     """The pair's :func:`pipeline.settledness.settledness` with what its horizon leaves
     out in the search's reference fit."""
     from pipeline.settledness import settledness
 
-    lo = 0.0 if sr.left_out is None else float(sr.left_out[i, j])
-    lo_std = 0.0 if sr.left_out_std is None else float(sr.left_out_std[i, j])
+    # what the search's horizon leaves out; an estimate at another horizon (the
+    # regularised one, longer) has no measured left-out part
+    same = int(est.n_p[i, j]) == int(sr.n_p[i, j])
+    lo = 0.0 if sr.left_out is None or not same else float(sr.left_out[i, j])
+    lo_std = 0.0 if sr.left_out_std is None or not same else float(sr.left_out_std[i, j])
     outs, ins = list(cfg.signals.outputs), list(cfg.signals.inputs)
     uo, ui = _unit(cfg, outs[i]), _unit(cfg, ins[j])
     return settledness(est, i, j, left_out=lo, left_out_std=lo_std,
@@ -371,14 +391,17 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
               "instrumental_variables": "instrumental variables ("
                                         + ", ".join(est["instruments"]) + ")",
               "correlation": "the correlation method (method.md §2), white-noise σ",
-              "regularized_tc": "kernel-regularised least squares, TC prior (hyperparameters "
-                                "by marginal likelihood, posterior σ)"}[est["method"]]
+              "regularized_tc": "kernel-regularised FIR, TC prior (hyperparameters by "
+                                "marginal likelihood, noise model per output, posterior σ)",
+              "regularized_dc": "kernel-regularised FIR, DC prior (hyperparameters by "
+                                "marginal likelihood, noise model per output, posterior "
+                                "σ)"}[est["method"]]
     lines = [f"# plantdyn run: {cfg.job}", "",
              f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
              f"(decimation {prep.decimation} from the {prep.recording.dt_s:g} s grid, "
              f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
              f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
-             f"Estimator: {method}.", "",
+             f"Estimator: {method} — {est['method_choice']['reason']}.", "",
              "| output | input | grade | N_p | N_p·T (s) | settled | gain ± σ "
              "| rate K ± σ (/s) | windows (p) | feedback (p) | warnings |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -409,11 +432,15 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
     warned = [p for p in pairs if p["warnings"]]
     lines += ["", "## When to distrust a pair", ""]
     if not warned:
+        graded = [p for p in pairs if grade_from_checks(p, checks).grade in "CD"]
         lines.append("No warnings: residuals white under the noise models, no feedback "
-                     "without an instrument, N_p inside its bounds, windows agree.")
+                     "without an instrument, N_p inside its bounds, windows agree."
+                     + (f" {len(graded)} pair(s) are graded C or D all the same: the quality "
+                        "grades above say why and what to change." if graded else ""))
     for p in warned:
         for w in p["warnings"]:
             lines.append(f"- **{p['output']}<-{p['input']}** ({w['code']}): {w['message']}.")
+    lines += _window_lines(sr, checks, prep.time)
     masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
     lines += ["", f"Masked grid samples per signal: {masked or 'none'}."]
     grid = prep.recording.ingest.get("grid", {})
@@ -429,6 +456,29 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
                      f"between {d['first']} and {d['last']}, far from the rest of the record "
                      "— check the export's timestamps.")
     return "\n".join(lines) + "\n"
+
+
+def _window_lines(sr: SearchResult, checks: dict, time: np.ndarray) -> list[str]:
+    """report.md's account of the window check when it could not run as planned: a
+    window that could not be estimated (which window, when, and why — the input that does
+    not move there), or no two windows at all."""
+    lines = []
+    for w in checks["search"]["windows"]:
+        if w["status"] == "failed":
+            lines.append(f"- Window {w['window']} ({w['time'][0]} to {w['time'][1]}, samples "
+                         f"{w['samples'][0]}–{w['samples'][1]}) could not be estimated: "
+                         f"{w['error']}.")
+    if not sr.windows:
+        last = next((t for t in reversed(sr.nd_trace) if "error" in t), {})
+        where = ""
+        if "failed_window" in last:
+            a, b = last["failed_window"]
+            t0, t1 = (str(np.datetime_as_string(np.asarray(time)[k], unit="s")) + "Z"
+                      for k in (a, min(b, len(time)) - 1))
+            where = f"the window {t0} to {t1} (samples {a}–{b}) cannot be estimated: "
+        lines.append("- No window check: " + where
+                     + (last.get("error") or "no two disjoint windows fit") + ".")
+    return (["", "## The window check", ""] + lines) if lines else []
 
 
 def _grade_lines(pairs: list, checks: dict) -> list[str]:

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.alt_estimates import estimate_correlation_method, estimate_regularized
+from pipeline.alt_estimates import estimate_correlation_method
 from pipeline.conditioning import condition, interpolate_gaps
 from pipeline.errors import (
     DataQualityError,
@@ -197,7 +197,7 @@ def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
         if raw.size and np.ptp(raw) <= 1e-9 * max(float(np.max(np.abs(raw))), 1e-300):
             raise _instrument_error(cfg, prep, InstrumentError("", instrument=k))
     try:
-        return search(
+        sr = search(
             np.nan_to_num(prep.x), np.nan_to_num(prep.y), dt=prep.dt_s,
             integrating=prep.integrating, mask=prep.good_xy, n_p_max=s.n_p_max,
             n_p_min=s.n_p_min, n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows,
@@ -207,20 +207,58 @@ def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
         raise _instrument_error(cfg, prep, exc) from None
     except SingularSystemError as exc:
         raise _named(exc, prep) from None
+    for trial in sr.nd_trace:  # the core numbers signals; the report names them
+        if "error" in trial:
+            trial["error"] = _signal_names(trial["error"], cfg, prep)
+    return sr
 
 
-def estimate_settings(cfg, sr: SearchResult) -> tuple:
+def _signal_names(text: str, cfg, prep: Prepared) -> str:
+    """A core message's ``input k`` / ``output k`` as the job's names and tags."""
+    import re
+
+    tags = cfg.tags()
+    text = re.sub(r"\binput (\d+)\b", lambda m: f"input {prep.inputs[int(m.group(1))]} "
+                  f"(tag {tags[prep.inputs[int(m.group(1))]]})", text)
+    return re.sub(r"\boutput (\d+)\b", lambda m: f"output {prep.outputs[int(m.group(1))]}",
+                  text)
+
+
+def estimate_settings(cfg, sr: SearchResult, n_samples: int) -> tuple:
     """The positional settings :func:`estimate_window` takes after ``prep, window``: the
-    search's choices and the job's ``estimation.method`` (one place for both paths).
+    search's choices and the estimator ``estimation.method`` resolves to, with its horizon
+    (:func:`pipeline.method_choice.choose_method`; one place for both paths).
 
     Parameters
     ----------
     cfg : JobConfig
         The validated job (``estimation.method``).
     sr : SearchResult
-        The order search's outcome (``n_p``, ``n_k``, ``noise``, ``instruments``).
+        The order search's outcome (``n_p``, ``settled``, ``n_k``, ``noise``,
+        ``instruments``).
+    n_samples : int
+        Samples of the conditioned record (``prep.x.shape[0]``).
     """
-    return (sr.n_p, sr.n_k, sr.noise, sr.instruments, cfg.estimation.method)
+    mc = method_choice(cfg, sr, n_samples)
+    return (mc.n_p, sr.n_k, sr.noise, sr.instruments, mc.method)
+
+
+def method_choice(cfg, sr: SearchResult, n_samples: int):
+    """:func:`pipeline.method_choice.choose_method` for the job and its search.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job (``estimation.method``).
+    sr : SearchResult
+        The order search's outcome.
+    n_samples : int
+        Samples of the conditioned record.
+    """
+    from pipeline.method_choice import choose_method
+
+    return choose_method(cfg.estimation.method, sr.n_p, sr.settled, n_samples,
+                         instruments=sr.instruments)
 
 
 def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
@@ -240,15 +278,15 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
     window : (int, int) or None
         Sample slice ``(start, stop)`` of ``prep``; ``None`` for every sample.
     n_p : int or int array (n_y, n_x)
-        Order per pair (``SearchResult.n_p``); ``tc`` takes the largest for every pair.
+        Order per pair; ``tc``/``dc`` take the largest for every pair.
     n_k : int or int array (n_y, n_x)
         Known delay in samples per pair (``SearchResult.n_k``).
     noise : ``"white"``, ``"auto"`` or int
-        The estimator's noise setting (``SearchResult.noise``; ``ls`` only).
+        The estimator's noise setting (``SearchResult.noise``; not ``correlation``).
     use_instruments : bool
         Estimate with ``prep.r`` as instruments (``SearchResult.instruments``; ``ls`` only).
-    method : ``"ls"``, ``"correlation"`` or ``"tc"``
-        ``estimation.method`` of the job.
+    method : ``"ls"``, ``"correlation"``, ``"tc"`` or ``"dc"``
+        The estimator ``estimation.method`` resolved to (:func:`estimate_settings`).
     """
     a, b = window if window is not None else (0, prep.x.shape[0])
     x, y = np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b])
@@ -256,10 +294,12 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
         if method == "correlation":  # masked samples enter as zeros (the conditioned mean)
             return estimate_correlation_method(x, y, n_p=n_p, dt=prep.dt_s,
                                                integrating=prep.integrating, n_k=n_k)
-        if method == "tc":
-            return estimate_regularized(x, y, n_p=int(np.max(n_p)), dt=prep.dt_s,
-                                        integrating=prep.integrating,
-                                        mask=prep.good_xy[a:b], n_k=n_k)
+        if method in ("tc", "dc"):
+            from pipeline.kernel_fir import estimate_kernel
+
+            return estimate_kernel(x, y, n_p=int(np.max(n_p)), dt=prep.dt_s,
+                                   integrating=prep.integrating, mask=prep.good_xy[a:b],
+                                   n_k=n_k, noise=noise, kernel=method)
         return estimate_step_responses(
             x, y, n_p=n_p, dt=prep.dt_s,
             integrating=prep.integrating, mask=prep.good_xy[a:b], noise=noise, n_k=n_k,
@@ -342,7 +382,7 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     rec = stage("ingest", load_recording, cfg, files, bar=("MB", 1e-6))
     prep = stage("prepare", prepare, cfg, rec)
     sr = stage("search", search_orders, cfg, prep, bar=("steps", 1.0))
-    choice = estimate_settings(cfg, sr)
+    choice = estimate_settings(cfg, sr, prep.x.shape[0])
     all_est = stage("estimate_all", estimate_window, prep, None, *choice)
     wins = []
     for k, w in enumerate(sr.windows):

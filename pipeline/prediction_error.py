@@ -47,7 +47,8 @@ from pipeline.noise_model import (
 )
 
 __all__ = ["Design", "OutputFit", "fit_prediction_error", "fit_fixed_noise",
-           "fit_instrumental", "first_stage_strength", "WEAK_INSTRUMENT_F"]
+           "fit_instrumental", "first_stage_strength", "filtered_normal_equations",
+           "WEAK_INSTRUMENT_F"]
 
 _RCOND = 1e-12
 WEAK_INSTRUMENT_F = 10.0
@@ -161,6 +162,34 @@ def _inv_factor(fac) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ building blocks
+def filtered_normal_equations(G: np.ndarray, design: Design, d: np.ndarray):
+    """``(A~, c~, y~'y~)``: the normal equations of a design whose output and regressors are
+    filtered by the noise filter ``d`` — combinations of the lag Gram (method.md §10).
+
+    Parameters
+    ----------
+    G : ndarray
+        The lag Gram (``LagGram.gram(design.nuisance)``).
+    design : Design
+        The output's regression.
+    d : ndarray (p + 1,)
+        Noise filter ``[1, d_1, ..., d_p]``.
+    """
+    blocks = list(design.blocks) + [design.y]
+    n = len(blocks)
+    rows = []
+    for i in range(n):
+        rows.append([filtered_gram(G, d, blocks[i], blocks[j]) if j >= i else None
+                     for j in range(n)])
+    for i in range(n):
+        for j in range(i):
+            rows[i][j] = rows[j][i].T
+    M = np.block(rows)
+    m_full = design.full_size
+    idx = design.sel
+    return M[np.ix_(idx, idx)], M[idx, m_full], float(M[m_full, m_full])
+
+
 class _Problem:
     """Cached pieces of one output's regression on a lag Gram."""
 
@@ -186,24 +215,8 @@ class _Problem:
             self._cache[key] = self._filtered(d)
         return self._cache[key]
 
-    # filtered Gram of [regressors (full), y] for filter d
     def _filtered(self, d: np.ndarray):
-        blocks = self.blocks + [self.design.y]
-        n = len(blocks)
-        rows = []
-        for i in range(n):
-            rows.append([filtered_gram(self.G, d, blocks[i], blocks[j]) if j >= i else None
-                         for j in range(n)])
-        for i in range(n):
-            for j in range(i):
-                rows[i][j] = rows[j][i].T
-        M = np.block(rows)
-        m_full = self.design.full_size
-        idx = self.sel
-        A = M[np.ix_(idx, idx)]
-        c = M[idx, m_full]
-        yy = float(M[m_full, m_full])
-        return A, c, yy
+        return filtered_normal_equations(self.G, self.design, d)
 
     def residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
         """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts``."""

@@ -6,9 +6,11 @@ built from the same thresholds the function uses, so the written rule cannot dri
 the implemented one.  Each criterion caps the grade; the pair's grade is the worst cap:
 
 * window agreement (``agreement.verdict``): ``pass`` A, ``insufficient_data`` C, ``fail`` D;
-* relative σ of the gain (``gain_std/|gain|``; ``rate_std/|rate|`` for integrating pairs):
-  ≤ 0.10 A, ≤ 0.25 B, ≤ 0.5 C, above D (the gain is within 2σ of zero: its sign is not
-  established);
+* relative σ of the gain (``gain_std / max(|gain|, peak)``, ``peak`` the largest magnitude
+  of the step response; ``rate_std/|rate|`` for integrating pairs): ≤ 0.10 A, ≤ 0.25 B,
+  ≤ 0.5 C, above D (the gain is within 2σ of zero: its sign is not established).  A gain
+  known to be ≈ 0 to a σ small against a clear transient — a controller that removes the
+  input's effect at steady state — grades by that σ, not D;
 * whiteness of the output's prediction errors (Ljung–Box p): ≥ 0.01 A, below C (the ±σ
   may be optimistic);
 * input–residual cross-correlation (``ok``): ok A, not ok C (the model misses part of the
@@ -35,7 +37,7 @@ import numpy as np
 
 from pipeline.errors import ConfigError
 
-__all__ = ["GRADES", "GRADE_MEANING", "GRADE_RULE", "PairGrade", "pair_grade",
+__all__ = ["GRADES", "GRADE_MEANING", "PEAK_SIGMAS", "GRADE_RULE", "PairGrade", "pair_grade",
            "grade_from_checks", "fit_percent", "relative_gain_array", "simulate_fir"]
 
 GRADES = ("A", "B", "C", "D")
@@ -45,6 +47,9 @@ GRADE_MEANING = {
     "C": "indicative only: a check could not confirm it or failed softly",
     "D": "do not use as is: the windows disagree or the gain's sign is not established",
 }
+PEAK_SIGMAS = 4.0
+"""A response's peak counts as the scale of its gain's σ only when it exceeds this many
+σ (a clear transient, not the largest of the noise)."""
 REL_SIGMA_A, REL_SIGMA_B, REL_SIGMA_C = 0.10, 0.25, 0.5
 """Relative σ of the gain at most this for grade A, B, C (above C: D; 0.5 = |gain| < 2σ)."""
 WHITENESS_ALPHA = 0.01
@@ -55,7 +60,7 @@ VIF_A, VIF_B = 5.0, 10.0
 GRADE_RULE: tuple[tuple[str, str, str, str, str, str], ...] = (
     ("window agreement", "checks.json pairs[].agreement.verdict",
      "pass", "—", "insufficient_data (a 30 % change would not be detected)", "fail"),
-    ("relative σ of the gain", "gain_std / |gain| (rate_std / |rate| if integrating)",
+    ("relative σ of the gain", "gain_std / max(|gain|, peak) (rate_std / |rate| if integrating)",
      f"≤ {REL_SIGMA_A:g}", f"≤ {REL_SIGMA_B:g}", f"≤ {REL_SIGMA_C:g}",
      f"> {REL_SIGMA_C:g} (|gain| < 2σ: sign not established)"),
     ("residual whiteness", "Ljung–Box p of the output's prediction errors",
@@ -114,18 +119,22 @@ def _finite(v: Any) -> float | None:
     return f if np.isfinite(f) else None
 
 
-def _relative_sigma_cap(value, std) -> tuple[str | None, float | None, str]:
+def _relative_sigma_cap(value, std, peak=None) -> tuple[str | None, float | None, str]:
     v, s = _finite(value), _finite(std)
     if v is None or s is None:
         return None, None, "gain or its σ not available"
-    rel = float("inf") if v == 0 else s / abs(v)
+    pk = _finite(peak)
+    clear = pk is not None and pk > PEAK_SIGMAS * s  # a transient well above the noise
+    scale = max(abs(v), pk) if clear else abs(v)
+    rel = float("inf") if scale == 0 else s / scale
+    more = "; more data (a longer record) or an instrument narrows it"
     if rel <= REL_SIGMA_A:
         return "A", rel, ""
     if rel <= REL_SIGMA_B:
         return "B", rel, f"relative σ of the gain {rel:.2g} > {REL_SIGMA_A:g}"
     if rel <= REL_SIGMA_C:
-        return "C", rel, f"relative σ of the gain {rel:.2g} > {REL_SIGMA_B:g}"
-    return "D", rel, f"gain within 2σ of zero (relative σ {rel:.2g})"
+        return "C", rel, f"relative σ of the gain {rel:.2g} > {REL_SIGMA_B:g}" + more
+    return "D", rel, f"gain within 2σ of zero (relative σ {rel:.2g})" + more
 
 
 def _feedback_cap(detected, handled_by) -> tuple[str | None, str]:
@@ -143,7 +152,8 @@ def _feedback_cap(detected, handled_by) -> tuple[str | None, str]:
 def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
                whiteness_p: float | None = None, xcorr_ok: bool | None = None,
                feedback_detected: bool | None = None, feedback_handled_by: str | None = None,
-               vif: float | None = None, settled: str | None = None) -> PairGrade:
+               vif: float | None = None, settled: str | None = None,
+               peak: float | None = None) -> PairGrade:
     """Grade one pair by the rule of the module (:data:`GRADE_RULE`).
 
     A criterion whose value is None is not judged (its cap is None) and does not lower
@@ -169,6 +179,11 @@ def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
         Variance inflation factor of the input among the inputs (1 = uncorrelated).
     settled : ``"settled"``, ``"moving"``, ``"insufficient_data"`` or None
         The settledness verdict at the horizon (:mod:`pipeline.settledness`).
+    peak : float or None
+        Largest magnitude of the step response (of its slope, integrating): the relative
+        σ is taken against ``max(|gain|, peak)``, so a gain known to be ≈ 0 with a small σ
+        against a clear transient (a closed loop that removes the input's effect at
+        steady state) is a result, not a D.
     """
     if verdict not in (None, "pass", "fail", "insufficient_data"):
         raise ConfigError(f"verdict {verdict!r} is not one of 'pass', 'fail', "
@@ -180,7 +195,7 @@ def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
     caps["agreement"] = (None, None, "") if verdict is None else (
         {"pass": "A", "insufficient_data": "C", "fail": "D"}[verdict], verdict,
         "" if verdict == "pass" else f"windows {verdict}")
-    cap, rel, why = _relative_sigma_cap(value, std)
+    cap, rel, why = _relative_sigma_cap(value, std, peak)
     caps["relative_sigma"] = (cap, rel, why if cap not in (None, "A") else "")
     p = _finite(whiteness_p)
     caps["whiteness"] = (None, None, "") if p is None else (
@@ -242,7 +257,8 @@ def grade_from_checks(pair: Mapping[str, Any], checks: Mapping[str, Any]) -> Pai
                       feedback_detected=None if fb is None else fb.get("detected"),
                       feedback_handled_by=handled, vif=vif,
                       settled=(pair.get("settled") or {}).get("verdict")
-                      if isinstance(pair.get("settled"), Mapping) else None)
+                      if isinstance(pair.get("settled"), Mapping) else None,
+                      peak=pair.get("peak"))
 
 
 def fit_percent(y, y_hat) -> float:

@@ -381,41 +381,44 @@ def choose_sample_period(
     role = _roles_dict(roles, list(sig))
     diff = _integrating_dict(integrating, role)
     n = next(iter(sig.values())).size
-    if n < 40:
-        raise DataQualityError(
-            f"record has {n} samples; α_T needs at least 40 (20 holds of 2 samples) to "
-            "choose a sample period — supply a longer record"
-        )
-    max_hold = n // 20 if max_hold_samples is None else check_hold(max_hold_samples, n)
-    max_hold = max(max_hold, 2)
+    max_hold = _max_hold(n, max_hold_samples)
     targets = {k: (target_input if role[k] == "input" else target_output) for k in sig}
     notes: list[str] = []
-    stepwise = tuple(k for k, x in sig.items() if _is_stepwise(as_signal(x, k)))
     measured, preferred = _measure(sig, diff, targets, max_hold, dt_s, detrend, notes)
-    setting = [k for k in sig if k not in stepwise] or list(sig)  # all step-wise: they do
-    if stepwise:
-        notes.append(_stepwise_note(stepwise, preferred, dt_s,
-                                    all_stepwise=len(setting) == len(sig)))
+    stepwise, setting = _setting_signals(sig, preferred, dt_s, notes)
     limiting, decimation = _decimation({k: preferred[k] for k in setting}, targets, max_hold,
                                        dt_s, notes, measured)
     n_inputs = sum(r == "input" for r in role.values())
     n_search = n if n_search_samples is None else int(n_search_samples)
     final, reason = _search_decimation(decimation, n_search, n_inputs, n_p_min, dt_s)
     return SamplePeriodChoice(
-        dt_s=final * float(dt_s),
-        decimation=final,
-        record_dt_s=float(dt_s),
-        alpha_t=_alpha_at_decimation(measured, final),
-        preferred_dt_s=preferred,
-        targets=targets,
-        roles=role,
-        limiting_signal=limiting,
-        notes=tuple(notes),
-        measured_on={k: m.measured_on for k, m in measured.items()},
-        stepwise=stepwise,
-        alpha_t_dt_s=decimation * float(dt_s),
-        reduced_reason=reason,
-    )
+        dt_s=final * float(dt_s), decimation=final, record_dt_s=float(dt_s),
+        alpha_t=_alpha_at_decimation(measured, final), preferred_dt_s=preferred,
+        targets=targets, roles=role, limiting_signal=limiting, notes=tuple(notes),
+        measured_on={k: m.measured_on for k, m in measured.items()}, stepwise=stepwise,
+        alpha_t_dt_s=decimation * float(dt_s), reduced_reason=reason)
+
+
+def _max_hold(n: int, max_hold_samples: int | None) -> int:
+    """The longest hold α_T examines (a record of at least 40 samples: 20 holds of 2)."""
+    if n < 40:
+        raise DataQualityError(
+            f"record has {n} samples; α_T needs at least 40 (20 holds of 2 samples) to "
+            "choose a sample period — supply a longer record"
+        )
+    return max(n // 20 if max_hold_samples is None else check_hold(max_hold_samples, n), 2)
+
+
+def _setting_signals(sig: dict, preferred: dict, dt_s: float, notes: list
+                     ) -> tuple[tuple, list]:
+    """The step-wise signals and the signals that set T (all but the step-wise ones, or
+    every signal when all are step-wise; a note says so)."""
+    stepwise = tuple(k for k, x in sig.items() if _is_stepwise(as_signal(x, k)))
+    setting = [k for k in sig if k not in stepwise] or list(sig)
+    if stepwise:
+        notes.append(_stepwise_note(stepwise, preferred, dt_s,
+                                    all_stepwise=len(setting) == len(sig)))
+    return stepwise, setting
 
 
 def _check_period_and_targets(dt_s, target_input, target_output) -> None:

@@ -399,7 +399,7 @@ def _tail_rule(est_at, info_at, trunc, P: int, n_y: int, n_x: int, n_p_min: int,
 
 
 def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_fixed,
-                        sigma2, fit_cap: int, candidates: int = 16,
+                        sigma2, candidates: int = 16,
                         on_fit: Callable[[], None] = lambda: None,
                         ) -> tuple[np.ndarray, np.ndarray, list, np.ndarray]:
     """Stage 1 with a noise model: every candidate is a GLS fit with the filters and the
@@ -424,11 +424,9 @@ def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_f
 
     trunc = _truncation_test(est_at(P))
     n_p, settled, trace = _tail_rule(est_at, info_at, trunc, P, n_y, n_x, n_p_min, candidates)
-    # the margin never makes N_p too long for two disjoint windows of 10 N_p observations
-    # (``fit_cap``); the tail rule's own choice is kept even beyond it (then the record
-    # is too short, and stage 2 says so)
-    longer = np.minimum(np.minimum(P, np.ceil(NOISE_MODEL_N_P_MARGIN * n_p)),
-                        np.maximum(n_p, fit_cap))
+    # the margin is bounded by n_p_max only: the window check runs at whatever N_p the
+    # plant needs (it never shortens the model)
+    longer = np.minimum(P, np.ceil(NOISE_MODEL_N_P_MARGIN * n_p))
     n_p = np.where(settled, longer, n_p).astype(int)
     ms = sorted(bic)
     table = np.array([bic[m] for m in ms])  # (n_cand, n_y)
@@ -557,28 +555,14 @@ def search(
     npm, settled, order_trace, bic_order = _orders(
         x, y, ctx, est_max, fixed=fixed, n_p_min=n_p_min, n_k=n_k, order=order,
         n_p_max=n_p_max, P0=P0, dt=dt, nk=nk, integrating=integrating, mask=mask,
-        fit_cap=(n // 2 + 1 - extra) // 11, step=steps.step)
+        step=steps.step)
     nk = np.minimum(nk, npm - 1)
     left, left_std = _left_out(x, y, est_max, npm, fixed=fixed, order=order, P0=P0, dt=dt,
                                integrating=integrating, mask=mask, nk=nk)
-    P = int(npm.max())
     kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    # stage 2 at the chosen orders: the largest two windows that fit when 10 N_p do not
-    n_d = min(int(n_d_start or 10 * P), n // 2 - (P - 1 + extra))
-    need = WINDOW_MIN_OBS_PER_UNKNOWN * int(npm.sum(axis=1).max())
-    if n_d < need:
-        chosen, nd_trace = None, [{
-            "n_d": max(n_d, 0), "window_samples": max(n_d + P - 1 + extra, 0),
-            "error": f"two disjoint windows of the record's {n} samples hold at most "
-                     f"{max(n_d, 0)} observations each, fewer than the {need} the "
-                     f"{int(npm.sum(axis=1).max())} unknowns of an output need "
-                     f"({WINDOW_MIN_OBS_PER_UNKNOWN} per unknown): no window check"}]
-    else:
-        steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
-        chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d,
-                                          P=P, extra=extra, step=steps.step)
+    n_d, length, nd_trace = _stage2(x, y, mask, npm, dt, integrating, kw, n_d_start=n_d_start,
+                                    extra=extra, steps=steps)
     tick(steps.total, steps.total)
-    n_d, length = chosen if chosen is not None else (0, 0)
     wins = split_windows_by_length(n, length, max_windows) if length else []
     agreement = []
     if estimate_windows and wins:
@@ -686,7 +670,7 @@ def _checked_setup(x, y, *, n_p, n_p_max, n_p_min: int, noise, feedback: str, in
 
 
 def _stage1_orders(x, y, ctx, est_max, *, order, n_p_max: int, P0: int, dt: float,
-                   n_p_min: int, nk: np.ndarray, integrating, mask, fit_cap: int, step):
+                   n_p_min: int, nk: np.ndarray, integrating, mask, step):
     """Stage 1: N_p per pair, by the thesis' nested least squares (white noise) or with
     the noise models found at ``n_p_max``."""
     if order == 0:
@@ -697,7 +681,7 @@ def _stage1_orders(x, y, ctx, est_max, *, order, n_p_max: int, P0: int, dt: floa
     models = est_max.noise_model
     return _noise_model_orders(
         ctx, P=P0, dt=dt, n_p_min=n_p_min, n_k=nk, forms=[m.form for m in models],
-        d_fixed=[m.d for m in models], sigma2=est_max.sigma2, fit_cap=fit_cap, on_fit=step)
+        d_fixed=[m.d for m in models], sigma2=est_max.sigma2, on_fit=step)
 
 
 def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: float, noise,
@@ -726,6 +710,28 @@ def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: 
     return ctx, est_max, fb
 
 
+def _stage2(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *, n_d_start,
+            extra: int, steps: _Steps) -> tuple[int, int, list]:
+    """Stage 2 at the chosen orders: ``(n_d, window samples, trace)``, ``(0, 0, trace)``
+    when no two windows can be estimated (module doc)."""
+    n = x.shape[0]
+    P = int(npm.max())
+    # the largest two windows that fit when two of 10 N_p observations do not
+    n_d = min(int(n_d_start or 10 * P), n // 2 - (P - 1 + extra))
+    need = WINDOW_MIN_OBS_PER_UNKNOWN * int(npm.sum(axis=1).max())
+    if n_d < need:
+        return 0, 0, [{
+            "n_d": max(n_d, 0), "window_samples": max(n_d + P - 1 + extra, 0),
+            "error": f"two disjoint windows of the record's {n} samples hold at most "
+                     f"{max(n_d, 0)} observations each, fewer than the {need} the "
+                     f"{int(npm.sum(axis=1).max())} unknowns of an output need "
+                     f"({WINDOW_MIN_OBS_PER_UNKNOWN} per unknown): no window check"}]
+    steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
+    chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d, P=P,
+                                      extra=extra, step=steps.step)
+    return (*(chosen if chosen is not None else (0, 0)), nd_trace)
+
+
 def _window_trials(n: int, n_d: int, P: int, extra: int) -> int:
     """Most N_d values stage 2 can try from ``n_d`` (doubling while two windows fit, the
     last one at the largest that fits)."""
@@ -747,12 +753,18 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
         if len(wins) < 2:
             break
         step()
-        try:
-            ests = _window_estimates(x, y, mask, wins, npm, dt, integrating, **kw)
-        except DataQualityError as exc:
+        ests, failed = [], None
+        for w in wins:
+            try:
+                ests += _window_estimates(x, y, mask, [w], npm, dt, integrating, **kw)
+            except DataQualityError as exc:
+                failed = (w, exc)
+                break
+        if failed is not None:
             # a window may hold too few observations (masks) or an input that does not
-            # move there (singular): record the trial, try longer windows
-            nd_trace.append({"n_d": n_d, "window_samples": length, "error": str(exc)})
+            # move there (singular): record the trial and the window, try longer windows
+            nd_trace.append({"n_d": n_d, "window_samples": length,
+                             "failed_window": list(failed[0]), "error": str(failed[1])})
             if n_d >= most:
                 break
             n_d = min(2 * n_d, most)

@@ -43,6 +43,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import scipy.stats
 
+from pipeline.quality import PEAK_SIGMAS
 from pipeline.step_result import StepResponseEstimate
 
 __all__ = ["Settledness", "settledness", "tail_moving", "pair_curve", "left_out_of", "gain_cell",
@@ -234,7 +235,11 @@ def settledness(est: StepResponseEstimate, i: int, j: int, *, left_out: float = 
     note = (f"settled within N_p·T = {n * dt:g} s (last {m} lags change it by "
             f"{s * scale:.3g} ± {s_std * scale:.2g}); σ includes "
             f"{left_out_std * scale:.2g} for what the horizon leaves out")
-    if not sign:
+    if not sign and peak > PEAK_SIGMAS * gain_std:
+        note += (f"; ≈ 0 at steady state ({final * scale:.3g} ± {gain_std * scale:.2g}{u}) "
+                 f"after a clear transient (peak {peak * scale:.3g}): the output's controller "
+                 "removes this input's effect at steady state")
+    elif not sign:
         note += (f"; its sign is not established ({final * scale:.3g} ± "
                  f"{gain_std * scale:.2g}{u}, within 2σ of zero)")
     return Settledness("settled", s, s_std, m, left_out, left_out_std, final, final_std,

@@ -17,8 +17,9 @@ the records.
 
 Tolerances: with 80 records the coverage over lags (~60 correlated lags per record, so
 roughly 80 independent draws) has a standard error of about 2.5 %, so the 90–98 % band
-holds a calibrated ±2σ band (95.4 %) with margin; the false-fail rate is nominally 1 %
-(binomial: P(more than 4 of 80) < 0.1 %); the gain-change detection needs 90 % and the
+holds a calibrated ±2σ band (95.4 %) with margin; the false-fail rate is at most 5 % by
+construction (1 % lag-wise Wald test + 4 % on the windows' gains, Bonferroni; issue 32
+added the gain part) — binomial at 5 %: P(more than 11 of 80) < 0.1 %; the gain-change detection needs 90 % and the
 agreement test is built for 90 % power at the chosen N_d (measured 100 % on 80 records; the
 suite runs 40 per noise pole — at a power of 0.99, P(fewer than 36 of 40) < 0.1 %).
 """
@@ -86,7 +87,7 @@ def test_auto_bands_cover_the_truth_and_windows_agree(phi, seed0):
     r = _run(phi, seed0)
     print(f"phi={phi}: {r}")
     assert 0.90 <= r["coverage"] <= 0.98
-    assert r["false_fail"] <= 0.05
+    assert r["false_fail"] <= 11 / RECORDS
     # never less accurate than the thesis' white least squares (largest error), and as
     # accurate as the peer ARX over the whole response (RMS error; the largest error of
     # a long FIR is the random walk of its late lags, ~1.0-1.25x the ARX's, printed)

@@ -79,9 +79,9 @@ def test_tc_job_through_prefect_stores_hyperparameters_and_a_closer_estimate(
     tc_dir = Path(r.stdout.strip().splitlines()[-1])
     checks = json.loads((tc_dir / "checks.json").read_text())
     est = checks["estimation"]
-    assert est["method"] == "regularized_tc" and est["noise"] == "white"
-    h = est["hyperparameters"]["y"]
-    assert 0 < h["alpha"] < 1 and h["lambda"] > 0
+    assert est["method"] == "regularized_tc" and est["noise"] == "auto"
+    h = est["hyperparameters"]["y"]  # per-input lists since the kernel module (one input)
+    assert all(0 < a < 1 for a in h["alpha"]) and all(v > 0 for v in h["lambda"])
     assert h["sigma2"] == pytest.approx(0.25, rel=0.25)
     assert "TC prior" in (tc_dir / "report.md").read_text()
     # every window estimated with the same method: one uniform N_p per pair
@@ -131,10 +131,13 @@ def test_correlation_job_matches_least_squares_on_a_long_stationary_record(tmp_p
 
 
 @pytest.mark.parametrize("estimation, extra, words", [
-    ({"method": "tc", "noise": "auto"}, {}, ["estimation.noise", "method ls", "white"]),
+    ({"method": "correlation", "noise": "auto"}, {},
+     ["estimation.noise", "correlation method", "white"]),
+    ({"method": "tc"}, {"instruments": {"r": {"tag": INPUT_TAG}}},
+     ["estimation.method: tc", "signals.instruments", "method: ls"]),
     ({"method": "correlation"}, {"instruments": {"r": {"tag": INPUT_TAG}}},
      ["estimation.method: correlation", "signals.instruments", "method: ls"]),
-    ({"method": "lasso"}, {}, ["estimation.method", "ls", "correlation", "tc"]),
+    ({"method": "lasso"}, {}, ["estimation.method", "auto", "ls", "correlation", "tc", "dc"]),
 ])
 def test_method_settings_that_cannot_work_are_refused_in_yaml_terms(
         tmp_path, capsys, estimation, extra, words):

@@ -146,6 +146,8 @@ def test_exported_model_is_the_reported_model(default_run, short_run, tmp_path):
             dc = float(np.real(control.dcgain(tfs[("y", entry["input"])])))
             assert abs(dc - p["gain"]) <= max(2 * p["gain_std"], 0.1 * abs(p["gain"])), \
                 (entry["input"], dc, p["gain"], p["gain_std"])
+    # report.html overlays the exported transfer function on the step matrix
+    assert "exported transfer function" in (default_run / "report.html").read_text()
     out = tmp_path / "short.csv"
     code, _, err = _quiet(["export", str(short_run), "--format", "csv", "--out", str(out)])
     assert code == 0, err
@@ -155,3 +157,38 @@ def test_exported_model_is_the_reported_model(default_run, short_run, tmp_path):
     assert rows["settled"][0] == "moving" and rows["gain"][0] == ""
     assert rows["input_tag"] == ["U0.PV", "U1.PV", "U2.PV", "U3.PV"]
     assert float(rows["gain"][1]) == pytest.approx(pairs["u1"]["gain"])
+
+
+def test_an_input_flat_in_one_window_is_named_with_the_window_and_its_time(tmp_path):
+    """Build 8: the input u2 is held still over the last 60 % of the record (a valve in
+    manual).  The run succeeds on all data; the window that cannot be estimated is named in
+    checks.json and report.md with its time range, the input and its tag."""
+    us, y = _simulate(7)
+    us[2][int(0.4 * N):] = us[2][int(0.4 * N)]
+    t = np.datetime64("2026-03-02T00:00:00", "us") + \
+        (np.arange(N) * 1_000_000).astype("timedelta64[us]")
+    (tmp_path / "drop").mkdir()
+    write_long_csv(tmp_path / "drop" / "plant.csv", t,
+                   {**{f"U{j}.PV": 10 + u for j, u in enumerate(us)}, "Y.PV": 50 + y})
+    path = write_job(tmp_path, sampling={"dt_s": 1.0}, signals={
+        "inputs": {f"u{j}": {"tag": f"U{j}.PV"} for j in range(4)},
+        "outputs": {"y": {"tag": "Y.PV"}}})
+    code, stdout, stderr = _quiet(["run", str(path), "--no-prefect"])
+    assert code == 0, stderr
+    run_dir = Path(stdout.strip().splitlines()[-1])
+    search = json.loads((run_dir / "checks.json").read_text())["search"]
+    report = (run_dir / "report.md").read_text()
+    failed = [w for w in search["windows"] if w["status"] == "failed"]
+    if failed:  # a chosen window that could not be estimated
+        assert all(w["samples"][0] >= 0.4 * N for w in failed)
+        assert all("u2 (tag U2.PV)" in w["error"] for w in failed)
+        line = next(x for x in report.splitlines()
+                    if x.startswith(f"- Window {failed[-1]['window']}"))
+        assert failed[-1]["time"][1] in line and "u2 (tag U2.PV)" in line
+    else:  # no two windows could be estimated at any N_d: the last trial says why
+        trial = [t for t in search["nd_trace"] if "error" in t][-1]
+        a, b = trial["failed_window"]
+        assert a >= 0.4 * N - 1 and "u2 (tag U2.PV) does not vary" in trial["error"]
+        line = next(x for x in report.splitlines() if x.startswith("- No window check"))
+        t_end = str(np.datetime64("2026-03-02T00:00:00", "s") + np.timedelta64(b - 1, "s"))
+        assert f"{t_end}Z (samples {a}–{b})" in line and "u2 (tag U2.PV)" in line

@@ -136,3 +136,13 @@ def test_simulate_fir_is_the_convolution_of_the_increments():
     assert np.isnan(y[:4]).all()
     with pytest.raises(ConfigError, match="same n_x"):
         simulate_fir(dh, x[:, :1])
+
+
+def test_a_gain_known_to_be_zero_after_a_clear_transient_is_a_result_not_a_d():
+    """Issue 32, build 6: a closed loop that removes an input's effect at steady state
+    (gain 1e-5 ± 5.5e-5 after a transient peaking at 0.02) grades by its σ against the
+    peak; a pair with no transient above the noise (peak 0.25 with σ 0.1) stays D."""
+    zero = pair_grade(**{**CLEAN, "value": 1e-5, "std": 5.5e-5, "peak": 0.02})
+    assert zero.grade == "A", zero.reasons
+    noise = pair_grade(**{**CLEAN, "value": 0.01, "std": 0.1, "peak": 0.25})
+    assert noise.grade == "D" and "within 2σ of zero" in noise.reasons[0]

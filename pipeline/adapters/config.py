@@ -214,16 +214,18 @@ class ChecksConfig(_Strict):
 class EstimationConfig(_Strict):
     """How step responses are estimated (method.md §10)."""
 
-    method: Literal["ls", "correlation", "tc"] = "ls"
-    """``ls``: least squares (with the noise model and instruments below; the default);
-    ``correlation``: the thesis' older correlation method (method.md §2; whole-window
-    auto-correlations, masked samples enter as zeros; a comparison method that degrades
-    with input drift); ``tc``: kernel-regularised least squares with a TC prior whose
-    hyperparameters maximise the marginal likelihood (recommended for short records,
-    where N_d is a few times the number of unknowns; one N_p for every pair, the
-    largest the search chose).  ``correlation`` and ``tc`` assume white noise (``noise``
-    defaults to ``white`` for them) and take no instruments; the search of N_p/N_d is
-    the least-squares one in every case."""
+    method: Literal["auto", "ls", "correlation", "tc", "dc"] = "auto"
+    """``auto`` (the default): least squares when the record holds at least 10 observations
+    per unknown and every pair settled within the search's horizon, the kernel-regularised
+    FIR otherwise (:mod:`pipeline.method_choice`; checks.json ``estimation.method_choice``
+    says which and why); ``ls``: least squares (with the noise model and instruments
+    below); ``correlation``: the thesis' older correlation method (method.md §2;
+    whole-window auto-correlations, masked samples enter as zeros; white noise; a
+    comparison method that degrades with input drift); ``tc`` / ``dc``: kernel-regularised
+    least squares with a TC / DC prior whose hyperparameters maximise the marginal
+    likelihood, with the noise model below (method.md §11; for short records: one horizon
+    for every pair, twice the search's longest).  Only ``ls`` and ``auto`` take
+    instruments; the search of N_p/N_d is the least-squares one in every case."""
     noise: str | int = "auto"
     """``auto``: per output a noise model chosen from the data (AR order by BIC; for
     integrating outputs also the differenced or level form); ``white``: the thesis' least
@@ -238,13 +240,13 @@ class EstimationConfig(_Strict):
     @model_validator(mode="before")
     @classmethod
     def _white_for_alternatives(cls, data):
-        if isinstance(data, dict) and data.get("method") in ("correlation", "tc"):
+        if isinstance(data, dict) and data.get("method") == "correlation":
             noise = data.get("noise", "white")
             if noise != "white":
                 raise ValueError(
-                    f"estimation.noise: {noise!r} applies to method ls only; method "
-                    f"{data['method']} assumes white noise — remove estimation.noise or set "
-                    "it to white (or use method: ls for a noise model)")
+                    f"estimation.noise: {noise!r} does not apply to the correlation method: it "
+                    "assumes white noise — remove estimation.noise or set it to white (or "
+                    "use method: auto, ls, tc or dc for a noise model)")
             data = {**data, "noise": "white"}
         return data
 
@@ -397,7 +399,7 @@ class JobConfig(_Strict):
     @model_validator(mode="after")
     def _method_takes_no_instruments(self) -> JobConfig:
         m = self.estimation.method
-        if m != "ls" and self.signals.instruments:
+        if m not in ("ls", "auto") and self.signals.instruments:
             raise ValueError(
                 f"estimation.method: {m} takes no instruments, but signals.instruments lists "
                 f"{sorted(self.signals.instruments)}; use method: ls (instrumental variables) "

@@ -118,7 +118,9 @@ def _step_matrix(run: StoredRun, units: dict[str, str]) -> str:
     return ("<figure>" + figures.step_matrix(run, units) +
             "<figcaption>Rows are outputs, columns inputs. Black: the estimate on every "
             "usable sample (<code>all</code>) with its ±2σ band (σ = step_std, the "
-            "estimator's own; where it is not seen it is narrower than the line); thin coloured lines: the disjoint windows, each estimated on "
+            "estimator's own; where it is not seen it is narrower than the line); red dashed: "
+            "the transfer function <code>plantdyn export</code> writes (absent where the "
+            "export leaves the pair out); thin coloured lines: the disjoint windows, each estimated on "
             f"its own. Time is after a unit step of the input.{note}</figcaption></figure>")
 
 

@@ -51,6 +51,30 @@ def _pair_label(o: str, u: str) -> str:
     return f"{o} ← {u}"
 
 
+_TF = "#c0392b"
+
+
+def _exported_step(pair: dict, step: np.ndarray, std: np.ndarray, dt_s: float):
+    """The step response of the transfer function ``plantdyn export`` writes for the pair,
+    at the lags (None where the export leaves it out: no fit, or its DC gain is not the
+    reported gain, :func:`pipeline.lti_fit.gain_mismatch`)."""
+    from pipeline.errors import PipelineError
+    from pipeline.lti_fit import fit_step_model, gain_mismatch, sampled_step
+
+    integ = bool(pair.get("integrating"))
+    try:
+        fit = fit_step_model(step, dt_s=dt_s, step_std=std, integrating=integ,
+                             rate=pair.get("rate"))
+    except PipelineError:
+        return None
+    value, sd = (pair.get("rate"), pair.get("rate_std")) if integ else \
+        (pair.get("gain"), pair.get("gain_std"))
+    if gain_mismatch(fit, value=value, std=sd, integrating=integ) is not None:
+        return None
+    return sampled_step(fit.num, fit.den, delay_s=fit.delay_s, dt_s=dt_s,
+                        n_lags=step.size)
+
+
 def step_matrix(run: StoredRun, units: dict[str, str]) -> str:
     """Rows = outputs, columns = inputs: the all-data step response with its ±2σ band
     (σ = ``step_std``), every disjoint window as a thin line; inline SVG.
@@ -88,6 +112,9 @@ def step_matrix(run: StoredRun, units: dict[str, str]) -> str:
                     ax.fill_between(t, s - 2 * sd, s + 2 * sd, color=_BAND, lw=0, zorder=1)
                     ax.plot(t, s, color="black", lw=1.7, zorder=3, marker="o" if few else None,
                             ms=3)
+                    tf = _exported_step(run.pair(o, u), s, sd, float(df["dt_s"][0]))
+                    if tf is not None:
+                        ax.plot(t, tf, color=_TF, lw=1.1, ls="--", zorder=4)
                     ax.set_xlim(0, float(df["n_p"][0]) * float(df["dt_s"][0]))
                 else:
                     ax.plot(t, s, color=WINDOW_COLOURS[(k - 1) % len(WINDOW_COLOURS)], lw=0.8,
@@ -95,8 +122,9 @@ def step_matrix(run: StoredRun, units: dict[str, str]) -> str:
             ax.axhline(0.0, color="#888888", lw=0.5, zorder=0)
             _style(ax, title=_pair_label(o, u), xlabel="time after the step (s)",
                    ylabel=f"step ({ratio_unit(units.get(o, ''), units.get(u, ''))})")
-    handles = [Line2D([], [], color="black", lw=1.7), Patch(color=_BAND)]
-    labels = ["all data", "±2σ (all data)"]
+    handles = [Line2D([], [], color="black", lw=1.7), Patch(color=_BAND),
+               Line2D([], [], color=_TF, lw=1.1, ls="--")]
+    labels = ["all data", "±2σ (all data)", "exported transfer function"]
     for k, w in enumerate(windows[1:]):
         handles.append(Line2D([], [], color=WINDOW_COLOURS[k % len(WINDOW_COLOURS)], lw=0.8))
         labels.append(f"window {w}")
