@@ -83,3 +83,13 @@ def test_job_runs_on_the_wide_export_and_masks_every_bad_sample(frac2_run):
     verdicts = {p["agreement"]["verdict"] for p in checks["pairs"]}
     assert verdicts <= {"pass", "fail", "insufficient_data"}
     print(frac2_run)
+
+
+def test_no_bare_gain_off_a_moving_curve_and_the_export_is_the_reported_model(
+        frac2_run, tmp_path):
+    """Issue 32, must-show 2 on the real fractionator export with the default job (see
+    tests/test_steamgen_job.py for the rule)."""
+    from tests.export_checks import assert_export_matches_report
+
+    checks = json.loads((frac2_run.run_dir / "checks.json").read_text())
+    assert_export_matches_report(frac2_run.run_dir, checks, tmp_path)

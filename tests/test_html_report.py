@@ -280,9 +280,13 @@ def test_demo_report_shows_every_pair_with_units_gains_grades_and_checks(demo_ru
     doc, manifest = _check_estimation_page(demo_run, expect_units=True)
     grades = {r[0]: r[1] for r in doc.rows("grade-table")}
     # the demo plant is known: fuel follows steam one to one (gain 1, every check passes);
-    # the pressure loop cancels steam-flow changes, so its gain is zero within 2σ
-    assert grades == {"fuel_flow<-steam_flow": "A", "turbine_pressure<-steam_flow": "D"}
-    assert "gain within 2σ of zero" in doc.text("grade-table")
+    # the pressure loop cancels steam-flow changes, so its gain is zero within 2σ after a
+    # clear transient — a result (the controller removes the effect), not a D (issue 32)
+    assert grades == {"fuel_flow<-steam_flow": "A", "turbine_pressure<-steam_flow": "A"}
+    checks = json.loads((demo_run / "checks.json").read_text())
+    p = next(q for q in checks["pairs"] if q["output"] == "turbine_pressure")
+    assert abs(p["gain"]) < 2 * p["gain_std"] and p["peak"] > 4 * p["gain_std"]
+    assert "controller removes this input's effect" in p["gain_note"]
     assert "t/h per kg/s" in doc.text("gain-matrix")
     assert doc.text("rga-absent").startswith("No relative gain array")
     assert "window w3" in doc.text("held-out")  # the last of 4 windows is held out
@@ -513,8 +517,8 @@ def test_screenshot_of_an_estimation_report(which, request, tmp_path):
     # demo's σ are below a pixel (its legend shows the band), the fractionator's are wide
     _check_drawn(img, where["step-matrix"], colours=["#000000", "#9ecae1"],
                  least=[300, 100 if which == "demo" else 5000])
-    # the gain table: its grade badges (the demo has an A and a D)
-    _check_drawn(img, where["gains"], colours=["#c62828"] + (["#1a7f37"] if which == "demo" else []))
+    # the gain table: its grade badges (the demo has two As; the fractionator Cs and Ds)
+    _check_drawn(img, where["gains"], colours=["#1a7f37"] if which == "demo" else ["#c62828"])
     # the residual plots: the autocorrelation bars and the dashed significance bands
     _check_drawn(img, where["residuals"], colours=["#1f77b4", "#c62828"])
     _keep(tmp_path / "shot.png", f"report_{which}.png", "report_demo.png" if which == "demo" else None)

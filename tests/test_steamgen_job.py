@@ -42,7 +42,22 @@ def run(tmp_path_factory):
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     run_dir = Path(r.stdout.strip().splitlines()[-1])
+    RUN_DIRS["steamgen"] = run_dir
     return json.loads((run_dir / "checks.json").read_text()), (run_dir / "report.md").read_text()
+
+
+RUN_DIRS: dict[str, Path] = {}
+
+
+def test_no_bare_gain_off_a_moving_curve_and_the_export_is_the_reported_model(run, tmp_path):
+    """Issue 32, must-show 2 on the real record with the default job: every pair either
+    reports a settled gain or none (moving: no number, the note says why), and
+    ``plantdyn export --format control`` writes a transfer function whose DC gain is
+    within max(2σ, 10 %) of the reported gain, or leaves the pair out with its reason."""
+    from tests.export_checks import assert_export_matches_report
+
+    checks, _ = run
+    assert_export_matches_report(RUN_DIRS["steamgen"], checks, tmp_path)
 
 
 def _pair(checks, out, inp):
