@@ -137,6 +137,15 @@ def _relative_sigma_cap(value, std, peak=None) -> tuple[str | None, float | None
     return "D", rel, f"gain within 2σ of zero (relative σ {rel:.2g})" + more
 
 
+_AGREEMENT_FIX = {
+    "insufficient_data": " — supply a longer record (more data per window) or raise "
+                         "search.n_d_start",
+    "fail": " — the plant changed over the record or responds nonlinearly: run the job on "
+            "shorter periods (source.path) around one operating point",
+}
+"""What to change in the job when the window check does not pass."""
+
+
 def _feedback_cap(detected, handled_by) -> tuple[str | None, str]:
     if detected is None:
         return "A", ""
@@ -146,7 +155,9 @@ def _feedback_cap(detected, handled_by) -> tuple[str | None, str]:
         return "A", ""
     if handled_by == "n_k":
         return "B", "feedback detected; same-sample term fixed at zero (n_k ≥ 1)"
-    return "C", "feedback detected and not handled (n_k = 0, no instrument)"
+    return "C", ("feedback detected and not handled (n_k = 0, no instrument) — set "
+                 "estimation.feedback: auto, or list the loop's setpoint under "
+                 "signals.instruments")
 
 
 def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
@@ -194,22 +205,28 @@ def pair_grade(*, verdict: str | None, value: float | None, std: float | None,
     caps: dict[str, tuple[str | None, Any, str]] = {}
     caps["agreement"] = (None, None, "") if verdict is None else (
         {"pass": "A", "insufficient_data": "C", "fail": "D"}[verdict], verdict,
-        "" if verdict == "pass" else f"windows {verdict}")
+        "" if verdict == "pass" else f"windows {verdict}" + _AGREEMENT_FIX[verdict])
     cap, rel, why = _relative_sigma_cap(value, std, peak)
     caps["relative_sigma"] = (cap, rel, why if cap not in (None, "A") else "")
     p = _finite(whiteness_p)
     caps["whiteness"] = (None, None, "") if p is None else (
         ("A", p, "") if p >= WHITENESS_ALPHA else
-        ("C", p, f"prediction errors not white (Ljung–Box p = {p:.2g})"))
+        ("C", p, f"prediction errors not white (Ljung–Box p = {p:.2g}) — set "
+                 "estimation.noise to a higher AR order, or check the record for a "
+                 "nonlinearity or a plant change"))
     caps["cross_correlation"] = (None, None, "") if xcorr_ok is None else (
         ("A", bool(xcorr_ok), "") if xcorr_ok else
-        ("C", False, "input–residual cross-correlation outside its band"))
+        ("C", False, "input–residual cross-correlation outside its band — raise "
+                     "search.n_p_min (a response longer than N_p), or list the loop's "
+                     "setpoint under signals.instruments (a closed loop)"))
     cap, why = _feedback_cap(feedback_detected, feedback_handled_by)
     caps["feedback"] = (cap, feedback_detected, why)
     v = _finite(vif)
     caps["excitation"] = (None, None, "") if v is None else (
         ("A", v, "") if v <= VIF_A else ("B", v, f"input VIF {v:.3g} > {VIF_A:g}")
-        if v <= VIF_B else ("C", v, f"input VIF {v:.3g} > {VIF_B:g} (nearly collinear)"))
+        if v <= VIF_B else ("C", v, f"input VIF {v:.3g} > {VIF_B:g} (nearly collinear) — "
+                                     "use a period where the inputs move independently, or "
+                                     "leave one of the collinear inputs out of signals.inputs"))
     caps["settled"] = (None, None, "") if settled is None else (
         ("A", settled, "") if settled == "settled" else
         ("C", settled, f"{settled} at the horizon: no gain is read off the curve — "

@@ -146,3 +146,15 @@ def test_a_gain_known_to_be_zero_after_a_clear_transient_is_a_result_not_a_d():
     assert zero.grade == "A", zero.reasons
     noise = pair_grade(**{**CLEAN, "value": 0.01, "std": 0.1, "peak": 0.25})
     assert noise.grade == "D" and "within 2σ of zero" in noise.reasons[0]
+
+
+@pytest.mark.parametrize("change", [
+    {"verdict": "insufficient_data"}, {"verdict": "fail"}, {"value": 2.0, "std": 0.8},
+    {"value": 0.01, "std": 0.1}, {"whiteness_p": 0.001}, {"xcorr_ok": False},
+    {"feedback_detected": True}, {"vif": 20.0}, {"settled": "moving"}])
+def test_every_c_or_d_says_what_to_change_in_the_job(change):
+    """Issue 32, build 6: a C or D reason names the job's YAML key (or the data) to change."""
+    g = pair_grade(**{**CLEAN, **change})
+    assert g.grade in "CD", g
+    words = ("search.", "estimation.", "signals.", "source.", "longer record", "more data")
+    assert all(any(w in r for w in words) for r in g.reasons if r[0] in "CD"), g.reasons
