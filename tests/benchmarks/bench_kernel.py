@@ -27,6 +27,7 @@ import scipy.signal as ss
 
 from pipeline.estimate import estimate_step_responses
 from pipeline.kernel_fir import estimate_kernel
+from tests.benchmarks.bench_estimate import best_of
 
 
 def make_plant(n: int, n_x: int, n_y: int, P: int, seed: int = 0):
@@ -46,15 +47,6 @@ def make_plant(n: int, n_x: int, n_y: int, P: int, seed: int = 0):
             steps[i, j] = np.cumsum(imp)
     y += 0.3 * ss.lfilter([1.0], [1, -0.9], rng.standard_normal((n, n_y)), axis=0)
     return x, y, steps
-
-
-def best_of(fn, repeat: int):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def case(name: str, n_x: int, n_y: int, P: int, N: int, repeat: int) -> float:
