@@ -54,17 +54,18 @@ def _window_table(sr: SearchResult, window_results: list, time: np.ndarray
     """Per disjoint window its samples, time range, status and error; and the estimated
     windows with their labels."""
     labelled = [(f"w{k}", e) for k, e in enumerate(window_results)]
-
-    def span(a: int, b: int) -> list[str]:
-        return [str(np.datetime_as_string(np.asarray(time)[i], unit="s")) + "Z"
-                for i in (a, min(b, len(time)) - 1)]
-
     status = [{"window": lab, "samples": list(map(int, sr.windows[k])),
-               "time": span(*map(int, sr.windows[k])),
+               "time": _utc_span(time, *map(int, sr.windows[k])),
                "status": "failed" if isinstance(e, WindowFailure) else "ok",
                **({"error": e.error} if isinstance(e, WindowFailure) else {"n_d": int(e.n_d)})}
               for k, (lab, e) in enumerate(labelled)]
     return status, [(lab, e) for lab, e in labelled if not isinstance(e, WindowFailure)]
+
+
+def _utc_span(time: np.ndarray, a: int, b: int) -> list[str]:
+    """UTC times of the first and last sample of the slice ``[a, b)`` (ISO, ``Z``)."""
+    t = np.asarray(time)
+    return [str(np.datetime_as_string(t[k], unit="s")) + "Z" for k in (a, min(b, len(t)) - 1)]
 
 
 def _step_table(ests: list[tuple[str, StepResponseEstimate]], outs, ins) -> pl.DataFrame:
@@ -180,7 +181,7 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
             fb = sr.feedback[i][j] if sr.feedback else None
             fbd = fb.to_dict() if fb is not None else None
             integ = bool(all_est.integrating[i])
-            st = _settledness(cfg, sr, all_est, i, j)
+            st = _settledness(cfg, sr, all_est, i, j, o, u)
             final, final_std = _reported(st, integ, all_est, i, j)
             pair = {"output": o, "input": u, "n_p": n, "n_k": int(all_est.n_k[i, j]),
                     "settled": {"verdict": st.verdict, "tail_sum": _num(st.tail_sum),
@@ -320,7 +321,8 @@ def _method_choice(cfg, sr: SearchResult, prep: Prepared):
     return method_choice(cfg, sr, prep.x.shape[0])
 
 
-def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: int):
+def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: int,
+                 out: str, inp: str):
     """The pair's :func:`pipeline.settledness.settledness` with what its horizon leaves
     out in the search's reference fit."""
     from pipeline.settledness import settledness
@@ -330,17 +332,16 @@ def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: in
     same = int(est.n_p[i, j]) == int(sr.n_p[i, j])
     lo = 0.0 if sr.left_out is None or not same else float(sr.left_out[i, j])
     lo_std = 0.0 if sr.left_out_std is None or not same else float(sr.left_out_std[i, j])
-    outs, ins = list(cfg.signals.outputs), list(cfg.signals.inputs)
-    uo, ui = _unit(cfg, outs[i]), _unit(cfg, ins[j])
+    uo, ui = _unit(cfg, out), _unit(cfg, inp)
     return settledness(est, i, j, left_out=lo, left_out_std=lo_std,
                        unit=f"{uo}/{ui}" if uo and ui else "")
 
 
 def _reported(st, integrating: bool, est: StepResponseEstimate, i: int, j: int
               ) -> tuple[float | None, float | None]:
-    """The reported gain (an integrating pair: the estimate's rate) and its σ including
-    what the horizon leaves out, or ``(None, None)`` when the pair has none (moving,
-    nothing to judge)."""
+    """The reported gain and its σ including what the horizon leaves out (an integrating
+    pair: the estimate's rate and its own σ, :func:`pipeline.settledness.left_out_of`), or
+    ``(None, None)`` when the pair has none (moving, nothing to judge)."""
     if st.gain is None:
         return None, None
     if integrating:
@@ -473,8 +474,7 @@ def _window_lines(sr: SearchResult, checks: dict, time: np.ndarray) -> list[str]
         where = ""
         if "failed_window" in last:
             a, b = last["failed_window"]
-            t0, t1 = (str(np.datetime_as_string(np.asarray(time)[k], unit="s")) + "Z"
-                      for k in (a, min(b, len(time)) - 1))
+            t0, t1 = _utc_span(time, a, b)
             where = f"the window {t0} to {t1} (samples {a}–{b}) cannot be estimated: "
         lines.append("- No window check: " + where
                      + (last.get("error") or "no two disjoint windows fit") + ".")

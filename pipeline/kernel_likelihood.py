@@ -574,7 +574,6 @@ def per_input_start(kind, k: np.ndarray, b, Q, s2, floor: bool):
     floor : bool
         Bound the prior's gain variance below by the least-squares one.
     """
-    r = b.size
     bb = float(b @ b) / s2
     excess = max(bb - float(np.trace(Q)), 1e-3 * bb, 1e-300)
 

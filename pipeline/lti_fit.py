@@ -75,6 +75,7 @@ __all__ = [
     "StepModelFit",
     "fit_step_model",
     "gain_mismatch",
+    "reported_model",
     "fopdt_step",
     "sopdt_step",
     "rational_step",
@@ -738,3 +739,34 @@ def gain_mismatch(fit: StepModelFit, *, value: float | None, std: float | None,
                 f"the reported {what} {value:.4g} ± {sd:.2g} by more than {tol:.2g} "
                 f"(max({GAIN_TOLERANCE_SIGMAS:g}σ, {100 * GAIN_TOLERANCE_REL:g} %))")
     return None
+
+
+def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = False,
+                   value: float | None, std: float | None, label: str = "the pair"
+                   ) -> StepModelFit | str:
+    """The transfer function ``plantdyn export`` writes for a pair: :func:`fit_step_model`
+    when it is the reported model (:func:`gain_mismatch`), else why not (the fit's error
+    or the mismatch) — one rule for the export and report.html's overlay.
+
+    Parameters
+    ----------
+    step, step_std : array (n_p,)
+        The stored step response and its standard deviation.
+    dt_s : float
+        Sample period (s).
+    integrating : bool
+        The output is integrating (``value`` is its rate).
+    value, std : float or None
+        The reported gain (rate) and its σ.
+    label : str
+        The pair in the message.
+    """
+    from pipeline.errors import PipelineError
+
+    try:
+        fit = fit_step_model(step, dt_s=dt_s, step_std=step_std, integrating=integrating,
+                             rate=value if integrating else None)
+    except PipelineError as exc:
+        return f"no transfer function: {exc}"
+    why = gain_mismatch(fit, value=value, std=std, integrating=integrating, label=label)
+    return fit if why is None else f"left out: {why}"

@@ -91,7 +91,8 @@ from pipeline.step_result import StepResponseEstimate
 from pipeline._threads import single_threaded_blas
 from pipeline.feedback import FEEDBACK_LEADS, feedback_test
 from pipeline.progress import Tick, silent
-from pipeline.settledness import TRUNCATION_ALPHA, left_out_of, pair_curve, tail_moving
+from pipeline.settledness import (TAIL_FRACTION, TRUNCATION_ALPHA, left_out_of, pair_curve,
+                                  tail_moving)
 
 __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
            "default_n_p_max", "TAIL_FRACTION", "TAIL_BAND", "N_P_MAX_CAP",
@@ -108,7 +109,6 @@ WINDOW_MIN_OBS_PER_UNKNOWN = 2
 of its largest output (half its degrees of freedom left for the residual); fewer, and the
 window check says ``insufficient_data`` instead of shortening the model."""
 
-TAIL_FRACTION = 0.2
 TAIL_BAND = 0.02
 TAIL_NOISE_SIGMAS = 3.0
 NOISE_MODEL_N_P_MARGIN = 1.4

@@ -4,7 +4,7 @@ A step response has a gain only when it is settled at its horizon.  Two pieces o
 evidence, both with the estimate's calibrated covariance:
 
 * the **tail** of the fit: the change of the curve over its last
-  :data:`SETTLED_TAIL_FRACTION` of lags (``s = curve[N_p] - curve[N_p - m]``, the sum of
+  :data:`TAIL_FRACTION` of lags (``s = curve[N_p] - curve[N_p - m]``, the sum of
   those increments), and
 * what the **horizon leaves out**: the change beyond N_p in the search's reference fit at
   ``n_p_max`` (:func:`left_out_of`).
@@ -47,7 +47,7 @@ from pipeline.quality import PEAK_SIGMAS
 from pipeline.step_result import StepResponseEstimate
 
 __all__ = ["Settledness", "settledness", "tail_moving", "pair_curve", "left_out_of", "gain_cell",
-           "SETTLED_TAIL_FRACTION", "SETTLED_SIGMAS", "SETTLED_BAND", "TRUNCATION_ALPHA"]
+           "TAIL_FRACTION", "SETTLED_SIGMAS", "SETTLED_BAND", "TRUNCATION_ALPHA"]
 
 TRUNCATION_ALPHA = 0.01
 """Significance of the order search's truncation test (:mod:`pipeline.search`): an order
@@ -59,9 +59,9 @@ LEFT_OUT_SIGMAS = float(scipy.stats.norm.ppf(1 - TRUNCATION_ALPHA / 3 / 2))
 """The left-out part is significant beyond this many σ: the truncation test's own level
 for its left-out part (2.94)."""
 
-SETTLED_TAIL_FRACTION = 0.2
-"""The tail judged: the last 20 % of the horizon's lags (method.md §11; the same fraction
-the order search's tail rule reads)."""
+TAIL_FRACTION = 0.2
+"""The tail judged: the last 20 % of the horizon's lags (method.md §11) — here and in the
+order search's tail-flatness rule (:mod:`pipeline.search`, which imports it)."""
 SETTLED_SIGMAS = 2.0
 """A tail or left-out change beyond this many standard deviations is significant
 (method.md §11: ``|s| <= 2 sd(s)``)."""
@@ -149,7 +149,7 @@ def pair_curve(est: StepResponseEstimate, i: int, j: int, n: int | None = None):
 def _tail(q: np.ndarray, C: np.ndarray) -> tuple[float, float, int]:
     """Change of the curve over its last ``m`` lags, its σ, and ``m`` (0: no free lag)."""
     n = q.size
-    m = int(max(1, np.ceil(SETTLED_TAIL_FRACTION * n))) if n > 1 else 0
+    m = int(max(1, np.ceil(TAIL_FRACTION * n))) if n > 1 else 0
     free = np.flatnonzero(np.diag(C) > 0)
     if free.size == 0 or m == 0 or free[-1] < n - 1:
         return float("nan"), float("nan"), 0

@@ -42,7 +42,7 @@ writes one file, atomically (a temporary file in the target folder, then ``os.re
 
 The exported model is the reported model: a pair's transfer function is written only
 when its DC gain (rate) agrees with the run's reported gain within
-``max(2σ, 10 %)`` (:func:`gain_mismatch`); otherwise, and for a pair that reports no gain
+``max(2σ, 10 %)`` (:func:`pipeline.lti_fit.reported_model`); otherwise, and for a pair that reports no gain
 (still moving at its horizon), it is left out and ``fit_error`` says why.  Every file
 carries units, tags, the settledness verdict, the grade and the gain with its σ.
 
@@ -72,7 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import ConfigError, DataQualityError, PipelineError, StorageError
+from pipeline.errors import ConfigError, DataQualityError, StorageError
 
 __all__ = [
     "FORMATS",
@@ -451,41 +451,19 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
     dict
         ``(output, input)`` -> ``StepModelFit``, or the error text when a pair cannot be fitted.
     """
-    from pipeline.lti_fit import fit_step_model
+    from pipeline.lti_fit import reported_model
 
     fits = {}
     for p in run.pair_list():
-        try:
-            fit = fit_step_model(p.step, dt_s=run.dt_s, step_std=p.step_std,
-                                 integrating=p.integrating, rate=p.rate)
-            why = gain_mismatch(p, fit)
-            fits[(p.output, p.input)] = fit if why is None else f"left out: {why}"
-            msg = str(fits[(p.output, p.input)])
-        except PipelineError as exc:
-            fits[(p.output, p.input)] = f"no transfer function: {exc}"
-            msg = fits[(p.output, p.input)]
+        value, std = (p.rate, p.rate_std) if p.integrating else (p.gain, p.gain_std)
+        fits[(p.output, p.input)] = reported_model(
+            p.step, dt_s=run.dt_s, step_std=p.step_std, integrating=p.integrating,
+            value=value, std=std,
+            label=f"{p.label} ({p.settled or 'not judged'} at its horizon of {p.n_p} lags)")
+        msg = str(fits[(p.output, p.input)])
         if progress is not None:
             progress("export", f"{p.label}: {msg}")
     return fits
-
-
-def gain_mismatch(p: PairData, fit) -> str | None:
-    """:func:`pipeline.lti_fit.gain_mismatch` of a stored pair (``None``: the fit is the
-    reported model).
-
-    Parameters
-    ----------
-    p : PairData
-        The pair as stored.
-    fit : StepModelFit
-        Its fitted transfer function.
-    """
-    from pipeline.lti_fit import gain_mismatch as mismatch
-
-    value, std = (p.rate, p.rate_std) if p.integrating else (p.gain, p.gain_std)
-    return mismatch(fit, value=value, std=std, integrating=p.integrating,
-                    label=f"{p.label} ({p.settled or 'not judged'} at its horizon of "
-                          f"{p.n_p} lags)")
 
 
 def _tf_dict(fit, dt_s: float) -> dict | None:
@@ -520,8 +498,7 @@ def _pair_head(run: RunData, p: PairData) -> dict:
             "output_unit": run.units[p.output], "input_unit": run.units[p.input],
             "output_tag": run.tags[p.output], "input_tag": run.tags[p.input],
             "dt_s": run.dt_s, "n_p": p.n_p, "n_k": p.n_k, "integrating": p.integrating,
-            "gain": p.rate if p.integrating else p.gain,
-            "gain_std": p.rate_std if p.integrating else p.gain_std,
+            "gain": p.gain, "gain_std": p.gain_std, "rate": p.rate, "rate_std": p.rate_std,
             "settled": p.settled, "grade": p.grade}
 
 
@@ -539,9 +516,7 @@ def _json_bytes(run: RunData, fits: dict) -> bytes:
         pairs.append({
             **_pair_head(run, p), "lag": p.lag.tolist(), "time_s": p.time_s.tolist(),
             "step": p.step.tolist(), "step_std": p.step_std.tolist(),
-            "delta_h": p.delta_h.tolist(), "gain": p.gain, "gain_std": p.gain_std,
-            "rate": p.rate, "rate_std": p.rate_std, "settled": p.settled,
-            "grade": p.grade, "gain_note": p.gain_note,
+            "delta_h": p.delta_h.tolist(), "gain_note": p.gain_note,
             "gain_extrapolated": p.gain_extrapolated, "warnings": p.warnings,
             "transfer_function": _tf_dict(fit, run.dt_s),
             **({"fit_error": fit} if isinstance(fit, str) else {})})

@@ -56,20 +56,14 @@ _TF = "#c0392b"
 
 def _exported_step(pair: dict, step: np.ndarray, std: np.ndarray, dt_s: float):
     """The step response of the transfer function ``plantdyn export`` writes for the pair,
-    at the lags (None where the export leaves it out: no fit, or its DC gain is not the
-    reported gain, :func:`pipeline.lti_fit.gain_mismatch`)."""
-    from pipeline.errors import PipelineError
-    from pipeline.lti_fit import fit_step_model, gain_mismatch, sampled_step
+    at the lags (None where the export leaves it out,
+    :func:`pipeline.lti_fit.reported_model`)."""
+    from pipeline.lti_fit import reported_model, sampled_step
 
-    integ = bool(pair.get("integrating"))
-    try:
-        fit = fit_step_model(step, dt_s=dt_s, step_std=std, integrating=integ,
-                             rate=pair.get("rate"))
-    except PipelineError:
-        return None
-    value, sd = (pair.get("rate"), pair.get("rate_std")) if integ else \
-        (pair.get("gain"), pair.get("gain_std"))
-    if gain_mismatch(fit, value=value, std=sd, integrating=integ) is not None:
+    key = "rate" if pair.get("integrating") else "gain"
+    fit = reported_model(step, dt_s=dt_s, step_std=std, integrating=key == "rate",
+                         value=pair.get(key), std=pair.get(f"{key}_std"))
+    if isinstance(fit, str):
         return None
     return sampled_step(fit.num, fit.den, delay_s=fit.delay_s, dt_s=dt_s,
                         n_lags=step.size)
