@@ -2,9 +2,9 @@
 
 The plant is the shipped model ``configs/models/boiler_pressure.yaml`` (PI pressure
 controller with steam-flow feedforward, 8 s fuel dead time, integrating drum) simulated
-at 1 s.  The steam flow (the load) wanders like a real unit's: slow load moves plus
-turbulence.  Measured: steam flow FI-101.PV, turbine pressure PI-102.PV, fuel flow
-FI-103.PV, each with sensor noise, written as a PI-style long CSV with exception-reported
+at 1 s, with the pressure setpoint the operators move.  The steam flow (the load) wanders like a real unit's: slow load moves plus
+turbulence.  Measured: steam flow FI-101.PV, turbine pressure PI-102.PV and its setpoint
+PIC-102.SP, fuel flow FI-103.PV, each with sensor noise, written as a PI-style long CSV with exception-reported
 (irregular) timestamps in local time and a few digital states ("I/O Timeout",
 "Bad Input"), as a historian export arrives in the drop folder.
 """
@@ -20,6 +20,7 @@ from pipeline.model import Model, model_from_dict
 from pipeline.synthetic import (
     DEMO_EFFECTS,
     TWO_EFFECT_DEMO_EFFECTS,
+    boiler_demo_plant,
     boiler_demo_signals,
     make_discrepancy_demo,
 )
@@ -31,7 +32,7 @@ DEMO_JOB = SHIPPED / "demo_boiler.yaml"
 BOILER_MODEL = SHIPPED / "models" / "boiler_pressure.yaml"
 
 # operating point the deviations of the model are added to
-STEAM0, PRESSURE0, FUEL0 = 50.0, 120.0, 8.0
+STEAM0, PRESSURE0, FUEL0 = 50.0, 120.0, 30.0
 
 
 def boiler_model() -> Model:
@@ -43,7 +44,8 @@ def boiler_model() -> Model:
 
 def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) -> dict:
     """The demo plant's signals (:func:`pipeline.synthetic.boiler_demo_signals` of the
-    shipped boiler model at the demo's operating point).
+    shipped boiler model with a moving pressure setpoint,
+    :func:`pipeline.synthetic.boiler_demo_plant`, at the demo's operating point).
 
     Parameters
     ----------
@@ -52,10 +54,14 @@ def make_demo_signals(*, hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) 
     dt_s : float
         Sample period of the simulation, s.
     seed : int
-        Seeds the load and the sensor noise.
+        Seeds the load, the setpoint moves and the sensor noise.
     """
+    from pipeline.adapters.config import load_yaml_file
+
+    shipped = load_yaml_file(BOILER_MODEL, what="model file")
+    plant = model_from_dict({"model": boiler_demo_plant(shipped["model"])})
     op = {"steam_flow": STEAM0, "turbine_pressure": PRESSURE0, "fuel_flow": FUEL0}
-    return boiler_demo_signals(boiler_model(), op, hours=hours, dt_s=dt_s, seed=seed)
+    return boiler_demo_signals(plant, op, hours=hours, dt_s=dt_s, seed=seed)
 
 
 def write_demo_export(folder: Path, *, hours: float = 12.0, seed: int = 7) -> Path:
@@ -88,6 +94,7 @@ def write_demo_export(folder: Path, *, hours: float = 12.0, seed: int = 7) -> Pa
     path = folder / "boiler_export.csv"
     write_long_csv(path, times, {"FI-101.PV": sig["steam_flow"],
                                  "PI-102.PV": sig["turbine_pressure"],
+                                 "PIC-102.SP": sig["pressure_sp"],
                                  "FI-103.PV": sig["fuel_flow"]},
                    timezone="Europe/Berlin", irregular=rng, states=states)
     return path

@@ -17,23 +17,53 @@ from pipeline.effects import Effect, apply_effect
 from pipeline.model import Model
 from pipeline.simulate import simulate
 
-__all__ = ["boiler_demo_signals", "make_discrepancy_demo"]
+#: the demo's setpoint moves (uniform within ± this, bar) and the setpoint filter, s
+SP_MOVE_BAR, SP_RAMP_S = 1.0, 30.0
+
+__all__ = ["boiler_demo_plant", "boiler_demo_signals", "make_discrepancy_demo"]
 
 
-def boiler_demo_signals(model: Model, operating_point: dict[str, float], *,
-                        hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) -> dict:
-    """The estimation demo's plant signals: ``{"t_s", "steam_flow", "turbine_pressure",
-    "fuel_flow"}`` (absolute engineering values, sensor noise included).
-
-    The load (steam flow) wanders like a real unit's: slow moves (correlation time
-    ~20 min) plus turbulence (~40 s); ``model`` (the boiler pressure loop) is simulated
-    from it, and each signal gets white sensor noise.
+def boiler_demo_plant(model: dict) -> dict:
+    """The estimation demo's plant: the boiler pressure loop of `model` (the shipped
+    ``boiler_pressure`` model as a dict, design.md "Model YAML") with the pressure
+    setpoint ``pressure_sp`` the operators move: the controller acts on
+    ``turbine_pressure - pressure_sp``.  Returns a new model dict (`model` is not
+    changed).
 
     Parameters
     ----------
-    model : Model
-        The boiler pressure loop (input ``steam_flow``; blocks ``turbine_pressure`` and
-        ``fuel``).
+    model : dict
+        The boiler model's ``model:`` mapping (blocks ``controller`` and ``drum``).
+    """
+    m = {**model, "inputs": [*model["inputs"], "pressure_sp"]}
+    blocks = []
+    for b in model["blocks"]:
+        b = dict(b)
+        if b["name"] == "controller":
+            blocks.append({"name": "pressure_error", "type": "sum",
+                           "inputs": [b["input"], "-pressure_sp"]})
+            b["input"] = "pressure_error"
+        blocks.append(b)
+    m["blocks"] = blocks
+    return m
+
+
+def boiler_demo_signals(plant: Model, operating_point: dict[str, float], *,
+                        hours: float = 12.0, dt_s: float = 1.0, seed: int = 7) -> dict:
+    """The estimation demo's plant signals: ``{"t_s", "steam_flow", "turbine_pressure",
+    "fuel_flow", "pressure_sp"}`` (absolute engineering values, sensor noise included).
+
+    The load (steam flow) wanders like a real unit's: slow moves (correlation time
+    ~20 min) plus turbulence (~40 s).  The operators move the pressure setpoint now and
+    then (a new value every 15-45 min, within ±1 bar, ramped by a 30 s setpoint filter).
+    ``plant`` (:func:`boiler_demo_plant`) is simulated from them, and each measured
+    signal gets white sensor noise.
+
+    Parameters
+    ----------
+    plant : Model
+        The demo plant (inputs ``steam_flow`` and ``pressure_sp``; blocks
+        ``turbine_pressure`` and ``fuel``).
     operating_point : dict of str to float
         ``steam_flow``, ``turbine_pressure`` and ``fuel_flow`` values the deviations are
         added to.
@@ -42,7 +72,7 @@ def boiler_demo_signals(model: Model, operating_point: dict[str, float], *,
     dt_s : float
         Sample period of the simulation, s.
     seed : int
-        Seeds the load and the sensor noise.
+        Seeds the load, the setpoint moves and the sensor noise.
     """
     rng = np.random.default_rng(seed)
     n = int(hours * 3600 / dt_s)
@@ -51,15 +81,24 @@ def boiler_demo_signals(model: Model, operating_point: dict[str, float], *,
     fast = scipy.signal.lfilter([np.sqrt(1 - np.exp(-2 * dt_s / 40))], [1, -np.exp(-dt_s / 40)],
                                 rng.standard_normal(n)) * 1.5
     steam = slow + fast
-    sim = simulate(model, {"steam_flow": steam}, dt_s=dt_s)
+    sp = np.zeros(n)
+    k = int(rng.integers(0, int(1800 / dt_s)))
+    while k < n:
+        hold = int(rng.integers(int(900 / dt_s), int(2700 / dt_s)))
+        sp[k:k + hold] = rng.uniform(-SP_MOVE_BAR, SP_MOVE_BAR)
+        k += hold
+    b = np.exp(-dt_s / SP_RAMP_S)  # the setpoint ramps (a setpoint filter)
+    sp = scipy.signal.lfilter([1 - b], [1, -b], sp)
+    sim = simulate(plant, {"steam_flow": steam, "pressure_sp": sp}, dt_s=dt_s)
     pressure = sim.outputs[:, 0]
     fuel = np.asarray(sim.signals["fuel"])
     op = operating_point
     return {
         "t_s": np.arange(n) * dt_s,
         "steam_flow": op["steam_flow"] + steam + 0.05 * rng.standard_normal(n),
-        "turbine_pressure": op["turbine_pressure"] + pressure + 0.004 * rng.standard_normal(n),
+        "turbine_pressure": op["turbine_pressure"] + pressure + 0.001 * rng.standard_normal(n),
         "fuel_flow": op["fuel_flow"] + fuel + 0.05 * rng.standard_normal(n),
+        "pressure_sp": op["turbine_pressure"] + sp,
     }
 
 

@@ -37,15 +37,18 @@ def test_demo_writes_export_runs_job_and_says_where_results_are(tmp_path):
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["job"] == "demo_boiler"
     assert manifest["inputs"][0]["path"].endswith("boiler_export.csv")
-    # the demo plant is known: the fuel controller cancels a steam-flow change at steady
-    # state (feedforward + integral action): fuel/steam gain -> 1 (model units: the fuel
-    # block's 65 x demand 1/65 per kg/s), pressure deviation -> 0.
+    # the demo plant is known (configs/demo_boiler.yaml): the pressure follows its
+    # setpoint (gain 1) and the fuel follows the load one to one (feedforward + integral
+    # action: model units, the fuel block's 65 x demand 1/65 per kg/s) -- read off the
+    # stored step responses, each within 3 sigma of the physics
     sr = pl.read_parquet(run_dir / "step_responses.parquet").filter(pl.col("window") == "all")
-    fuel = sr.filter(pl.col("output") == "fuel_flow").sort("lag")
-    assert abs(fuel["step"][-1] - 1.0) < 0.05
+    for out, inp in (("turbine_pressure", "pressure_sp"), ("fuel_flow", "steam_flow")):
+        last = sr.filter((pl.col("output") == out) & (pl.col("input") == inp)).sort("lag")[-1]
+        assert abs(last["step"][0] - 1.0) < max(3 * last["step_std"][0], 1e-3), (out, inp)
     checks = json.loads((run_dir / "checks.json").read_text())
     masked = {n: q["masked"] for n, q in checks["data_quality"]["signals"].items()}
-    assert all(v > 0 for v in masked.values())  # the injected digital states are masked
+    # the digital states injected into FI-101, PI-102 and FI-103 are masked
+    assert all(masked[n] > 0 for n in ("steam_flow", "turbine_pressure", "fuel_flow"))
     # runs: the catalog lists it and trends its metrics
     r2 = cli("runs", str(demo / "demo_boiler.yaml"))
     assert r2.returncode == 0, r2.stderr

@@ -2,8 +2,10 @@
 
 Two runs, each made once per module:
 
-* the bundled demo (``plantdyn demo --no-prefect``): a boiler whose pairs are closed-loop
-  responses (fuel flow overshoots to 3.2x its final value; pressure returns to zero);
+* the bundled demo (``plantdyn demo --no-prefect``): a boiler's pressure loop as an MPC
+  above its controller sees it (setpoint and load -> pressure and fuel): closed-loop
+  responses (fuel kicks on a setpoint move and returns to the balance; pressure returns
+  to its setpoint after a load change);
 * a plant simulated here, independently of the estimator: ``y = 2 e^{-3.7 s}/(20 s + 1) u``
   and ``y2 = -1 e^{-1.2 s}/(4 s + 1) u``, integrated exactly at 0.05 s (first-order-hold
   discretisation, the input linearly interpolated between its 1-s samples, dead time a
@@ -172,25 +174,28 @@ def test_mat_loads_with_scipy_and_gives_back_the_coefficients(demo):
     outputs = [str(c[0][0]) for c in m["outputs"]]
     inputs = [str(c[0][0]) for c in m["inputs"]]
     assert sorted(outputs) == sorted(stored["output"].unique())
-    assert inputs == ["steam_flow"]
+    assert inputs == ["pressure_sp", "steam_flow"]  # the job's order
     units = _units(run_dir)
     assert [str(c[0][0]) for c in m["output_units"]] == [units[o] for o in outputs]
     assert m["dt_s"].item() == stored["dt_s"][0]
     n_lag = stored["n_p"].max()
     assert m["step"].shape == (n_lag, len(outputs), len(inputs))
+    control_tf = _control_doc(files["control"])
     for i, o in enumerate(outputs):
-        pair = _pair(run_dir, o, inputs[0])
-        n_p = pair.height
-        assert m["n_p"][i, 0] == n_p
-        np.testing.assert_array_equal(m["step"][:n_p, i, 0], pair["step"].to_numpy())
-        np.testing.assert_array_equal(m["step_std"][:n_p, i, 0], pair["step_std"].to_numpy())
-        np.testing.assert_array_equal(m["delta_h"][:n_p, i, 0], pair["delta_h"].to_numpy())
-        # the fit travels too: G(s) without delay, the delay, the sampled form
-        tf = _control_doc(files["control"])[(o, inputs[0])]
-        np.testing.assert_array_equal(m["tf_num"][i, 0].ravel(), tf["num"])
-        np.testing.assert_array_equal(m["tf_den_z"][i, 0].ravel(), tf["discrete"]["den"])
-        assert m["tf_delay_s"][i, 0] == tf["delay_s"]
-        assert m["tf_fit_rms"][i, 0] == tf["fit_rms"]
+        for j, u in enumerate(inputs):
+            pair = _pair(run_dir, o, u)
+            n_p = pair.height
+            assert m["n_p"][i, j] == n_p
+            np.testing.assert_array_equal(m["step"][:n_p, i, j], pair["step"].to_numpy())
+            np.testing.assert_array_equal(m["step_std"][:n_p, i, j],
+                                          pair["step_std"].to_numpy())
+            np.testing.assert_array_equal(m["delta_h"][:n_p, i, j], pair["delta_h"].to_numpy())
+            # the fit travels too: G(s) without delay, the delay, the sampled form
+            tf = control_tf[(o, u)]
+            np.testing.assert_array_equal(m["tf_num"][i, j].ravel(), tf["num"])
+            np.testing.assert_array_equal(m["tf_den_z"][i, j].ravel(), tf["discrete"]["den"])
+            assert m["tf_delay_s"][i, j] == tf["delay_s"]
+            assert m["tf_fit_rms"][i, j] == tf["fit_rms"]
     np.testing.assert_array_equal(m["time_s"].ravel(), (np.arange(1, n_lag + 1) - 0.5) *
                                   stored["dt_s"][0])
 
@@ -246,14 +251,18 @@ def test_control_objects_match_the_stored_step_within_their_stated_fit_error(whi
         fit = stated[(o, u)]
         rms = float(np.sqrt(np.mean((_lag_response(g, h.size, dt, pade=False) - h) ** 2)))
         assert rms == pytest.approx(fit["fit_rms"], rel=1e-6)  # the stated error, exactly
-        assert fit["fit_rms_rel"] < 0.02  # and it is small: 0.03-1.2 % of the peak here
+        # and it is small (0.9-3.4 % of the peak here), or as small as the step's own
+        # noise asks: the demo's setpoint pairs (an input moved every 15-45 min; lag-wise
+        # step σ up to 6 t/h per bar) take the simplest model within 2 noise RMS
+        assert fit["fit_rms_rel"] < 0.05 or (fit["within_noise"]
+                                             and fit["fit_rms"] <= fit["tolerance"])
         # Padé(6) instead of the exact delay: its error sits just after the dead time;
-        # measured beyond fit_rms: <= 0.02 % of the gain RMS (FOPDT plant), 0.34 % of the
-        # peak (demo fuel flow, 7.5 s dead time before a fast rise)
+        # measured beyond fit_rms: <= 0.02 % of the gain RMS (FOPDT plant), up to 0.53 % of
+        # the peak (demo fuel <- steam, a 6.6 s dead time before a fast kick to 3.3x)
         gp = pade[(o, u)]
         assert gp.dt == 0 and gp.name == f"{o}<-{u}"
         rms_p = float(np.sqrt(np.mean((_lag_response(gp, h.size, dt, pade=True) - h) ** 2)))
-        assert rms_p <= fit["fit_rms"] + 0.005 * np.abs(h).max()
+        assert rms_p <= fit["fit_rms"] + 0.01 * np.abs(h).max()
 
 
 def test_fopdt_plant_gain_time_constant_and_dead_time_are_recovered(plant):

@@ -69,7 +69,8 @@ def pade_transfer_function(num, den, *, delay_s: float, order: int, output: str 
     g = control.tf(list(num), list(den))
     if delay_s > 0:  # (a delay of 1e-7 s would give poles at 1e8 rad/s: export snaps those to 0)
         g = g * control.tf(*control.pade(float(delay_s), int(order)))
-    return control.tf(g.num[0][0], g.den[0][0], **_labels(output, input))
+    # dt=0 stated: python-control leaves a static gain's time base unset (dt=None)
+    return control.tf(g.num[0][0], g.den[0][0], 0, **_labels(output, input))
 
 
 def _labels(output: str | None, input: str | None) -> dict:
