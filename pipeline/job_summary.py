@@ -438,9 +438,7 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
                      "without an instrument, N_p inside its bounds, windows agree."
                      + (f" {len(graded)} pair(s) are graded C or D all the same: the quality "
                         "grades above say why and what to change." if graded else ""))
-    for p in warned:
-        for w in p["warnings"]:
-            lines.append(f"- **{p['output']}<-{p['input']}** ({w['code']}): {w['message']}.")
+    lines += _distrust_lines(warned, checks)
     lines += _window_lines(sr, checks, prep.time)
     masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
     lines += ["", f"Masked grid samples per signal: {masked or 'none'}."]
@@ -457,6 +455,18 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
                      f"between {d['first']} and {d['last']}, far from the rest of the record "
                      "— check the export's timestamps.")
     return "\n".join(lines) + "\n"
+
+
+def _distrust_lines(warned: list[dict], checks: dict) -> list[str]:
+    """One line per distinct warning: a cause shared by several pairs (the output's
+    residuals, say) is said once with every pair it touches and their grades."""
+    groups: dict[tuple[str, str], list[str]] = {}
+    for p in warned:
+        grade = grade_from_checks(p, checks).grade
+        for w in p["warnings"]:
+            groups.setdefault((w["code"], w["message"]), []).append(
+                f"**{p['output']}<-{p['input']}** ({grade})")
+    return [f"- {', '.join(who)} — {code}: {msg}." for (code, msg), who in groups.items()]
 
 
 def _window_lines(sr: SearchResult, checks: dict, time: np.ndarray) -> list[str]:

@@ -28,9 +28,13 @@ Verdicts:
 * ``insufficient_data``: no free lag in the tail (the whole horizon lies inside a known
   delay): nothing to judge, no gain.
 * ``settled``: otherwise.  ``gain`` is the final value, and ``gain_std`` includes what the
-  horizon leaves out: ``sqrt(sd(final)^2 + sd(left out)^2)`` — the response beyond N_p is
-  known only to within the reference fit's uncertainty, so a gain read at a short horizon
-  whose long-horizon value is uncertain is never printed with a small σ.
+  horizon leaves out: ``sqrt(sd(final)^2 + b2)`` with ``b2 = max(0, L^2 - sd(L)^2)``, the
+  unbiased (positive-part) estimate of the squared truncation bias from the left-out
+  change ``L`` of the reference fit (``E[L^2] = b^2 + sd(L)^2``).  A horizon that leaves
+  nothing out keeps the final value's own σ (adding ``sd(L)`` itself, the noise of a
+  fit several times longer, made the ±2σ band of the gain cover 100 % with RMS z 0.25-0.36
+  in ``tests/benchmarks/bench_oracle.py``); a left-out change larger than its noise widens
+  the σ by that excess.
 
 The gain's sign is *established* when ``|gain| > 2 gain_std``; the note says so when it
 is not.
@@ -229,12 +233,15 @@ def settledness(est: StepResponseEstimate, i: int, j: int, *, left_out: float = 
                  "search.settling_time_s) or more data")
         return Settledness("moving", s, s_std, m, left_out, left_out_std, final, final_std,
                            None, None, extra, False, note)
-    gain_std = float(np.hypot(final_std, left_out_std))
+    bias = float(np.sqrt(max(left_out ** 2 - left_out_std ** 2, 0.0)))
+    gain_std = float(np.hypot(final_std, bias))
     sign = abs(final) > 2 * gain_std
     u = f" {unit}" if unit else ""
     note = (f"settled within N_p·T = {n * dt:g} s (last {m} lags change it by "
-            f"{s * scale:.3g} ± {s_std * scale:.2g}); σ includes "
-            f"{left_out_std * scale:.2g} for what the horizon leaves out")
+            f"{s * scale:.3g} ± {s_std * scale:.2g})")
+    if bias > 0:
+        note += (f"; σ includes {bias * scale:.2g} for what the horizon leaves out (the "
+                 f"longest fit adds {left_out * scale:.3g} ± {left_out_std * scale:.2g})")
     if not sign and peak > PEAK_SIGMAS * gain_std:
         note += (f"; ≈ 0 at steady state ({final * scale:.3g} ± {gain_std * scale:.2g}{u}) "
                  f"after a clear transient (peak {peak * scale:.3g}): the output's controller "

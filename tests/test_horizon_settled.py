@@ -192,3 +192,26 @@ def test_an_input_flat_in_one_window_is_named_with_the_window_and_its_time(tmp_p
         line = next(x for x in report.splitlines() if x.startswith("- No window check"))
         t_end = str(np.datetime64("2026-03-02T00:00:00", "s") + np.timedelta64(b - 1, "s"))
         assert f"{t_end}Z (samples {a}–{b})" in line and "u2 (tag U2.PV)" in line
+
+
+def test_gain_sigma_holds_the_truncation_bias_not_the_reference_fits_noise():
+    """σ of a settled gain: sqrt(σ_final² + max(0, L² − σ_L²)) (settledness module doc):
+    E[L²] = b² + σ_L², so a left-out change L within its own noise adds nothing, and one
+    beyond it adds the excess.  A first-order plant simulated here (numpy only), fitted at
+    a horizon past its settling; L and σ_L are given as the search would pass them."""
+    from pipeline.estimate import estimate_step_responses
+    from pipeline.settledness import settledness
+
+    rng = np.random.default_rng(11)
+    n = 4000
+    u = np.repeat(rng.standard_normal(n // 20), 20)
+    y = ss.lfilter([0.0, 0.2], [1.0, -0.8], u) + 0.05 * rng.standard_normal(n)
+    est = estimate_step_responses(u[:, None], y[:, None], n_p=40, dt=1.0)
+    final_std = float(est.step_std[0, 0, 39])
+    assert abs(est.step[0, 0, 39] - 1.0) < 3 * final_std  # the truth: gain 0.2/(1-0.8)
+    quiet = settledness(est, 0, 0, left_out=0.5 * final_std, left_out_std=3 * final_std)
+    assert quiet.verdict == "settled" and quiet.gain_std == pytest.approx(final_std)
+    biased = settledness(est, 0, 0, left_out=0.02, left_out_std=0.006)
+    assert biased.verdict == "settled"
+    assert biased.gain_std == pytest.approx(np.hypot(final_std, np.sqrt(0.02**2 - 0.006**2)))
+    assert "for what the horizon leaves out" in biased.note
