@@ -99,12 +99,18 @@ def _cmd_run(args) -> int:
 def _cmd_nightly(args) -> int:
     from flows.common import prefect_env_defaults, starting
 
-    _check_job(args.job, files=False)  # an empty drop folder is a normal night
-    prefect_env_defaults()
-    with starting("the Prefect flow 'nightly'"):
-        from flows.nightly import run_nightly
+    cfg = _check_job(args.job, files=False)  # an empty drop folder is a normal night
+    if args.no_prefect:
+        from pipeline.nightly import run_nightly_direct
 
-        rows = run_nightly(args.job)
+        rows = run_nightly_direct(cfg, say=lambda line: print(line, file=sys.stderr,
+                                                               flush=True))
+    else:
+        prefect_env_defaults()
+        with starting("the Prefect flow 'nightly'"):
+            from flows.nightly import run_nightly
+
+            rows = run_nightly(args.job)
     for r in rows:  # one line per file: status, run dir or message
         where = r.get("run_dir") or r.get("run_id") or ""
         print(f"{r['status']:>10}  {Path(r['path']).name}  {where}  {r.get('error') or ''}"
@@ -226,6 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
     n = sub.add_parser("nightly", help="process new files of a job's drop folder once each",
                        parents=[shown])
     n.add_argument("job")
+    n.add_argument("--no-prefect", action="store_true",
+                   help="process the files directly, one after another, instead of through "
+                        "the Prefect flow")
     n.set_defaults(fn=_cmd_nightly)
     d = sub.add_parser("demo", help="make a demo historian export and run the demo job",
                        parents=[shown])

@@ -17,7 +17,7 @@ from flows.common import (
 )
 from pipeline.adapters.config import load_job
 from pipeline.adapters.progress import bar as progress_bar
-from pipeline.nightly import discover_files, process_file
+from pipeline.nightly import discover_files, process_file, status_line
 
 
 @task(name="discover", cache_policy=NO_CACHE, persist_result=False)
@@ -46,9 +46,7 @@ def process_file_task(cfg, item):
     """
     row = process_file(cfg, item[0], item[1])
     # as each file finishes (stderr directly: the flow's log_prints would swallow it)
-    sys.stderr.write(f"[nightly] {row['status']}: {item[0]}"
-                     f"{'  -> ' + str(row['run_id']) if row.get('run_id') else ''}"
-                     f"{'  (' + str(row['error'])[:200] + ')' if row.get('error') else ''}\n")
+    sys.stderr.write(status_line(row) + "\n")
     sys.stderr.flush()
     return row
 

@@ -37,8 +37,8 @@ from pipeline.adapters.store import ResultStore, file_sha256
 from pipeline.errors import ConfigError, UserInputError
 from pipeline.monitor_job import check_baseline
 
-__all__ = ["discover_files", "process_file", "nightly_run_id", "claim_lease_s",
-           "LEASE_ENV"]
+__all__ = ["discover_files", "process_file", "nightly_run_id", "claim_lease_s", "status_line",
+           "run_nightly_direct", "LEASE_ENV"]
 
 _log = logging.getLogger(__name__)
 
@@ -191,3 +191,39 @@ def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | Non
     store.finish_file(cfg.job, sha256, report.run_id, "ok")
     return {"path": path, "sha256": sha256, "status": "ok", "run_id": report.run_id,
             "error": None}
+
+
+def status_line(row: dict) -> str:
+    """The per-file line a nightly prints as each file finishes (one format for every
+    runner).
+
+    Parameters
+    ----------
+    row : dict
+        A status row of :func:`process_file`.
+    """
+    return (f"[nightly] {row['status']}: {row['path']}"
+            f"{'  -> ' + str(row['run_id']) if row.get('run_id') else ''}"
+            f"{'  (' + str(row['error'])[:200] + ')' if row.get('error') else ''}")
+
+
+def run_nightly_direct(cfg: JobConfig, *, say=None) -> list[dict]:
+    """The nightly without Prefect (``plantdyn nightly --no-prefect``): the job's new
+    files (:func:`discover_files`) processed one after another (:func:`process_file`).
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    say : callable (str), optional
+        Told each file's :func:`status_line` as it finishes.
+    """
+    items = discover_files(cfg)
+    if say:
+        say(f"[nightly] {cfg.job}: {len(items)} file(s) in {cfg.source.path}")
+    rows = []
+    for path, sha in items:
+        rows.append(process_file(cfg, path, sha))
+        if say:
+            say(status_line(rows[-1]))
+    return rows
