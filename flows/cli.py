@@ -136,11 +136,14 @@ def _cmd_runs(args) -> int:
         cfg = load_job(args.job)
         root, job = cfg.storage_root, cfg.job
     else:
-        root, job = Path(args.storage).resolve(), args.job
+        from pipeline.adapters.safe_write import check_path_length
+
+        root, job = check_path_length(args.storage, "--storage").resolve(), args.job
     # read-only: listing never creates a catalog (a --storage typo) nor needs write access
     # (an archive on a read-only disk)
     store = ResultStore(root, readonly=True)
-    return show_runs(store, job, metrics=args.metric, plot=args.plot, draw=not args.no_plot)
+    return show_runs(store, job, metrics=args.metric, plot=args.plot, draw=not args.no_plot,
+                     force=args.force)
 
 
 def _cmd_reindex(args) -> int:
@@ -258,6 +261,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="where to write the trend figure (PNG; default "
                          "<storage>/<job>/trend.png)")
     ru.add_argument("--no-plot", action="store_true", help="do not write the trend figure")
+    ru.add_argument("--force", action="store_true",
+                    help="replace an existing --plot file (a regular file only)")
     ru.set_defaults(fn=_cmd_runs)
     rx = sub.add_parser("reindex", help="rebuild a results root's catalog from its run "
                                         "folders (after a read-only or lost catalog)")

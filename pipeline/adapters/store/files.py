@@ -13,6 +13,7 @@ import re
 import secrets
 import shutil
 import sqlite3
+import stat
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -145,12 +146,21 @@ def fsync_dir(path: Path) -> None:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to a temporary name in the same directory, fsync, rename over ``path``.
 
+    Only a regular file (or nothing) is ever replaced: what is at ``path`` is checked
+    again just before the rename, so a FIFO, device node, folder or link that appeared
+    there is left alone (:mod:`pipeline.adapters.safe_write` states the rule).
+
     Parameters
     ----------
     path : Path
         Destination file.
     data : bytes
         Its whole content.
+
+    Raises
+    ------
+    StorageError
+        Something other than a regular file is at ``path``; nothing was written.
     """
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
     try:
@@ -158,11 +168,24 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        _refuse_special(path)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     fsync_dir(path.parent)
+
+
+def _refuse_special(path: Path) -> None:
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(mode):
+        from pipeline.adapters.safe_write import file_kind
+
+        raise StorageError(f"{path} is a {file_kind(mode)}, not a regular file; it is never "
+                           "replaced — give another path (nothing was written)")
 
 
 MAX_NAME_LENGTH = 100
