@@ -206,7 +206,168 @@ def test_out_inside_another_run_or_over_the_catalog_is_refused(site):
     assert listing(site / "storage") == before
 
 
+# --------------------------------------------------------------------- reindex
+def test_reindex_refuses_a_folder_that_is_not_a_results_store(tmp_path):
+    etc = tmp_path / "etc"
+    (etc / "ssh").mkdir(parents=True)
+    (etc / "hosts").write_text("127.0.0.1 localhost\n")
+    before = listing(etc)
+    refused(*cli("reindex", etc), f"storage {etc} is not a results store",
+            "no catalog and no <job>/<run-id>/manifest.json run folders",
+            f"pass --force to make {etc} one")
+    assert listing(etc) == before and not (etc / "catalog.sqlite").exists()
+    rc, out, err = cli("reindex", etc, "--force")
+    assert rc == 0 and "catalog rebuilt from 0 run folder(s)" in out, err
+    assert (etc / "catalog.sqlite").is_file()
+
+
+def test_reindex_refuses_a_folder_with_only_a_foreign_database(tmp_path):
+    folder = tmp_path / "app"
+    folder.mkdir()
+    con = sqlite3.connect(folder / "catalog.sqlite")
+    con.execute("CREATE TABLE books (title TEXT)")
+    con.commit()
+    con.close()
+    before = listing(folder)
+    refused(*cli("reindex", folder), "is not a results store",
+            "is a database of another schema (tables books", "--force")
+    assert listing(folder) == before
+
+
+def test_zero_byte_catalog_is_a_message_and_reindex_rebuilds_it(site):
+    storage = site / "storage"
+    for p in storage.glob("catalog.sqlite*"):
+        p.unlink()
+    (storage / "catalog.sqlite").write_bytes(b"")
+    refused(*cli("runs", "plant", "--storage", storage),
+            "the catalog is empty (0 bytes", f"run `plantdyn reindex {storage}`")
+    before = listing(storage)  # beside run folders, a new run would hide them: refused
+    refused(*cli("run", "--no-prefect", site / "job.yaml"), "the catalog is empty (0 bytes",
+            f"run `plantdyn reindex {storage}`")
+    assert listing(storage) == before
+    rc, out, err = cli("reindex", storage)
+    assert rc == 0, err[-3000:]
+    aside = [p for p in storage.iterdir() if p.name.endswith(".bad")]
+    assert len(aside) == 1 and aside[0].stat().st_size == 0
+    assert f"moved aside to {aside[0]} (not deleted)" in out
+    assert "catalog rebuilt from 2 run folder(s)" in out
+    rc, out, err = cli("runs", "plant", "--storage", storage, "--no-plot")
+    assert rc == 0 and all(r.name in out for r in runs_of(site)), err
+
+
+def test_a_first_run_after_a_zero_byte_catalog_just_works(tmp_path):
+    """What a first run that failed on a full disk leaves: a 0-byte catalog, no runs."""
+    write_plant_csv(tmp_path / "drop" / "export.csv", seed=23, hours=1.0)
+    job = write_job(tmp_path)
+    (tmp_path / "storage").mkdir()
+    (tmp_path / "storage" / "catalog.sqlite").write_bytes(b"")
+    rc, out, err = cli("run", "--no-prefect", job)
+    assert rc == 0, err[-3000:]
+    rc, listed, err = cli("runs", "plant", "--storage", tmp_path / "storage", "--no-plot")
+    assert rc == 0 and Path(out.strip().splitlines()[-1]).name in listed, err
+
+
+def test_foreign_catalog_is_a_message_and_reindex_moves_it_aside(site):
+    storage = site / "storage"
+    catalog = storage / "catalog.sqlite"
+    for p in storage.glob("catalog.sqlite*"):
+        p.unlink()
+    con = sqlite3.connect(catalog)
+    con.execute("CREATE TABLE runs (a INTEGER)")  # the catalog's table name, not its columns
+    con.execute("INSERT INTO runs VALUES (42)")
+    con.commit()
+    con.close()
+    refused(*cli("runs", "plant", "--storage", storage),
+            "the catalog is a database of another schema (table runs has columns a",
+            f"`plantdyn reindex {storage}`")
+    before = listing(storage)
+    refused(*cli("run", "--no-prefect", site / "job.yaml"),  # before the work, not after
+            "the catalog is a database of another schema", "nothing is deleted")
+    assert listing(storage) == before
+    rc, out, err = cli("reindex", storage)
+    assert rc == 0 and "catalog rebuilt from 2 run folder(s)" in out, err[-3000:]
+    aside = next(p for p in storage.iterdir() if p.name.endswith(".bad"))
+    assert "moved aside to" in out and str(aside) in out
+    con = sqlite3.connect(aside)  # the other program's data, whole
+    assert con.execute("SELECT a FROM runs").fetchall() == [(42,)]
+    con.close()
+    rc, out, err = cli("runs", "plant", "--storage", storage, "--no-plot")
+    assert rc == 0 and all(r.name in out for r in runs_of(site)), err
+
+
+def test_a_catalog_that_is_a_fifo_is_never_touched(site):
+    storage = site / "storage"
+    for p in storage.glob("catalog.sqlite*"):
+        p.unlink()
+    os.mkfifo(storage / "catalog.sqlite")
+    before = listing(storage)
+    refused(*cli("reindex", storage), "the catalog is a FIFO (named pipe), not a file",
+            "plantdyn does not touch it")
+    refused(*cli("runs", "plant", "--storage", storage), "is a FIFO (named pipe)")
+    assert listing(storage) == before
+
+
+def test_reindex_skips_a_bad_manifest_and_catalogues_the_rest(site):
+    storage = site / "storage"
+    dup, fifo_run = runs_of(site)
+    manifest = json.loads((dup / "manifest.json").read_text())
+    manifest["metrics"].append(dict(manifest["metrics"][0]))
+    (dup / "manifest.json").write_text(json.dumps(manifest))
+    rc, out, err = cli("reindex", storage)
+    assert rc == 0, err[-3000:]
+    metric = "/".join(manifest["metrics"][0][k] for k in ("window", "output", "input",
+                                                           "metric"))
+    assert f"skipped {dup}: metric {metric} is listed twice" in out
+    assert "catalog rebuilt from 1 run folder(s)" in out
+    rc, out, _ = cli("runs", "plant", "--storage", storage, "--no-plot")
+    assert rc == 0 and fifo_run.name in out and dup.name not in out
+    # a manifest that is a FIFO is skipped, never opened (it would block forever)
+    (fifo_run / "manifest.json").unlink()
+    os.mkfifo(fifo_run / "manifest.json")
+    rc, out, err = cli("reindex", storage)
+    assert rc == 0 and f"skipped {fifo_run}: manifest.json is not a regular file" in out, err
+
+
+def test_created_utc_without_fractional_seconds(site):
+    storage = site / "storage"
+    run = runs_of(site)[0]
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["created_utc"] = manifest["created_utc"].split(".")[0] + "Z"
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    rc, out, err = cli("reindex", storage)
+    assert rc == 0 and "catalog rebuilt from 2 run folder(s)" in out, err[-3000:]
+    con = sqlite3.connect(storage / "catalog.sqlite")
+    stored = con.execute("SELECT created_utc FROM runs WHERE run_id = ?",
+                         (run.name,)).fetchone()[0]
+    assert stored == manifest["created_utc"][:-1] + ".000000Z"  # the catalog's fixed width
+    con.execute("UPDATE runs SET created_utc = ? WHERE run_id = ?",
+                (manifest["created_utc"], run.name))  # as an older reindex stored it
+    con.commit()
+    con.close()
+    rc, out, err = cli("runs", "plant", "--storage", storage, "--no-plot")
+    assert rc == 0 and run.name in out, err[-3000:]
+    con = sqlite3.connect(storage / "catalog.sqlite")
+    con.execute("UPDATE runs SET created_utc = 'yesterday' WHERE run_id = ?", (run.name,))
+    con.commit()
+    con.close()
+    refused(*cli("runs", "plant", "--storage", storage, "--no-plot"),
+            "runs of job 'plant', created_utc: 'yesterday' is not an ISO 8601 time",
+            f"`plantdyn reindex {storage}`")
+
+
 # ------------------------------------------------------------------ job inputs
+def test_baseline_whose_manifest_is_not_json(site):
+    job = write_job(site, monitor={"baseline": "first"})
+    first = runs_of(site)[0]
+    (first / "manifest.json").write_text("{not json")
+    before = listing(site / "storage")
+    refused(*cli("run", "--no-prefect", job),
+            "monitor.baseline: the baseline run cannot be used",
+            f"run plant/{first.name}: manifest.json is not JSON",
+            "pin another run (monitor.baseline: RUN_ID)")
+    assert listing(site / "storage") == before
+
+
 @pytest.mark.parametrize("yaml_text, says", [
     ("source:\n  path: drop/*.csv\n  timezone: !!timestamp hello\n",
      "source.timezone: the value 'hello' (line 4, column 13) is tagged !!timestamp but is "
@@ -234,6 +395,7 @@ def test_yaml_values_that_raised_os_or_attribute_errors(tmp_path, yaml_text, say
     (["runs", "plant", "--storage", "{storage}", "--plot", "{tmp}/" + LONG + ".png"],
      "--plot"),
     (["runs", "plant", "--storage", "{tmp}/" + LONG], "--storage"),
+    (["reindex", "{tmp}/" + LONG], "STORAGE"),
 ])
 def test_300_character_names_name_the_option(site, tmp_path, argv, option):
     values = {"run": runs_of(site)[0], "tmp": tmp_path, "storage": site / "storage"}

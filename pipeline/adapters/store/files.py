@@ -118,14 +118,30 @@ def iso_utc(moment: dt.datetime) -> str:
 
 
 def parse_iso_utc(text: str) -> dt.datetime:
-    """The instant of an :func:`iso_utc` text.
+    """The instant of an :func:`iso_utc` text, or of any ISO 8601 time with a zone
+    (``2026-03-01T02:00:00Z`` without fractional seconds, ``+01:00`` offsets).
 
     Parameters
     ----------
     text : str
-        ``YYYY-MM-DDTHH:MM:SS.ffffffZ``.
+        ``YYYY-MM-DDTHH:MM:SS.ffffffZ`` (the store's form) or ISO 8601 with a zone.
+
+    Raises
+    ------
+    ValueError
+        Not an ISO 8601 time, or one without a zone.
     """
-    return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.UTC)
+    try:
+        return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.UTC)
+    except (TypeError, ValueError):
+        pass
+    try:
+        moment = dt.datetime.fromisoformat(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{text!r} is not an ISO 8601 time") from None
+    if moment.tzinfo is None:
+        raise ValueError(f"{text!r} has no time zone")
+    return moment.astimezone(dt.UTC)
 
 
 def fsync_dir(path: Path) -> None:
@@ -226,8 +242,8 @@ def storage_error(exc: BaseException, path: Path, doing: str) -> StorageError | 
             fix = f"check that {path.parent} exists and is writable"
         elif "not a database" in text or "malformed" in text:
             cause = "the catalog file is not an SQLite database (corrupt or replaced)"
-            fix = (f"move {path} aside and run `plantdyn reindex {path.parent}` to rebuild it "
-                   "from the run folders")
+            fix = (f"run `plantdyn reindex {path.parent}`: it moves the file aside and "
+                   "rebuilds the catalog from the run folders")
         else:
             return None
         return StorageError(f"storage {path}: {cause} while {doing}; {fix}")
