@@ -49,6 +49,10 @@ def _check_job(path: str, *, files: bool = True):
         from pipeline.errors import ConfigError
 
         raise ConfigError(f"storage: {str(root)!r} is a file, not a folder")
+    if root.is_dir():
+        from pipeline.adapters.store import check_catalog
+
+        check_catalog(root)  # a catalog that is not ours: exit 2 now, not after the work
     from pipeline.monitor_job import check_baseline
 
     check_baseline(cfg)  # a pinned baseline run must exist (exit 2 naming the runs)
@@ -142,25 +146,24 @@ def _cmd_runs(args) -> int:
         cfg = load_job(args.job)
         root, job = cfg.storage_root, cfg.job
     else:
-        root, job = Path(args.storage).resolve(), args.job
+        from pipeline.adapters.safe_write import check_path_length
+
+        root, job = check_path_length(args.storage, "--storage").resolve(), args.job
     # read-only: listing never creates a catalog (a --storage typo) nor needs write access
     # (an archive on a read-only disk)
     store = ResultStore(root, readonly=True)
-    return show_runs(store, job, metrics=args.metric, plot=args.plot, draw=not args.no_plot)
+    return show_runs(store, job, metrics=args.metric, plot=args.plot, draw=not args.no_plot,
+                     force=args.force)
 
 
 def _cmd_reindex(args) -> int:
-    from pipeline.adapters.store import CATALOG_NAME, ResultStore
+    from pipeline.adapters.safe_write import check_path_length
+    from pipeline.adapters.store import ResultStore
 
-    root = Path(args.storage).resolve()
-    if not root.is_dir():
-        print(f"plantdyn: error: storage {root} is not a folder", file=sys.stderr)
-        return 2
-    if not (root / CATALOG_NAME).exists() and not any(p.is_dir() for p in root.iterdir()):
-        print(f"plantdyn: error: storage {root} has neither a catalog nor run folders; "
-              "give the results root (the job's storage:)", file=sys.stderr)
-        return 2
-    res = ResultStore(root).reindex()
+    root = check_path_length(args.storage, "STORAGE").resolve()
+    res = ResultStore.reindex_folder(root, force=args.force)
+    for note in res.notes:
+        print(note)
     print(f"catalog rebuilt from {res.n_runs} run folder(s) under {root}")
     for s in res.skipped:
         print(f"  skipped {s}")
@@ -267,10 +270,16 @@ def build_parser() -> argparse.ArgumentParser:
                     help="where to write the trend figure (PNG; default "
                          "<storage>/<job>/trend.png)")
     ru.add_argument("--no-plot", action="store_true", help="do not write the trend figure")
+    ru.add_argument("--force", action="store_true",
+                    help="replace an existing --plot file (a regular file only)")
     ru.set_defaults(fn=_cmd_runs)
     rx = sub.add_parser("reindex", help="rebuild a results root's catalog from its run "
-                                        "folders (after a read-only or lost catalog)")
+                                        "folders (after a read-only, lost, empty or foreign "
+                                        "catalog: moved aside, never deleted)")
     rx.add_argument("storage", help="the results root (a job's storage: folder)")
+    rx.add_argument("--force", action="store_true",
+                    help="rebuild even if STORAGE does not look like a results store (no "
+                         "catalog, no <job>/<run-id>/manifest.json run folders)")
     rx.set_defaults(fn=_cmd_reindex)
     dc = sub.add_parser("discrepancy", help="simulation-vs-measurement workflow; prints the "
                                             "run directory", parents=[shown])

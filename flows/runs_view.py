@@ -4,8 +4,11 @@ the metric trend — and the trend figure (:mod:`pipeline.adapters.trend_plot`).
 The catalog is opened read-only and never created.  The figure is the one file this
 command writes: ``<storage>/<job>/trend.png`` by default (beside the job's runs,
 replaced atomically), or ``--plot FILE``; it is drawn once the job has two runs with a
-gain or rate.  On a read-only archive the listing still prints and a note says where
-the figure could not go.
+gain or rate.  Where it may go is checked before anything is printed, by the one rule of
+:func:`pipeline.adapters.safe_write.safe_target`: ``--plot`` replaces an existing regular
+file only with ``--force``, and never a FIFO, device node, folder or link, a file inside a
+run directory or the catalog (exit 2).  On a read-only archive the listing still prints
+and a note says where the default figure could not go.
 """
 
 from __future__ import annotations
@@ -68,7 +71,7 @@ def runs_table(runs: pl.DataFrame, trend: pl.DataFrame) -> pl.DataFrame:
 
 
 def show_runs(store, job: str, *, metrics: list[str] | None = None,
-              plot: str | None = None, draw: bool = True) -> int:
+              plot: str | None = None, draw: bool = True, force: bool = False) -> int:
     """Print a job's runs (changed pairs first) and write the trend figure; returns the
     exit code.
 
@@ -84,11 +87,22 @@ def show_runs(store, job: str, *, metrics: list[str] | None = None,
         Where to write the figure (default ``<storage>/<job>/trend.png``).
     draw : bool
         Write the figure at all (``--no-plot``: False).
+    force : bool
+        Replace an existing ``plot`` file (``--force``; the default figure, the store's
+        own file, is always replaced).
+
+    Raises
+    ------
+    ConfigError, StorageError
+        ``--plot`` names a place the figure may not go
+        (:func:`pipeline.adapters.safe_write.safe_target`); checked before anything is
+        printed.
     """
     runs = store.list_runs(job)
     if runs.height == 0:
         print(f"no runs of job {job!r} under {store.root}")
         return 0
+    target = _plot_target(store, job, plot, force) if draw else None
     trend = store.trend(job)
     with pl.Config(tbl_rows=200, tbl_cols=20, fmt_str_lengths=60, tbl_width_chars=200):
         changed = changed_table(trend)
@@ -106,11 +120,26 @@ def show_runs(store, job: str, *, metrics: list[str] | None = None,
             print(trend.filter(pl.col("metric").is_in(metrics or DEFAULT_METRICS))
                   .select(keep))
     if draw:
-        _write_plot(store, job, trend, plot)
+        _write_plot(job, trend, target)
     return 0
 
 
-def _write_plot(store, job: str, trend: pl.DataFrame, plot: str | None) -> None:
+def _plot_target(store, job: str, plot: str | None, force: bool) -> Path | str:
+    """Where the figure goes, by the one rule (``safe_target``); for the default figure
+    in a folder that is not writable (a read-only archive), the reason it cannot go."""
+    from pipeline.adapters.safe_write import safe_target
+    from pipeline.errors import StorageError
+
+    if plot is not None:
+        return safe_target(plot, force=force, option="--plot")
+    try:  # the store's own figure: always replaced, but never a non-regular file
+        return safe_target(store.root / job / "trend.png", force=True, option="the figure",
+                           fix="move it away, or give --plot FILE (or --no-plot)")
+    except StorageError:
+        return f"{store.root / job / 'trend.png'} (the folder is not writable)"
+
+
+def _write_plot(job: str, trend: pl.DataFrame, path: Path | str) -> None:
     """Write the trend figure and print its path (a note on stderr when it cannot be)."""
     from pipeline.adapters.trend_plot import pair_trends, write_trend_png
 
@@ -118,7 +147,10 @@ def _write_plot(store, job: str, trend: pl.DataFrame, plot: str | None) -> None:
     if not trends or max(len(t.run_ids) for t in trends) < 2:
         print("trend plot: needs two runs with a gain or rate", file=sys.stderr)
         return
-    path = Path(plot).resolve() if plot else store.root / job / "trend.png"
+    if isinstance(path, str):
+        print(f"trend plot: not written to {path}; give --plot FILE to write it elsewhere",
+              file=sys.stderr)
+        return
     what = "/".join(sorted({t.metric for t in trends}))
     title = f"{job}: {what} per run" + \
         (" with the unchanged band (baseline ± threshold·σ)"

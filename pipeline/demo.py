@@ -146,6 +146,27 @@ def write_discrepancy_export(folder: Path, *, hours: float = 8.0, seed: int = 11
     return path
 
 
+def _write_own(path: Path, data: bytes) -> Path:
+    """Write one of the demo's files in ``--dir`` (replaced each time, but never a FIFO,
+    device node, folder or link: :mod:`pipeline.adapters.safe_write`)."""
+    from pipeline.adapters.safe_write import safe_target, write_atomically
+
+    return write_atomically(safe_target(path, force=True, option="--dir"), data,
+                            option="--dir")
+
+
+def _clear_exports(exports: Path) -> None:
+    """Remove the demo's previous export folder — only a real folder, never a link."""
+    if exports.is_symlink() or (exports.exists() and not exports.is_dir()):
+        from pipeline.adapters.safe_write import file_kind
+        from pipeline.errors import ConfigError
+
+        raise ConfigError(f"--dir: {exports} is a {file_kind(exports.lstat().st_mode)}, not "
+                          "the demo's export folder; move it away or give another --dir")
+    if exports.exists():
+        shutil.rmtree(exports)
+
+
 def _say(progress, message: str) -> None:
     if progress:
         progress("demo", message)
@@ -166,10 +187,8 @@ def prepare_demo(folder: Path, *, progress=None) -> Path:
     exports = folder / "exports"
     text = DEMO_JOB.read_text().replace("../demo/exports/*.csv", "exports/*.csv")
     folder.mkdir(parents=True, exist_ok=True)
-    job = folder / "demo_boiler.yaml"
-    job.write_text(text)
-    if exports.exists():
-        shutil.rmtree(exports)
+    job = _write_own(folder / "demo_boiler.yaml", text.encode("utf-8"))
+    _clear_exports(exports)
     _say(progress, f"writing a 12 h historian export of the boiler loop to {exports}")
     path = write_demo_export(exports)
     _say(progress, f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB); running {job}")
@@ -197,11 +216,9 @@ def prepare_discrepancy_demo(folder: Path, *, progress=None, two_effects: bool =
     exports = folder / name
     text = shipped.read_text().replace(f"../demo/{name}/*.csv", f"{name}/*.csv")
     (folder / "models").mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(BOILER_MODEL, folder / "models" / BOILER_MODEL.name)
-    job = folder / shipped.name
-    job.write_text(text)
-    if exports.exists():
-        shutil.rmtree(exports)
+    _write_own(folder / "models" / BOILER_MODEL.name, BOILER_MODEL.read_bytes())
+    job = _write_own(folder / shipped.name, text.encode("utf-8"))
+    _clear_exports(exports)
     what = ("and an auxiliary flow it ignores acts on the pressure" if two_effects else "")
     _say(progress, f"writing an 8 h export of a boiler whose controller gain is 20 % above "
                    f"the model's {what + ' ' if what else ''}to {exports}")

@@ -30,6 +30,13 @@ from pydantic import (
 
 from pipeline.adapters.ingest.options import CsvOptions as IngestCsvOptions
 from pipeline.adapters.ingest.options import McapOptions as IngestMcapOptions
+from pipeline.adapters.yaml_text import (  # noqa: F401 - re-exported
+    MAX_YAML_BYTES,
+    MAX_YAML_DEPTH,
+    MAX_YAML_VALUES,
+    load_yaml_file,
+    parse_yaml_text,
+)
 from pipeline.errors import ConfigError
 
 __all__ = [
@@ -163,9 +170,12 @@ class SourceConfig(_Strict):
     def _tz(cls, v: str) -> str:
         from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
+        if len(v) > 64:  # the longest IANA name has 32 characters
+            raise ValueError(f"a time zone of {len(v)} characters ({v[:40]!r}…) is not an IANA "
+                             "name; use one such as 'UTC', 'Europe/Berlin' or 'America/Chicago'")
         try:
             ZoneInfo(v)
-        except (ZoneInfoNotFoundError, ValueError) as exc:
+        except (ZoneInfoNotFoundError, ValueError, OSError) as exc:
             raise ValueError(
                 f"unknown time zone {v!r}; use an IANA name such as 'UTC', "
                 "'Europe/Berlin' or 'America/Chicago'"
@@ -560,130 +570,6 @@ def job_from_dict(data: Any, *, base_dir: Path | str = ".", where: str = "<dict>
         return JobConfig.model_validate({**data, "base_dir": str(Path(base_dir).resolve())})
     except ValidationError as exc:
         raise ConfigError(_format_validation_error(exc, where)) from None
-
-
-MAX_YAML_BYTES = 5_000_000
-"""A job or model YAML larger than this is refused before parsing (they are kilobytes)."""
-MAX_YAML_VALUES = 100_000
-"""Values a YAML may expand to, counting every repetition an alias makes (a 400-byte file
-of nested aliases expands to billions and took 4.9 GB before)."""
-MAX_YAML_DEPTH = 40
-"""Nesting levels a YAML may have (a job is 4 deep; 5000-deep brackets overflowed the
-parser's recursion)."""
-
-
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys (last-wins silently is a lost setting)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen: dict[Any, Any] = {}
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=True)
-            try:
-                hash(key)
-            except TypeError:
-                continue  # pydantic reports unhashable keys with their path
-            if key in seen:
-                first = seen[key]
-                raise ConfigError(
-                    f"{getattr(self, 'where', 'YAML')}: duplicate key {key!r} at line "
-                    f"{key_node.start_mark.line + 1} (first at "
-                    f"line {first.start_mark.line + 1}); a YAML mapping keeps only the last "
-                    "one — remove or merge the duplicate")
-            seen[key] = key_node
-        return super().construct_mapping(node, deep=deep)
-
-
-def _check_tree(root, where: str) -> None:
-    """Bound the expanded size (aliases counted every time they are used) and the depth
-    of a composed YAML node graph without expanding it."""
-    sizes: dict[int, int] = {}
-    stack = [(root, 0, False)]
-    while stack:
-        node, depth, done = stack.pop()
-        if depth > MAX_YAML_DEPTH:
-            raise ConfigError(
-                f"{where}: nesting deeper than {MAX_YAML_DEPTH} levels at line "
-                f"{node.start_mark.line + 1}; a job YAML needs a handful — flatten it")
-        children = []
-        if isinstance(node, yaml.SequenceNode):
-            children = list(node.value)
-        elif isinstance(node, yaml.MappingNode):
-            children = [n for kv in node.value for n in kv]
-        if done:
-            total = 1 + sum(sizes[id(c)] for c in children)
-            sizes[id(node)] = total
-            if total > MAX_YAML_VALUES:
-                raise ConfigError(
-                    f"{where}: the YAML at line {node.start_mark.line + 1} expands to more "
-                    f"than {MAX_YAML_VALUES:,} values (anchors and aliases repeat what they "
-                    "point to); write the values out or remove the aliases")
-            continue
-        if id(node) in sizes:
-            continue
-        stack.append((node, depth, True))
-        stack.extend((c, depth + 1, False) for c in children if id(c) not in sizes)
-
-
-def parse_yaml_text(text: str, where: str) -> Any:
-    """Parse YAML with the limits above and duplicate keys refused (the only parser).
-
-    Parameters
-    ----------
-    text : str
-        The YAML text.
-    where : str
-        Name of the text's origin (e.g. the file path), for error messages.
-    """
-    if len(text) > MAX_YAML_BYTES:
-        raise ConfigError(f"{where}: {len(text):,} bytes is not a job or model YAML (limit "
-                          f"{MAX_YAML_BYTES:,}); check the path")
-    loader = None
-    try:
-        loader = _StrictLoader(text)
-        loader.where = where
-        root = loader.get_single_node()
-        if root is None:
-            return None
-        _check_tree(root, where)
-        return loader.construct_document(root)
-    except RecursionError:
-        raise ConfigError(f"{where}: nesting too deep to parse (more than "
-                          f"{MAX_YAML_DEPTH} levels); a job YAML needs a handful") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise ConfigError(f"{where}: malformed YAML{at}: {problem}; fix the syntax") from None
-    finally:
-        if loader is not None:
-            loader.dispose()
-
-
-def load_yaml_file(path: Path | str, *, what: str = "job file") -> Any:
-    """Parse a YAML file with a clear error for missing files and syntax errors.
-
-    Parameters
-    ----------
-    path : Path or str
-        The YAML file (UTF-8, at most :data:`MAX_YAML_BYTES`).
-    what : str
-        What the file is (``"job file"``, ``"model file"``), for error messages.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"{what} {str(p)!r} does not exist; give the path to a .yaml "
-                          f"{what}")
-    size = p.stat().st_size
-    if size > MAX_YAML_BYTES:
-        raise ConfigError(f"{p}: {size:,} bytes is not a {what} (limit {MAX_YAML_BYTES:,}); "
-                          "check the path")
-    try:
-        text = p.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{p}: not UTF-8 text (byte {exc.start}); save the {what} as "
-                          "UTF-8") from None
-    return parse_yaml_text(text, str(p))
 
 
 def load_job(path: Path | str) -> JobConfig:

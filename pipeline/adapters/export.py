@@ -55,9 +55,12 @@ of ``G(s)e^{-θs}`` whose step response at sample ``k`` is the fitted curve at
 ``(k + 1/2)·dt_s`` — the stored lag ``k + 1``.
 
 Where the file goes: ``--out`` (a file, or an existing folder), default
-``./<job>_<run-id>.<ext>`` in the current folder.  Never inside the run directory: run
-directories are the store's immutable results, every file listed with its sha256 in
-``manifest.json``.  An existing file is replaced only with ``force``.
+``./<job>_<run-id>.<ext>`` in the current folder, the name built only from a job name and
+run id that pass the store's name check (a manifest naming ``"../../x"`` is refused: give
+``--out``).  Never inside a run directory (run directories are the store's immutable
+results, every file listed with its sha256 in ``manifest.json``) nor over the catalog; an
+existing regular file is replaced only with ``force``, anything else (FIFO, device node,
+folder, link) never (:mod:`pipeline.adapters.safe_write`).
 """
 
 from __future__ import annotations
@@ -72,7 +75,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import ConfigError, DataQualityError, StorageError
+from pipeline.errors import ConfigError, DataQualityError
 
 __all__ = [
     "FORMATS",
@@ -315,7 +318,9 @@ def read_run(run_dir: str | os.PathLike) -> RunData:
     """
     import polars as pl
 
-    path = Path(run_dir).expanduser().absolute()
+    from pipeline.adapters.safe_write import check_path_length
+
+    path = check_path_length(run_dir, "RUN_DIR")
     manifest = _manifest(path)
     _refuse_discrepancy_run(path, manifest)
     steps_file = _verified(path, manifest, "step_responses.parquet")
@@ -615,47 +620,20 @@ def output_path(run: RunData, fmt: str, out: str | os.PathLike | None = None, *,
     Raises
     ------
     ConfigError
-        The folder does not exist, the target is inside the run directory, or exists
-        without ``force``.
+        The rule of :func:`pipeline.adapters.safe_write.safe_target` (a missing folder, a
+        target inside a run directory or over the catalog, a non-regular file, an existing
+        file without ``force``, a name too long), or a manifest whose job name or run id
+        cannot be part of a file name (default name only).
     StorageError
         The folder is not writable.
     """
-    name = f"{run.job}_{run.run_id}{FORMATS[fmt]}"
-    target = Path.cwd() / name if out is None else Path(out).expanduser()
-    if target.is_dir():
-        target = target / name
-    target = target.absolute()
-    folder = target.parent
-    if not folder.is_dir():
-        raise ConfigError(f"--out {target}: the folder {folder} does not exist; create it or "
-                          "give another --out")
-    if target == run.run_dir or run.run_dir in target.parents:
-        raise ConfigError(
-            f"--out {target} is inside the run directory {run.run_dir}: run directories are "
-            "the store's immutable results (every file is listed with its sha256 in "
-            f"manifest.json); write beside it, e.g. --out {Path.cwd() / name}")
-    if target.exists() and not force:
-        raise ConfigError(f"--out {target} exists; pass --force to replace it, or give "
-                          "another --out")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise StorageError(f"--out {target}: the folder {folder} is not writable; give a "
-                           "writable folder with --out — nothing was written")
-    return target
+    from pipeline.adapters.safe_write import check_path_length, safe_name, safe_target
 
-
-def _write(path: Path, data: bytes) -> None:
-    """Atomic: a temporary file beside ``path``, fsync, ``os.replace``; nothing half-written."""
-    import errno
-
-    from pipeline.adapters.store.files import atomic_write_bytes
-
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        full = exc.errno in (errno.ENOSPC, getattr(errno, "EDQUOT", -1))
-        cause = "the disk is full" if full else (exc.strerror or str(exc))
-        raise StorageError(f"cannot write {path}: {cause}; give another --out (a writable "
-                           "folder with free space) — nothing was written") from None
+    given = check_path_length(Path.cwd() if out is None else out, "--out")
+    if given.is_dir():  # the default name, from the manifest's names checked as the store does
+        given = given / safe_name({"job": run.job, "run_id": run.run_id}, suffix=FORMATS[fmt],
+                                  where=f"the run's manifest {run.run_dir / 'manifest.json'}")
+    return safe_target(given, force=force, option="--out")
 
 
 def export_run(run_dir: str | os.PathLike, *, fmt: str, out: str | os.PathLike | None = None,
@@ -702,9 +680,11 @@ def export_run(run_dir: str | os.PathLike, *, fmt: str, out: str | os.PathLike |
             notes.append(f"note: {key[0]}<-{key[1]}: the best {fit.kind} fit misses the step "
                          f"response by {100 * fit.fit_rms_rel:.0f} % RMS of its peak; use the "
                          "step coefficients (csv) for this pair")
+    from pipeline.adapters.safe_write import write_atomically
+
     writer = {"csv": lambda: _csv_bytes(run), "json": lambda: _json_bytes(run, fits),
               "mat": lambda: _mat_bytes(run, fits), "control": lambda: _control_bytes(run, fits)}
-    _write(path, writer[fmt]())
+    write_atomically(path, writer[fmt](), option="--out")
     return ExportResult(path=path, format=fmt, fits=fits, notes=notes)
 
 

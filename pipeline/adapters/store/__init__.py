@@ -53,7 +53,7 @@ from pipeline.adapters.store.files import (
     to_json_text,
 )
 from pipeline.adapters.store.run_writer import RunWriter
-from pipeline.adapters.store.catalog import ResultStore
+from pipeline.adapters.store.catalog import ResultStore, check_catalog
 
 __all__ = [
     "CATALOG_NAME",
@@ -70,6 +70,7 @@ __all__ = [
     "STALE_TMP_S",
     "STEP_RESPONSES_SCHEMA",
     "StoredRun",
+    "check_catalog",
     "check_name",
     "file_sha256",
     "schema_description",

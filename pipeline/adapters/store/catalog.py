@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as dt
 import json
 import os
@@ -31,6 +32,15 @@ from pipeline.adapters.store.files import (
     storage_faults,
     to_json_text,
 )
+from pipeline.adapters.store.recovery import (
+    CatalogFault,
+    catalog_fault,
+    catalog_manifest,
+    has_run_folders,
+    move_aside,
+    read_manifest,
+    store_evidence,
+)
 from pipeline.adapters.store.run_writer import RunWriter, normalise_inputs
 from pipeline.adapters.store.schemas import (
     MANIFEST_KEYS,
@@ -47,6 +57,53 @@ from pipeline.adapters.store.schemas import (
     TMP_PREFIX,
 )
 from pipeline.errors import ConfigError, DataQualityError, StorageError
+
+
+def _fault_message(root: Path, fault: CatalogFault) -> str:
+    where = f"storage {root / CATALOG_NAME}: the catalog {fault.detail}"
+    if fault.kind == "special":
+        return (f"{where}; plantdyn does not touch it — move it out of the results folder "
+                f"yourself, then run `plantdyn reindex {root}`")
+    return (f"{where}; run `plantdyn reindex {root}`: it moves this file aside "
+            f"({CATALOG_NAME}.<time>.bad, nothing is deleted) and rebuilds the catalog from "
+            "the run folders")
+
+
+def check_catalog(root: str | os.PathLike[str], *, readonly: bool = False) -> None:
+    """Refuse a catalog that is not a usable plantdyn catalog (:func:`.recovery.catalog_fault`)
+    before any work: one message naming the file, what it is, and ``plantdyn reindex``.
+
+    Parameters
+    ----------
+    root : str or os.PathLike
+        The results root.
+    readonly : bool
+        Checked for reading only: an empty catalog (0 bytes, no tables) is refused too.
+        For writing it is refused only beside run folders (their runs would be missing
+        from it, and ``monitor.baseline: first`` would pick a wrong run); a new store
+        initialises it.
+
+    Raises
+    ------
+    StorageError
+        The catalog is not a regular file, not an SQLite database, of another schema, or
+        (``readonly``) empty.
+    """
+    path = Path(root).expanduser().resolve()
+    fault = catalog_fault(path / CATALOG_NAME, readonly=readonly)
+    if fault is None or (fault.kind == "empty" and not readonly and not has_run_folders(path)):
+        return  # a new store initialises an empty catalog; one with runs needs them back
+    raise StorageError(_fault_message(path, fault))
+
+
+def _utc_times(texts: Sequence[str | None], root: Path, what: str) -> list[dt.datetime | None]:
+    """Catalog times as instants; a text that is not one is a storage fault (exit 2)."""
+    try:
+        return [None if t is None else parse_iso_utc(t) for t in texts]
+    except ValueError as exc:
+        raise StorageError(f"storage {root / CATALOG_NAME}: {what}: {exc}; run `plantdyn "
+                           f"reindex {root}` to rebuild the catalog from the run folders"
+                           ) from None
 
 
 class ResultStore:
@@ -87,6 +144,7 @@ class ResultStore:
             raise StorageError(f"storage {self.catalog_path}: the catalog is a symbolic link "
                                f"(to {os.readlink(self.catalog_path)}); it must be a file of the "
                                "storage root — replace the link by the file")
+        check_catalog(self.root, readonly=self.readonly)
         if self.readonly:
             if not self.catalog_path.is_file():
                 raise StorageError(
@@ -322,6 +380,9 @@ class ResultStore:
 
         ``processed_files`` is kept (it is not derivable from run directories).  Hidden
         directories (``.tmp-*`` runs in progress or left by killed processes) are ignored.
+        A run whose manifest cannot be catalogued (not a regular file, not JSON, another
+        run named, a time that is not ISO 8601, a metric listed twice, ...) is skipped
+        with its folder and the reason; the others are catalogued.
 
         Returns
         -------
@@ -334,25 +395,85 @@ class ResultStore:
             if not NAME_RE.fullmatch(job_dir.name):
                 continue
             for run_dir in sorted(p for p in job_dir.iterdir() if p.is_dir() and not p.name.startswith(".")):
-                manifest_path = run_dir / MANIFEST_NAME
                 try:
-                    manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-                    missing = sorted(MANIFEST_KEYS - set(manifest))
-                    if missing:
-                        raise ValueError(f"manifest lacks keys {missing}")
-                    if (manifest["job"], manifest["run_id"]) != (job_dir.name, run_dir.name):
-                        raise ValueError(f"manifest names {manifest['job']}/{manifest['run_id']}")
+                    manifest = read_manifest(run_dir / MANIFEST_NAME)
+                    manifests.append(catalog_manifest(manifest, job_dir.name, run_dir.name))
                 except (OSError, ValueError) as exc:
                     skipped.append(f"{run_dir}: {exc}")
-                    continue
-                manifests.append(manifest)
+        n_runs = 0
         with storage_faults(self.catalog_path, "rebuilding the catalog"):
             with self._transaction() as con:
                 con.execute("DELETE FROM runs")
                 con.execute("DELETE FROM pair_metrics")
                 for manifest in manifests:
-                    self._insert_rows(con, manifest)
-        return ReindexResult(n_runs=len(manifests), skipped=tuple(skipped))
+                    con.execute("SAVEPOINT run")  # one bad run leaves the others catalogued
+                    try:
+                        self._insert_rows(con, manifest)
+                    except (sqlite3.IntegrityError, sqlite3.InterfaceError, KeyError,
+                            TypeError, ValueError) as exc:
+                        con.execute("ROLLBACK TO run")
+                        skipped.append(f"{self.root / manifest['job'] / manifest['run_id']}: "
+                                       f"cannot be catalogued ({exc})")
+                    else:
+                        n_runs += 1
+                    con.execute("RELEASE run")
+        return ReindexResult(n_runs=n_runs, skipped=tuple(skipped))
+
+    @classmethod
+    def reindex_folder(cls, root: str | os.PathLike[str], *, force: bool = False) -> ReindexResult:
+        """``plantdyn reindex ROOT``: rebuild the catalog of a results store, recovering a
+        catalog that is not ours.
+
+        ``root`` must be a results store (:func:`.recovery.store_evidence`: a plantdyn
+        catalog, an empty one, or run folders with manifests) unless ``force``.  A catalog
+        that is empty, not an SQLite database, damaged or of another schema is moved aside
+        (:func:`.recovery.move_aside`, said in ``notes``) and a new one built; a catalog
+        that is not a regular file is left alone and refused.
+
+        Parameters
+        ----------
+        root : str or os.PathLike
+            The results root (a job's ``storage:`` folder).
+        force : bool
+            Make ``root`` a results store even if nothing says it is one.
+
+        Returns
+        -------
+        ReindexResult
+
+        Raises
+        ------
+        ConfigError
+            ``root`` is not a folder, or not a results store without ``force``.
+        StorageError
+            The catalog is not a regular file, or cannot be written.
+        """
+        path = Path(root).expanduser().resolve()
+        if not path.is_dir():
+            what = "is not a folder" if path.exists() else "does not exist"
+            raise ConfigError(f"storage {path} {what}; give the results root (the job's "
+                              "storage: folder)")
+        catalog = path / CATALOG_NAME
+        if catalog.is_symlink():
+            cls(path)  # the store's own message for a linked catalog
+        fault = catalog_fault(catalog, deep=True)
+        if fault is not None and fault.kind == "special":
+            raise StorageError(_fault_message(path, fault))
+        evidence = store_evidence(path, fault)
+        if evidence is None and not force:
+            found = f"its {CATALOG_NAME} {fault.detail} and " if fault else "no catalog and "
+            raise ConfigError(
+                f"storage {path} is not a results store ({found}no <job>/<run-id>/"
+                f"{MANIFEST_NAME} run folders); give the results root (the job's storage: "
+                f"folder), or pass --force to make {path} one")
+        notes = []
+        if fault is not None:
+            with storage_faults(catalog, "moving the old catalog aside"):
+                aside = move_aside(catalog)
+            notes.append(f"the old catalog {fault.detail}: moved aside to {aside} (not "
+                         "deleted); a new catalog was built")
+        result = cls(path).reindex()
+        return dataclasses.replace(result, notes=tuple(notes))
 
     def clean_stale(self, older_than_s: float) -> list[Path]:
         """Remove temporary run directories not modified for ``older_than_s`` seconds.
@@ -406,7 +527,8 @@ class ResultStore:
                 "job": [r[0] for r in rows],
                 "run_id": [r[1] for r in rows],
                 "status": [r[2] for r in rows],
-                "created_utc": [parse_iso_utc(r[3]) for r in rows],
+                "created_utc": _utc_times([r[3] for r in rows], self.root,
+                                          f"runs of job {job!r}, created_utc"),
                 "path": [str(self.root / r[4]) for r in rows],
                 "n_inputs": [r[5] for r in rows],
                 "input_sha256s": [json.loads(r[6]) for r in rows],
@@ -466,7 +588,8 @@ class ResultStore:
         )
         names = ["run_id", "created_utc", "status", "window", "output", "input", "metric", "value", "label"]
         columns: dict[str, list[Any]] = {name: [r[i] for r in rows] for i, name in enumerate(names)}
-        columns["created_utc"] = [parse_iso_utc(t) for t in columns["created_utc"]]
+        columns["created_utc"] = _utc_times(columns["created_utc"], self.root,
+                                            f"runs of job {job!r}, created_utc")
         schema = dict.fromkeys(names, pl.String) | {"created_utc": TIME_UTC, "value": pl.Float64}
         return pl.DataFrame(columns, schema=schema)
 
@@ -484,23 +607,32 @@ class ResultStore:
         ConfigError
             No such run.
         DataQualityError
-            ``verify`` and a file is missing or its sha256 differs from the manifest.
+            The manifest or checks.json is not JSON (or lists no files), or ``verify`` and
+            a file is missing or its sha256 differs from the manifest.
         """
         path = self.run_dir(job, run_id)
         manifest_path = path / MANIFEST_NAME
         if not manifest_path.is_file():
             raise ConfigError(f"no run {job}/{run_id} under {self.root}; list_runs({job!r}) shows the stored runs")
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        try:
+            manifest = read_manifest(manifest_path)
+            files = manifest.get("files")
+            if not isinstance(files, list) or not all(
+                    isinstance(f, dict) and isinstance(f.get("name"), str) for f in files):
+                raise ValueError(f"{MANIFEST_NAME} lists no files")
+        except (OSError, ValueError) as exc:
+            raise DataQualityError(f"run {job}/{run_id}: {exc}; the run folder {path} is "
+                                   "damaged") from None
         if verify:
             for entry in manifest["files"]:
                 file = path / entry["name"]
                 if not file.is_file():
                     raise DataQualityError(f"run {job}/{run_id}: {entry['name']} listed in the manifest is missing")
                 digest = file_sha256(file)
-                if digest != entry["sha256"]:
+                if digest != entry.get("sha256"):
                     raise DataQualityError(
                         f"run {job}/{run_id}: {entry['name']} has sha256 {digest[:12]}…, manifest says "
-                        f"{entry['sha256'][:12]}…; the file was modified after the run was written"
+                        f"{str(entry.get('sha256'))[:12]}…; the file was modified after the run was written"
                     )
 
         def parquet(name: str) -> pl.DataFrame | None:
@@ -508,11 +640,17 @@ class ResultStore:
 
         checks_path = path / "checks.json"
         report_path = path / "report.md"
+        try:
+            checks = json.loads(checks_path.read_text(encoding="utf-8")) \
+                if checks_path.is_file() else None
+        except ValueError as exc:
+            raise DataQualityError(f"run {job}/{run_id}: checks.json is not JSON ({exc}); the "
+                                   f"run folder {path} is damaged") from None
         return StoredRun(
             path=path,
             manifest=manifest,
             step_responses=parquet("step_responses.parquet"),
-            checks=json.loads(checks_path.read_text(encoding="utf-8")) if checks_path.is_file() else None,
+            checks=checks,
             signals=parquet("signals.parquet"),
             residuals=parquet("residuals.parquet"),
             report=report_path.read_text(encoding="utf-8") if report_path.is_file() else None,
@@ -626,7 +764,8 @@ class ResultStore:
             f"SELECT {', '.join(names)} FROM processed_files WHERE job = ? ORDER BY path, sha256", (job,)
         )
         columns: dict[str, list[Any]] = {name: [r[i] for r in rows] for i, name in enumerate(names)}
-        columns["processed_utc"] = [None if t is None else parse_iso_utc(t) for t in columns["processed_utc"]]
+        columns["processed_utc"] = _utc_times(columns["processed_utc"], self.root,
+                                              f"processed files of job {job!r}, processed_utc")
         schema = dict.fromkeys(names, pl.String) | {
             "processed_utc": TIME_UTC,
             "heartbeat_s": pl.Float64,

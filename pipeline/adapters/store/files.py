@@ -13,6 +13,7 @@ import re
 import secrets
 import shutil
 import sqlite3
+import stat
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -117,14 +118,30 @@ def iso_utc(moment: dt.datetime) -> str:
 
 
 def parse_iso_utc(text: str) -> dt.datetime:
-    """The instant of an :func:`iso_utc` text.
+    """The instant of an :func:`iso_utc` text, or of any ISO 8601 time with a zone
+    (``2026-03-01T02:00:00Z`` without fractional seconds, ``+01:00`` offsets).
 
     Parameters
     ----------
     text : str
-        ``YYYY-MM-DDTHH:MM:SS.ffffffZ``.
+        ``YYYY-MM-DDTHH:MM:SS.ffffffZ`` (the store's form) or ISO 8601 with a zone.
+
+    Raises
+    ------
+    ValueError
+        Not an ISO 8601 time, or one without a zone.
     """
-    return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.UTC)
+    try:
+        return dt.datetime.strptime(text, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.UTC)
+    except (TypeError, ValueError):
+        pass
+    try:
+        moment = dt.datetime.fromisoformat(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{text!r} is not an ISO 8601 time") from None
+    if moment.tzinfo is None:
+        raise ValueError(f"{text!r} has no time zone")
+    return moment.astimezone(dt.UTC)
 
 
 def fsync_dir(path: Path) -> None:
@@ -145,12 +162,21 @@ def fsync_dir(path: Path) -> None:
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to a temporary name in the same directory, fsync, rename over ``path``.
 
+    Only a regular file (or nothing) is ever replaced: what is at ``path`` is checked
+    again just before the rename, so a FIFO, device node, folder or link that appeared
+    there is left alone (:mod:`pipeline.adapters.safe_write` states the rule).
+
     Parameters
     ----------
     path : Path
         Destination file.
     data : bytes
         Its whole content.
+
+    Raises
+    ------
+    StorageError
+        Something other than a regular file is at ``path``; nothing was written.
     """
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
     try:
@@ -158,11 +184,24 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        _refuse_special(path)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     fsync_dir(path.parent)
+
+
+def _refuse_special(path: Path) -> None:
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(mode):
+        from pipeline.adapters.safe_write import file_kind
+
+        raise StorageError(f"{path} is a {file_kind(mode)}, not a regular file; it is never "
+                           "replaced — give another path (nothing was written)")
 
 
 MAX_NAME_LENGTH = 100
@@ -203,8 +242,8 @@ def storage_error(exc: BaseException, path: Path, doing: str) -> StorageError | 
             fix = f"check that {path.parent} exists and is writable"
         elif "not a database" in text or "malformed" in text:
             cause = "the catalog file is not an SQLite database (corrupt or replaced)"
-            fix = (f"move {path} aside and run `plantdyn reindex {path.parent}` to rebuild it "
-                   "from the run folders")
+            fix = (f"run `plantdyn reindex {path.parent}`: it moves the file aside and "
+                   "rebuilds the catalog from the run folders")
         else:
             return None
         return StorageError(f"storage {path}: {cause} while {doing}; {fix}")

@@ -249,10 +249,13 @@ class ReindexResult:
         Runs written to the catalog.
     skipped : tuple of str
         One message per run directory that could not be indexed (path and reason).
+    notes : tuple of str
+        What was done besides (a catalog that was not ours moved aside, and where).
     """
 
     n_runs: int
     skipped: tuple[str, ...]
+    notes: tuple[str, ...] = ()
 
 
 
