@@ -354,3 +354,114 @@ def boiler_nuisance_record(hours: float, seed: int, *, kp_factor: float = 1.0,
     measured_steam = steam + input_frac * steam.std() * rng.standard_normal(n_s)
     return ({"steam_flow": measured_steam - measured_steam.mean()},
             {"turbine_pressure": measured_p - measured_p.mean()})
+
+
+# ------------------------------------- feedback test on integrating outputs (issue 36)
+LEVEL_NOISES = ("white", "ar", "walk", "walk_ar")
+"""Disturbances of :func:`open_level_record`: white level-sensor noise alone, plus an
+AR(1) on the level, a random walk (an integrated white flow imbalance) or an integrated
+AR(1) flow imbalance."""
+
+
+def held_moves(rng, n: int, lo: int = 20, hi: int = 200) -> np.ndarray:
+    """Normal operation of a manipulated input: a random level (unit s.d.) held for
+    ``lo..hi`` samples, then the next."""
+    u = np.empty(n)
+    t = 0
+    while t < n:
+        hold = int(rng.integers(lo, hi + 1))
+        u[t:t + hold] = rng.normal()
+        t += hold
+    return u
+
+
+def lag_delay(u: np.ndarray, tau: float, dead: int) -> np.ndarray:
+    """Unit-gain first-order lag (time constant ``tau`` samples, exact ZOH: one sample of
+    hold delay) followed by ``dead`` more samples of delay."""
+    a = np.exp(-1.0 / tau)
+    v = ss.lfilter([0.0, 1.0 - a], [1.0, -a], u)
+    return np.r_[np.zeros(dead), v[: v.size - dead]] if dead else v
+
+
+def level_noise(n: int, kind: str, rng) -> tuple[np.ndarray, dict]:
+    """A level disturbance of one of :data:`LEVEL_NOISES` (white sensor noise of s.d.
+    0.05-0.5 in every kind); returns it and its parameters."""
+    if kind not in LEVEL_NOISES:
+        raise ValueError(f"kind={kind!r}; use one of {LEVEL_NOISES}")
+    sensor = float(rng.uniform(0.05, 0.5))
+    e = sensor * rng.standard_normal(n)
+    par: dict = {"sensor_sd": sensor}
+    if kind == "ar":
+        par.update(phi=float(rng.choice([0.9, 0.97])), sd=float(rng.uniform(0.1, 0.4)))
+        return e + ss.lfilter([par["sd"]], [1, -par["phi"]], rng.standard_normal(n)), par
+    if kind == "walk":
+        par["sd"] = float(rng.uniform(0.005, 0.05))
+        return e + np.cumsum(par["sd"] * rng.standard_normal(n)), par
+    if kind == "walk_ar":
+        par.update(phi=float(rng.choice([0.7, 0.9])), sd=float(rng.uniform(0.002, 0.02)))
+        return e + np.cumsum(ss.lfilter([par["sd"]], [1, -par["phi"]],
+                                        rng.standard_normal(n))), par
+    return e, par
+
+
+def open_level_record(n: int, noise: str, seed: int, *, n_x: int | None = None):
+    """An open-loop level (nothing controls it): ``y(k) = y(k-1) + sum_j K_j v_j(k)``,
+    ``v_j`` input ``j`` through a first-order lag (2-30 samples) and 0-4 samples of dead
+    time, rates ``|K_j|`` 0.005-0.03 per sample of either sign, plus a
+    :func:`level_noise`; 1-2 inputs (``n_x``; default drawn) of :func:`held_moves` with a
+    little white noise.  Returns ``(inputs (n, n_x), level (n,), info)``."""
+    rng = np.random.default_rng(seed)
+    n_x = int(rng.integers(1, 3)) if n_x is None else n_x
+    us, rate, plant = [], np.zeros(n), []
+    for _ in range(n_x):
+        u = held_moves(rng, n) + 0.05 * rng.standard_normal(n)
+        k = float(rng.choice([-1, 1]) * rng.uniform(0.005, 0.03))
+        tau, dead = float(rng.uniform(2, 30)), int(rng.integers(0, 5))
+        rate += k * lag_delay(u, tau, dead)
+        us.append(u)
+        plant.append({"rate": k, "tau": tau, "dead": dead})
+    v, par = level_noise(n, noise, rng)
+    return np.column_stack(us), np.cumsum(rate) + v, {"plant": plant, "noise": par}
+
+
+def pi_controlled_record(n: int, integrating: bool, seed: int):
+    """A PI loop whose controller output ``u`` is the pair's input: ``u`` moves a level
+    (``integrating``: an inflow valve, rate 0.02-0.05 per sample per unit ``u``) or a
+    self-regulating output (gain 1), through a first-order lag (3-20 samples) and 1-3
+    samples of delay; the controller acts on the same sample's measurement (tuned to a
+    closed-loop time constant of about ``40 + 2 tau`` samples on the level, integral time =
+    ``tau`` on the self-regulating output).  Setpoint moves held 100-600 samples (unit
+    s.d.), an unmeasured disturbance (an AR(1) flow imbalance integrated by the level, or
+    an AR(1) of s.d. 0.3-1 on the output; pole 0.9 or 0.97) and white sensor noise of s.d.
+    0.02-0.2.  Returns ``(u (n, 1), y (n,), info)``."""
+    rng = np.random.default_rng(seed)
+    sp = held_moves(rng, n, 100, 600)
+    e = rng.uniform(0.02, 0.2) * rng.standard_normal(n)
+    phi = float(rng.choice([0.9, 0.97]))
+    w = ss.lfilter([np.sqrt(1 - phi**2)], [1, -phi], rng.standard_normal(n))
+    tau, dead = float(rng.uniform(3, 20)), int(rng.integers(0, 3))
+    a = np.exp(-1.0 / tau)
+    if integrating:
+        k_r = float(rng.uniform(0.02, 0.05))
+        w *= 0.02
+        kc, ti = 1.0 / (k_r * (40 + 2 * tau)), 4 * (40 + 2 * tau)
+    else:
+        k_r = 1.0
+        w *= float(rng.uniform(0.3, 1.0))
+        kc, ti = 0.5, tau
+    u, y = np.zeros(n), np.zeros(n)
+    line = np.zeros(dead + 1)  # u(k-1) .. u(k-1-dead)
+    state = level = integral = 0.0
+    for k in range(n):
+        state = a * state + (1 - a) * line[-1]
+        if integrating:
+            level += k_r * state + w[k]
+            y[k] = level + e[k]
+        else:
+            y[k] = state + w[k] + e[k]
+        err = sp[k] - y[k]
+        integral += err / ti
+        u[k] = kc * (err + integral)
+        line = np.r_[u[k], line[:-1]]
+    return u[:, None], y, {"plant": {"gain_or_rate": k_r, "tau": tau, "delay": dead + 1},
+                           "noise": {"phi": phi}}
