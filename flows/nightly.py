@@ -57,9 +57,9 @@ def nightly_flow(job_path: str, retry_failed: bool = False) -> list[dict]:
         process_file_task.submit(cfg, item, plan.config_sha256, plan.retry_failed)))
     failed = [r for r in rows if r["status"] in ("failed", "error")]
     lines = [f"# nightly {cfg.job}", "",
-             f"{len(rows)} file(s) seen, {sum(r['status'] == 'ok' for r in rows)} processed, "
-             f"{sum(r['status'].startswith('skipped') for r in rows)} skipped, "
-             f"{len(failed)} failed; at most {plan.max_parallel} at a time."]
+             (f"{len(rows)} file(s) seen, {sum(r['status'] == 'ok' for r in rows)} processed, "
+              f"{sum(r['status'].startswith('skipped') for r in rows)} skipped, "
+              f"{len(failed)} failed; at most {plan.max_parallel} at a time.")]
     lines += [f"- FAILED {r['path']}: {r['error']}" for r in failed]
     key = artifact_key(cfg.job, "nightly")
     create_markdown_artifact("\n".join(lines), key=key)

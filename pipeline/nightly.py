@@ -39,12 +39,15 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import dataclasses
+import datetime as dt
 import glob
 import hashlib
 import json
 import logging
 import os
+import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -75,6 +78,7 @@ __all__ = [
     "process_planned",
     "run_nightly_direct",
     "status_line",
+    "worker_name",
 ]
 
 _log = logging.getLogger(__name__)
@@ -314,7 +318,9 @@ def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | Non
                  run=None, config_sha256: str | None = None, retry_failed: bool = False,
                  seen: tuple[int, int] | None = None) -> dict:
     """Process one file exactly once.  ``run(cfg, files, run_id)`` does the estimation
-    (default :func:`pipeline.jobs.run_job`).  Returns a status row.
+    (default :func:`pipeline.jobs.run_job`).  Returns a status row: ``path``,
+    ``sha256``, ``status``, ``run_id``, ``error``, ``started_utc`` (ISO 8601),
+    ``seconds`` (how long this call took) and ``worker`` (``host:pid`` that ran it).
 
     Parameters
     ----------
@@ -337,10 +343,28 @@ def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | Non
         Size and modification time (ns) when the file was found complete: a file that
         changed since is still being written and is skipped.
     """
+    t0 = time.time()
+    row = _process_file(cfg, path, sha256, lease_s=lease_s, run=run,
+                        cfg_sha=config_sha256 or job_config_sha256(cfg),
+                        retry_failed=retry_failed, seen=seen)
+    return {**row, "started_utc": _iso(t0), "seconds": round(time.time() - t0, 3),
+            "worker": worker_name()}
+
+
+def worker_name() -> str:
+    """``host:pid`` of this process (the rows say where each file was processed)."""
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def _iso(t_s: float) -> str:
+    return dt.datetime.fromtimestamp(t_s, dt.UTC).isoformat(timespec="milliseconds")
+
+
+def _process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | None, run,
+                  cfg_sha: str, retry_failed: bool, seen: tuple[int, int] | None) -> dict:
     from pipeline import jobs
 
     run = run or (lambda c, files, run_id: jobs.run_job(c, files=files, run_id=run_id))
-    cfg_sha = config_sha256 or job_config_sha256(cfg)
     lease = claim_lease_s(lease_s)
     store = ResultStore(cfg.storage_root) if lease is None else \
         ResultStore(cfg.storage_root, claim_lease_s=lease)
@@ -400,8 +424,12 @@ def status_line(row: dict) -> str:
     row : dict
         A status row of :func:`process_file`.
     """
+    where = row.get("worker")
+    when = (f"  [started {row['started_utc']}, {row['seconds']:.1f} s"
+            f"{' on ' + where if where and where != worker_name() else ''}]"
+            if row.get("started_utc") else "")
     return (f"[nightly] {row['status']}: {row['path']}"
-            f"{'  -> ' + str(row['run_id']) if row.get('run_id') else ''}"
+            f"{'  -> ' + str(row['run_id']) if row.get('run_id') else ''}{when}"
             f"{'  (' + str(row['error'])[:300] + ')' if row.get('error') else ''}")
 
 
