@@ -319,8 +319,9 @@ def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | Non
                  seen: tuple[int, int] | None = None) -> dict:
     """Process one file exactly once.  ``run(cfg, files, run_id)`` does the estimation
     (default :func:`pipeline.jobs.run_job`).  Returns a status row: ``path``,
-    ``sha256``, ``status``, ``run_id``, ``error``, ``started_utc`` (ISO 8601),
-    ``seconds`` (how long this call took) and ``worker`` (``host:pid`` that ran it).
+    ``sha256``, ``status``, ``run_id``, ``error``, ``started_utc`` and ``finished_utc``
+    (ISO 8601, ms), ``seconds`` (how long this call took) and ``worker`` (``host:pid``
+    that ran it).
 
     Parameters
     ----------
@@ -347,8 +348,9 @@ def process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | Non
     row = _process_file(cfg, path, sha256, lease_s=lease_s, run=run,
                         cfg_sha=config_sha256 or job_config_sha256(cfg),
                         retry_failed=retry_failed, seen=seen)
-    return {**row, "started_utc": _iso(t0), "seconds": round(time.time() - t0, 3),
-            "worker": worker_name()}
+    t1 = time.time()
+    return {**row, "started_utc": _iso(t0), "finished_utc": _iso(t1),
+            "seconds": round(t1 - t0, 3), "worker": worker_name()}
 
 
 def worker_name() -> str:
@@ -357,7 +359,8 @@ def worker_name() -> str:
 
 
 def _iso(t_s: float) -> str:
-    return dt.datetime.fromtimestamp(t_s, dt.UTC).isoformat(timespec="milliseconds")
+    text = dt.datetime.fromtimestamp(t_s, dt.UTC).isoformat(timespec="milliseconds")
+    return text.replace("+00:00", "Z")
 
 
 def _process_file(cfg: JobConfig, path: str, sha256: str, *, lease_s: float | None, run,
@@ -425,7 +428,7 @@ def status_line(row: dict) -> str:
         A status row of :func:`process_file`.
     """
     where = row.get("worker")
-    when = (f"  [started {row['started_utc']}, {row['seconds']:.1f} s"
+    when = (f"  [{row['started_utc']} to {row['finished_utc']}, {row['seconds']:.1f} s"
             f"{' on ' + where if where and where != worker_name() else ''}]"
             if row.get("started_utc") else "")
     return (f"[nightly] {row['status']}: {row['path']}"
