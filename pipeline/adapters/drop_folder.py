@@ -45,6 +45,9 @@ SETTLE_ENV = "PLANTDYN_SETTLE_S"
 
 _MIB = 1 << 20
 
+#: The first bytes of an MCAP file (the ingest's test of a file without the suffix).
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
 
 @dataclasses.dataclass(frozen=True)
 class FileState:
@@ -132,6 +135,13 @@ def _mcap_start_s(path: Path) -> float | None:
     return stats.message_start_time / 1e9
 
 
+def _looks_like_mcap(path: Path) -> bool:
+    if path.suffix.lower() == ".mcap":
+        return True
+    with path.open("rb") as f:
+        return f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+
+
 class _FirstChunk:
     """A reader sink that keeps the first chunk's earliest time and stops the reader."""
 
@@ -164,12 +174,11 @@ def data_start_s(path: str | os.PathLike[str], cfg) -> tuple[float, str]:
     """
     from pipeline.adapters.ingest.csv_reader import read_csv_raw
     from pipeline.adapters.ingest.options import CsvOptions, coerce_options
-    from pipeline.adapters.ingest.read import _is_mcap
 
     p = Path(path)
     first = None
     with contextlib.suppress(Exception):  # any unreadable head: the mtime stands in
-        if cfg.source.layout == "mcap" or (cfg.source.layout == "auto" and _is_mcap(p)):
+        if cfg.source.layout == "mcap" or (cfg.source.layout == "auto" and _looks_like_mcap(p)):
             first = _mcap_start_s(p)
         else:
             sink = _FirstChunk()
