@@ -18,6 +18,7 @@ from flows.common import (
     task_runner_for,
 )
 from pipeline.adapters.config import load_job
+from pipeline.adapters.progress import bar as progress_bar
 from pipeline.nightly import drive, plan_header, plan_night, process_planned
 
 #: ``plan_night`` and ``process_planned`` as tasks: each one call into ``pipeline``.
@@ -53,8 +54,9 @@ def nightly_flow(job_path: str, retry_failed: bool = False) -> list[dict]:
     cfg = load_job(job_path)
     plan = plan_task(cfg, retry_failed=retry_failed)
     _say(plan_header(cfg, plan))
-    rows = drive(cfg, plan, say=_say, wait_any=_first_done, submit=lambda item: (
-        process_file_task.submit(cfg, item, plan.config_sha256, plan.retry_failed)))
+    with progress_bar("nightly", "files") as tick:  # a bar on a terminal only
+        rows = drive(cfg, plan, say=_say, tick=tick, wait_any=_first_done, submit=lambda item: (
+            process_file_task.submit(cfg, item, plan.config_sha256, plan.retry_failed)))
     failed = [r for r in rows if r["status"] in ("failed", "error")]
     lines = [f"# nightly {cfg.job}", "",
              (f"{len(rows)} file(s) seen, {sum(r['status'] == 'ok' for r in rows)} processed, "

@@ -436,7 +436,8 @@ def status_line(row: dict) -> str:
             f"{'  (' + str(row['error'])[:300] + ')' if row.get('error') else ''}")
 
 
-def drive(cfg: JobConfig, plan: NightPlan, *, submit, wait_any, say=None) -> list[dict]:
+def drive(cfg: JobConfig, plan: NightPlan, *, submit, wait_any, say=None,
+          tick=None) -> list[dict]:
     """Process the plan's files in data-time order, at most ``plan.max_parallel`` at a time,
     and return every status row (the skipped first, then the files in data-time order).
 
@@ -457,6 +458,8 @@ def drive(cfg: JobConfig, plan: NightPlan, *, submit, wait_any, say=None) -> lis
     say : callable (str), optional
         Told each file's :func:`status_line` as it finishes (in this process, whatever
         runs the files).
+    tick : callable (done, total), optional
+        Told the number of files finished (a progress bar, :mod:`pipeline.progress`).
     """
     say = say or (lambda line: None)
     for row in plan.skipped:
@@ -466,6 +469,8 @@ def drive(cfg: JobConfig, plan: NightPlan, *, submit, wait_any, say=None) -> lis
     def done(row: dict) -> None:
         rows[row["path"]] = row
         say(status_line(row))
+        if tick:
+            tick(len(rows), len(plan.files))
 
     queue = list(plan.files)
     if cfg.monitor is not None and queue:
@@ -522,16 +527,18 @@ def run_nightly_direct(cfg: JobConfig, *, say=None, retry_failed: bool = False) 
         say(plan_header(cfg, plan))
     if not plan.files:
         return drive(cfg, plan, submit=None, wait_any=None, say=say)
+    from pipeline.adapters.progress import bar
+
     if cfg.dask.address:
         from distributed import Client, wait
 
-        with Client(cfg.dask.address, timeout=60) as client:
-            return drive(cfg, plan, say=say, wait_any=lambda fs: wait(
+        with Client(cfg.dask.address, timeout=60) as client, bar("nightly", "files") as tick:
+            return drive(cfg, plan, say=say, tick=tick, wait_any=lambda fs: wait(
                 fs, return_when="FIRST_COMPLETED").done, submit=lambda item: client.submit(
                 process_planned, cfg, item, plan.config_sha256, retry_failed, pure=False))
-    with cf.ThreadPoolExecutor(max_workers=plan.max_parallel,
-                               thread_name_prefix="nightly") as pool:
-        return drive(cfg, plan, say=say, wait_any=lambda fs: cf.wait(
+    with cf.ThreadPoolExecutor(max_workers=plan.max_parallel, thread_name_prefix="nightly"
+                               ) as pool, bar("nightly", "files") as tick:
+        return drive(cfg, plan, say=say, tick=tick, wait_any=lambda fs: cf.wait(
             fs, return_when=cf.FIRST_COMPLETED).done, submit=lambda item: pool.submit(
             process_planned, cfg, item, plan.config_sha256, retry_failed))
 
