@@ -280,6 +280,7 @@ def discover_files(cfg: JobConfig) -> list[tuple[str, str]]:
     """
     return [(f.path, f.sha256) for f in plan_night(cfg).files]
 
+
 @contextlib.contextmanager
 def _heartbeat(store: ResultStore, job: str, sha256: str, every_s: float) -> Iterator[None]:
     """Refresh the claim every ``every_s`` s while the block runs (a daemon thread)."""

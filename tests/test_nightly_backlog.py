@@ -328,5 +328,9 @@ def test_dask_workers_lines_appear_on_the_commands_stderr(tmp_path, prefect_harn
     assert sorted(Path(m["path"]).name for m in lines) == [f"export_{k}.csv" for k in range(3)]
     assert {m["status"] for m in lines} == {"ok"}, done.stderr
     assert {m["on"] for m in lines} <= workers  # run on the workers, said by the command
+    bound = int(re.search(r"at most (\d+) at a time", done.stderr)[1])
+    spans = [tuple(np.datetime64(m[k].removesuffix("Z"), "ms").astype(np.int64)
+                   for k in ("start", "end")) for m in lines]
+    assert peak_overlap(spans) <= bound  # the bound holds on Dask too
     assert len(run_dirs(tmp_path / "storage")) == 3
     assert yaml.safe_load(job.read_text())["dask"]["address"].startswith("tcp://")
