@@ -109,13 +109,13 @@ def test_backlog_of_12_runs_at_most_max_parallel_files_at_once(tmp_path, capsys)
 def test_default_bound_follows_cores_and_memory():
     gib = 1 << 30
     assert per_file_memory_bytes(0) == 256 << 20
-    assert per_file_memory_bytes(100 << 20) == (256 + 1600) << 20
+    assert per_file_memory_bytes(100 << 20) == (256 + 200) << 20
     # 0.5 * 4 GiB / 256 MiB = 8 small files by memory; the cores bound first
     assert default_max_parallel(1000, cores=2, available_bytes=4 * gib) == 2
     assert default_max_parallel(0, cores=64, available_bytes=4 * gib) == 8
-    # month-sized exports (1 GiB): 0.5 * 24 GiB / 16.25 GiB -> 1, never 0
-    assert default_max_parallel(gib, cores=8, available_bytes=24 * gib) == 1
-    assert default_max_parallel(gib, cores=8, available_bytes=gib) == 1
+    # month-sized exports (2.5 GiB): 0.5 * 24 GiB / 5.25 GiB -> 2 of 8 cores; never 0
+    assert default_max_parallel(5 * gib // 2, cores=8, available_bytes=24 * gib) == 2
+    assert default_max_parallel(5 * gib // 2, cores=8, available_bytes=gib) == 1
 
 
 # ------------------------------------------------------------------ complete files only

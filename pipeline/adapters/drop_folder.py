@@ -20,10 +20,13 @@ Decisions (README "Nightly over a backlog"):
   an unreadable head) its modification time stands in, and the row says so.
 * **Bounded concurrency.**  ``nightly.max_parallel``, else
   ``max(1, min(cores, floor(0.5 · available memory / per-file memory)))`` with the
-  per-file memory ``256 MiB + 16 × the largest file's size`` (measured: estimation of a
-  month at 1 Hz peaks at ≈ 13× its CSV size; a small file at ≈ 30 MiB plus the
-  interpreter's share).  The cores are those this process may use
-  (``os.sched_getaffinity``); the memory is ``MemAvailable`` of ``/proc/meminfo``.
+  per-file memory ``256 MiB + 2 × the largest file's size``.  Basis: ingesting and
+  gridding a month at 1 Hz × 20 tags (a 2.6 GB CSV) peaks at 1.83 GiB, 0.7× its size
+  (``bench_ingest``); 2× leaves room for the estimate and the results, whose writing is
+  bounded separately (issue 33, build 3).  A small export costs ≈ 3 MiB above the
+  ≈ 300 MiB of the process itself (``bench_nightly``), so for them the cores bound first.
+  The cores are those this process may use (``os.sched_getaffinity``); the memory is
+  ``MemAvailable`` of ``/proc/meminfo``.
 """
 
 from __future__ import annotations
@@ -194,14 +197,14 @@ def data_start_s(path: str | os.PathLike[str], cfg) -> tuple[float, str]:
 
 
 def per_file_memory_bytes(largest_file_bytes: int) -> int:
-    """Memory budgeted for one file being processed: 256 MiB + 16 × its size.
+    """Memory budgeted for one file being processed: 256 MiB + 2 × its size.
 
     Parameters
     ----------
     largest_file_bytes : int
         Size of the largest file to be processed, bytes.
     """
-    return 256 * _MIB + 16 * max(int(largest_file_bytes), 0)
+    return 256 * _MIB + 2 * max(int(largest_file_bytes), 0)
 
 
 def _cores() -> int:
