@@ -107,22 +107,32 @@ def _cmd_nightly(args) -> int:
     if args.no_prefect:
         from pipeline.nightly import run_nightly_direct
 
-        rows = run_nightly_direct(cfg, say=lambda line: print(line, file=sys.stderr,
-                                                               flush=True))
+        rows = run_nightly_direct(cfg, retry_failed=args.retry_failed,
+                                  say=lambda line: print(line, file=sys.stderr, flush=True))
     else:
         prefect_env_defaults()
         with starting("the Prefect flow 'nightly'"):
             from flows.nightly import run_nightly
 
-            rows = run_nightly(args.job)
+            rows = run_nightly(args.job, retry_failed=args.retry_failed)
     for r in rows:  # one line per file: status, run dir or message
         where = r.get("run_dir") or r.get("run_id") or ""
         print(f"{r['status']:>10}  {Path(r['path']).name}  {where}  {r.get('error') or ''}"
               .rstrip())
+    return _nightly_summary(args.job, rows)
+
+
+def _nightly_summary(job: str, rows: list[dict]) -> int:
+    """The nightly's summary on stderr and its exit code (1 internal error, 2 bad data)."""
     counts = {s: sum(r["status"] == s for r in rows) for s in
               sorted({r["status"] for r in rows})}
     summary = ", ".join(f"{n} {s}" for s, n in counts.items()) or "no new files"
     print(f"nightly: {len(rows)} file(s): {summary}", file=sys.stderr)
+    before = [r for r in rows if r["status"] == "skipped_failed_before"]
+    if before:
+        print(f"nightly: {len(before)} file(s) failed before with this job configuration and "
+              f"were not tried again (first: {Path(before[0]['path']).name}); after fixing "
+              f"them: plantdyn nightly {job} --retry-failed", file=sys.stderr)
     if any(r["status"] == "error" for r in rows):
         bad = next(r for r in rows if r["status"] == "error")
         print(f"plantdyn: internal error on {bad['path']} (exit 1; it is retried next night): "
@@ -131,8 +141,8 @@ def _cmd_nightly(args) -> int:
     failed = [r for r in rows if r["status"] == "failed"]
     if failed:
         print(f"plantdyn: error: {len(failed)} of {len(rows)} file(s) failed with bad data "
-              f"(not retried until they change): {Path(failed[0]['path']).name}: "
-              f"{failed[0].get('error')}", file=sys.stderr)
+              f"(not retried until they or the job change, or --retry-failed): "
+              f"{Path(failed[0]['path']).name}: {failed[0].get('error')}", file=sys.stderr)
         return 2
     return 0
 
@@ -236,8 +246,11 @@ def build_parser() -> argparse.ArgumentParser:
                        parents=[shown])
     n.add_argument("job")
     n.add_argument("--no-prefect", action="store_true",
-                   help="process the files directly, one after another, instead of through "
-                        "the Prefect flow")
+                   help="process the files directly (threads, or the dask.address cluster) "
+                        "instead of through the Prefect flow")
+    n.add_argument("--retry-failed", action="store_true",
+                   help="try again the files that failed with bad data before (otherwise "
+                        "skipped until the file or the job's configuration changes)")
     n.set_defaults(fn=_cmd_nightly)
     d = sub.add_parser("demo", help="make a demo historian export and run the demo job",
                        parents=[shown])

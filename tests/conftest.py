@@ -1,7 +1,8 @@
 """Shared test fixtures: an offline Prefect environment and small synthetic jobs.
 
 * ``_prefect_env`` (session, autouse, cheap): ``PREFECT_HOME`` in a per-worker temporary
-  folder, analytics and telemetry off — for every test, so nothing touches ``~/.prefect``.
+  folder, analytics and telemetry off — for every test, so nothing touches ``~/.prefect``;
+  ``PLANTDYN_SETTLE_S=0`` (a nightly takes a test's files at once).
 * ``prefect_harness`` (session, requested by the flow tests): enters
   ``prefect_test_harness()`` once per session — i.e. once per xdist worker, each with its
   own temporary database and server port — because starting it costs seconds.
@@ -41,6 +42,9 @@ def _prefect_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     mp.setenv("DO_NOT_TRACK", "1")
     mp.setenv("PREFECT_LOGGING_LEVEL", "WARNING")
     mp.delenv("PREFECT_API_URL", raising=False)  # flows must never reach a real server
+    # files a test writes are complete: the nightly takes them at once (not after 60 s);
+    # tests of the settle time set it themselves
+    mp.setenv("PLANTDYN_SETTLE_S", "0")
     with contextlib.ExitStack() as stack:
         if "prefect.settings" in sys.modules:  # imported at collection: settings are loaded
             from prefect.settings import (

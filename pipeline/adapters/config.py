@@ -52,6 +52,7 @@ __all__ = [
     "dump_yaml",
     "DiscrepancySection",
     "MonitorConfig",
+    "NightlyConfig",
 ]
 
 
@@ -365,7 +366,34 @@ class MonitorConfig(_Strict):
 
 class DaskConfig(_Strict):
     address: str | None = None
-    """Dask scheduler address (``tcp://host:8786``); None runs in-process."""
+    """Dask scheduler address (``tcp://host:8786``); absent runs in-process."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _address_given(cls, data: Any) -> Any:
+        # `dask: {address: }` parses as null: a forgotten address, not "run locally"
+        if isinstance(data, dict) and "address" in data and \
+                not str(data["address"] or "").strip():
+            raise ValueError("address is empty; give the Dask scheduler's address, e.g. "
+                             "dask: {address: tcp://10.0.0.5:8786}, or remove the dask: "
+                             "section to run on this machine")
+        return data
+
+
+class NightlyConfig(_Strict):
+    """``nightly:``: how ``plantdyn nightly`` takes the files of the drop folder
+    (:mod:`pipeline.nightly`)."""
+
+    max_parallel: int | None = Field(default=None, ge=1, le=256)
+    """Files processed at the same time; default from the cores and the free memory
+    (:func:`pipeline.adapters.drop_folder.default_max_parallel`)."""
+    settle_s: float = Field(default=60.0, ge=0, le=7 * 86_400)
+    """A file is taken once unchanged (size and modification time) for this long;
+    ``$PLANTDYN_SETTLE_S`` overrides it."""
+    marker: str | None = Field(default=None, min_length=1, max_length=32,
+                               pattern=r"^\.[A-Za-z0-9_.-]+$")
+    """A suffix such as ``.done``: a file is taken only once ``<file><marker>`` exists
+    (the exporter writes it when the file is complete); the settle time is not used."""
 
 
 class JobConfig(_Strict):
@@ -383,6 +411,7 @@ class JobConfig(_Strict):
     quality: QualityConfig = QualityConfig()
     rerun: RerunConfig = RerunConfig()
     dask: DaskConfig = DaskConfig()
+    nightly: NightlyConfig = NightlyConfig()
     monitor: MonitorConfig | None = None
     """Compare each run with a baseline run (nightly monitoring); off when absent."""
     schedule: str | None = None
@@ -584,16 +613,19 @@ def load_job(path: Path | str) -> JobConfig:
     return job_from_dict(load_yaml_file(p), base_dir=p.resolve().parent, where=str(p))
 
 
-def resolve_sources(cfg: JobConfig) -> list[Path]:
+def resolve_sources(cfg: JobConfig, *, skip_suffix: str | None = None) -> list[Path]:
     """Files matched by ``source.path`` (sorted), checked against the allowed roots.
 
     Parameters
     ----------
     cfg : JobConfig
         The validated job; ``source.path`` (a path or glob) is relative to its folder.
+    skip_suffix : str, optional
+        Leave out files whose name ends so (the nightly's marker files, ``nightly.marker``).
     """
     pattern = str(cfg.base / cfg.source.path)
-    files = sorted(Path(f).resolve() for f in glob.glob(pattern))
+    files = sorted(Path(f).resolve() for f in glob.glob(pattern)
+                   if not (skip_suffix and f.endswith(skip_suffix)))
     files = [f for f in files if f.is_file()]
     if not files:
         raise ConfigError(

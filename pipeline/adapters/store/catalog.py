@@ -27,7 +27,6 @@ from pipeline.adapters.store.files import (
     fsync_dir,
     iso_utc,
     json_ready,
-    parse_iso_utc,
     storage_error,
     storage_faults,
     to_json_text,
@@ -41,6 +40,7 @@ from pipeline.adapters.store.recovery import (
     read_manifest,
     store_evidence,
 )
+from pipeline.adapters.store.claims import ProcessedFiles, utc_times as _utc_times
 from pipeline.adapters.store.run_writer import RunWriter, normalise_inputs
 from pipeline.adapters.store.schemas import (
     MANIFEST_KEYS,
@@ -51,7 +51,6 @@ from pipeline.adapters.store.schemas import (
     NAME_RE,
     RUN_ID_TIME_FORMAT,
     ReindexResult,
-    STATUS_RE,
     StoredRun,
     TIME_UTC,
     TMP_PREFIX,
@@ -96,17 +95,7 @@ def check_catalog(root: str | os.PathLike[str], *, readonly: bool = False) -> No
     raise StorageError(_fault_message(path, fault))
 
 
-def _utc_times(texts: Sequence[str | None], root: Path, what: str) -> list[dt.datetime | None]:
-    """Catalog times as instants; a text that is not one is a storage fault (exit 2)."""
-    try:
-        return [None if t is None else parse_iso_utc(t) for t in texts]
-    except ValueError as exc:
-        raise StorageError(f"storage {root / CATALOG_NAME}: {what}: {exc}; run `plantdyn "
-                           f"reindex {root}` to rebuild the catalog from the run folders"
-                           ) from None
-
-
-class ResultStore:
+class ResultStore(ProcessedFiles):
     """The only writer under the storage root (run directories and the SQLite catalog).
 
     Parameters
@@ -655,120 +644,3 @@ class ResultStore:
             residuals=parquet("residuals.parquet"),
             report=report_path.read_text(encoding="utf-8") if report_path.is_file() else None,
         )
-
-    # ----------------------------------------------------------------- processed files
-
-    def claim_file(self, job: str, sha256: str, path: str | os.PathLike[str], *, lease_s: float | None = None) -> bool:
-        """Atomically claim an input file for processing by ``job``.
-
-        Parameters
-        ----------
-        job : str
-        sha256 : str
-            Content hash of the file (the identity: a renamed copy is not processed twice).
-        path : path
-            Where the file is (recorded for people).
-        lease_s : float, optional
-            Overrides ``claim_lease_s`` when judging whether another claim is still live.
-
-        Returns
-        -------
-        bool
-            ``False`` if the file was processed with status ``"ok"`` or is claimed by a live
-            ``running`` row (heartbeat younger than the lease); otherwise the claim is
-            recorded (owner token, heartbeat now, attempts + 1) and ``True`` returned.
-        """
-        self._job_dir(job)
-        lease = self.claim_lease_s if lease_s is None else float(lease_s)
-        with self._transaction() as con:
-            now = self._clock()
-            row = con.execute(
-                "SELECT status, heartbeat_s FROM processed_files WHERE job = ? AND sha256 = ?", (job, sha256)
-            ).fetchone()
-            if row is not None:
-                status, heartbeat = row
-                if status == "ok":
-                    return False
-                if status == "running" and heartbeat is not None and now - heartbeat < lease:
-                    return False
-            con.execute(
-                "INSERT INTO processed_files (job, sha256, path, run_id, status, error, processed_utc, owner, heartbeat_s, attempts) "
-                "VALUES (?, ?, ?, NULL, 'running', NULL, NULL, ?, ?, 1) "
-                "ON CONFLICT (job, sha256) DO UPDATE SET path = excluded.path, run_id = NULL, status = 'running', "
-                "error = NULL, processed_utc = NULL, owner = excluded.owner, heartbeat_s = excluded.heartbeat_s, "
-                "attempts = processed_files.attempts + 1",
-                (job, sha256, os.fspath(path), self._owner(), now),
-            )
-            return True
-
-    def heartbeat_file(self, job: str, sha256: str) -> bool:
-        """Refresh this store's claim on a file; ``False`` if the claim is no longer ours.
-
-        Parameters
-        ----------
-        job : str
-            Job name.
-        sha256 : str
-            Content hash of the file, as given to :meth:`claim_file`.
-        """
-        with self._transaction() as con:
-            cursor = con.execute(
-                "UPDATE processed_files SET heartbeat_s = ? WHERE job = ? AND sha256 = ? AND status = 'running' AND owner = ?",
-                (self._clock(), job, sha256, self._owner()),
-            )
-            return cursor.rowcount == 1
-
-    def finish_file(self, job: str, sha256: str, run_id: str | None, status: str, error: str | None = None) -> None:
-        """Record the outcome of processing a claimed file.
-
-        Parameters
-        ----------
-        job, sha256 : str
-        run_id : str or None
-            The run that processed it.
-        status : str
-            ``"ok"`` marks the file done for good; anything else (e.g. ``"failed"``) lets a
-            later :meth:`claim_file` retry it.
-        error : str, optional
-            What went wrong, for people.
-        """
-        if not isinstance(status, str) or not STATUS_RE.fullmatch(status) or status == "running":
-            raise ConfigError(f"file status {status!r} must be e.g. 'ok' or 'failed' (lowercase, not 'running')")
-        with self._transaction() as con:
-            cursor = con.execute(
-                "UPDATE processed_files SET run_id = ?, status = ?, error = ?, processed_utc = ?, owner = NULL, "
-                "heartbeat_s = NULL WHERE job = ? AND sha256 = ?",
-                (run_id, status, error, iso_utc(dt.datetime.fromtimestamp(self._clock(), dt.UTC)), job, sha256),
-            )
-            if cursor.rowcount != 1:
-                raise ConfigError(f"file {sha256[:12]}… of job {job!r} was never claimed; call claim_file first")
-
-    def processed(self, job: str) -> pl.DataFrame:
-        """The ``processed_files`` rows of ``job``.
-
-        Parameters
-        ----------
-        job : str
-            Job name (checked as by :func:`check_name`).
-
-        Returns
-        -------
-        polars.DataFrame
-            Columns ``job``, ``sha256``, ``path``, ``run_id``, ``status``, ``error``,
-            ``processed_utc`` (Datetime µs UTC, null while running), ``owner``,
-            ``heartbeat_s`` (Unix s), ``attempts``; sorted by ``path``, ``sha256``.
-        """
-        self._job_dir(job)
-        names = ["job", "sha256", "path", "run_id", "status", "error", "processed_utc", "owner", "heartbeat_s", "attempts"]
-        rows = self._query(
-            f"SELECT {', '.join(names)} FROM processed_files WHERE job = ? ORDER BY path, sha256", (job,)
-        )
-        columns: dict[str, list[Any]] = {name: [r[i] for r in rows] for i, name in enumerate(names)}
-        columns["processed_utc"] = _utc_times(columns["processed_utc"], self.root,
-                                              f"processed files of job {job!r}, processed_utc")
-        schema = dict.fromkeys(names, pl.String) | {
-            "processed_utc": TIME_UTC,
-            "heartbeat_s": pl.Float64,
-            "attempts": pl.Int64,
-        }
-        return pl.DataFrame(columns, schema=schema)

@@ -205,6 +205,16 @@ CATALOG_DDL = (
         attempts INTEGER NOT NULL DEFAULT 0,
         PRIMARY KEY (job, sha256)
     )""",
+    # a file that failed with bad data, per job configuration (pipeline.nightly): an
+    # edited job is another configuration, so the file is tried again
+    """CREATE TABLE IF NOT EXISTS failed_files (
+        job TEXT NOT NULL,
+        sha256 TEXT NOT NULL,
+        config_sha256 TEXT NOT NULL,
+        error TEXT,
+        failed_utc TEXT NOT NULL,
+        PRIMARY KEY (job, sha256, config_sha256)
+    )""",
 )
 
 
@@ -339,7 +349,7 @@ def schema_description() -> dict[str, Any]:
             con.execute(statement)
         catalog = {
             table: [[row[1], row[2], bool(row[3]), int(row[5])] for row in con.execute(f"PRAGMA table_info({table})")]
-            for table in ("runs", "pair_metrics", "processed_files")
+            for table in ("runs", "pair_metrics", "processed_files", "failed_files")
         }
     finally:
         con.close()
