@@ -18,7 +18,6 @@ from flows.common import say
 from pipeline.errors import UserInputError
 
 
-
 class _Progress:
     """Stage progress on stderr: long work is never silent."""
 
@@ -83,7 +82,7 @@ def _run_workflow(args, direct, flow_name: str, run_flow, check=None) -> int:
 
         with project_prefect(cfg.storage_root) as api, \
                 starting(f"the Prefect flow '{flow_name}' (server {api})"):
-            report = run_flow()(args.job, run_id=args.run_id)
+            report = run_flow()(args.job, run_id=args.run_id, cfg=cfg)
     print(report, file=sys.stderr)
     print(report.run_dir)
     return 0

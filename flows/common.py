@@ -12,7 +12,6 @@ import time
 
 from pipeline.errors import UserInputError
 
-
 #: Longest wait for Prefect's embedded (ephemeral) server, s, when a flow is called from
 #: Python with no API configured (the CLI uses the project server, :mod:`flows.server`).
 #: Prefect's default is 20 s; its start-up took 15-46 s on this project's loaded 2-core
