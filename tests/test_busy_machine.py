@@ -148,17 +148,42 @@ def test_a_state_file_naming_another_process_is_stale_and_the_process_left_alone
         other.wait()
 
 
-def test_a_server_that_cannot_start_is_one_message_and_exit_2(storage, make_job):
-    job = make_job(1, hours=1.0)
+def _server_processes(port: str) -> list[int]:
+    """Pids of ``prefect server start`` processes on ``port``."""
+    out = []
+    for proc in Path("/proc").iterdir():
+        try:
+            args = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"prefect" in args and b"server" in args and port.encode() in args:
+            out.append(int(proc.name))
+    return out
+
+
+CANNOT_START = {
     # the server cannot open its database: it exits during start-up
-    env = _env(PREFECT_SERVER_DATABASE_CONNECTION_URL="sqlite+aiosqlite:////nonexistent/"
-                                                      "plantdyn/prefect.db")
-    code, _, err = _done(_cli("run", str(job), env=env))
+    "exits": ({"PREFECT_SERVER_DATABASE_CONNECTION_URL":
+               "sqlite+aiosqlite:////nonexistent/plantdyn/prefect.db"},
+              r"exited with code \d+; its log .* says: .*unable to open database file.*"),
+    # no answer in time (a 0 s wait): the half-started server is stopped, not left behind
+    "times out": ({"PLANTDYN_PREFECT_START_TIMEOUT_S": "0"},
+                  r"did not answer GET http://127\.0\.0\.1:\d+/api/health within 0 s; .*"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CANNOT_START))
+def test_a_server_that_cannot_start_is_one_message_and_exit_2(case, storage, make_job):
+    job = make_job(1, hours=1.0)
+    extra, says = CANNOT_START[case]
+    code, _, err = _done(_cli("run", str(job), env=_env(**extra)))
     assert code == 2, err[-3000:]
     assert "Traceback" not in err and err.count("plantdyn: error: ") == 1, err[-3000:]
-    assert re.search(r"plantdyn: error: the project's Prefect server \(PREFECT_HOME=.*\) "
-                     r"exited with code \d+; its log .* says: .*unable to open database file"
-                     r".*; run the command again with --no-prefect .*set PREFECT_API_URL", err)
+    assert re.search(r"plantdyn: error: the project's Prefect server \(PREFECT_HOME=.*\) " +
+                     says + r"; run the command again with --no-prefect .*set PREFECT_API_URL",
+                     err), err[-3000:]
+    [port] = re.findall(r"starting the project's Prefect server on 127\.0\.0\.1:(\d+)", err)
+    assert _server_processes(port) == []
     assert not (storage / ".prefect" / STATE_FILE).exists()
     assert not any(storage.rglob("manifest.json"))
 
