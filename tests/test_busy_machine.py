@@ -188,6 +188,17 @@ def test_a_server_that_cannot_start_is_one_message_and_exit_2(case, storage, mak
     assert not any(storage.rglob("manifest.json"))
 
 
+def test_a_local_prefect_api_url_that_does_not_answer_is_exit_2(storage, make_job):
+    """The user's PREFECT_API_URL wins over the project server -- and when it names a local
+    server that is not running, that is said before any work."""
+    job = make_job(1, hours=1.0)
+    code, _, err = _done(_cli("run", str(job), env=_env(PREFECT_API_URL="http://127.0.0.1:9/api")))
+    assert code == 2 and "Traceback" not in err, err[-3000:]
+    assert "plantdyn: error: PREFECT_API_URL=http://127.0.0.1:9/api does not answer GET " \
+        "http://127.0.0.1:9/api/health; start that server, unset PREFECT_API_URL" in err
+    assert not (storage / ".prefect").exists() and not any(storage.rglob("manifest.json"))
+
+
 def test_nightly_without_prefect_processes_each_file_once(storage, make_job):
     job = make_job(2, hours=1.0)
     env = _env()
