@@ -89,6 +89,10 @@ class PrefectStartError(UserInputError):
     the user can go on -- the message says how)."""
 
 
+_FIXES = ("run the command again with --no-prefect (the same work without Prefect), or "
+          "set PREFECT_API_URL to a running Prefect server's /api address")
+
+
 def _note(message: str) -> None:
     print(f"plantdyn: {message}", file=sys.stderr, flush=True)
 
@@ -328,7 +332,12 @@ def _locked(home: Path, note: Callable[[str], None]) -> Iterator[None]:
     if not _regular_or_missing(path):
         raise PrefectStartError(f"{path} is not a regular file; remove it or set PREFECT_HOME "
                                 "to another folder")
-    with open(path, "a+") as fh:
+    try:
+        fh = open(path, "a+")  # noqa: SIM115 - closed below, which releases the lock
+    except OSError as exc:
+        raise PrefectStartError(f"cannot open the Prefect server's lock file {path} "
+                                f"({exc.strerror or exc}); {_FIXES}") from None
+    with fh:
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -427,10 +436,6 @@ def ensure_server(home: Path, *, timeout_s: float | None = None,
         return _start(home, timeout_s, note)
 
 
-_FIXES = ("run the command again with --no-prefect (the same work without Prefect), or "
-          "set PREFECT_API_URL to a running Prefect server's /api address")
-
-
 def _start(home: Path, timeout_s: float, note: Callable[[str], None]) -> ServerState:
     """Start ``prefect server start`` on a free port and wait until it answers."""
     log = home / LOG_FILE
@@ -445,7 +450,12 @@ def _start(home: Path, timeout_s: float, note: Callable[[str], None]) -> ServerS
         t0 = time.monotonic()
         note(f"starting the project's Prefect server on {HOST}:{port} (PREFECT_HOME={home}); "
              "it keeps running for the next commands (plantdyn server stop)")
-        with open(log, "wb") as out:
+        try:
+            out = open(log, "wb")  # noqa: SIM115 - closed below (the server has its copy)
+        except OSError as exc:
+            raise PrefectStartError(f"cannot write the Prefect server's log {log} "
+                                    f"({exc.strerror or exc}); {_FIXES}") from None
+        with out:
             # own session: outlives this command; a Ctrl-C in the terminal does not reach it
             proc = subprocess.Popen(
                 [sys.executable, "-m", "prefect", "server", "start", "--host", HOST,
