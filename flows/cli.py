@@ -18,7 +18,6 @@ from flows.common import say
 from pipeline.errors import UserInputError
 
 
-
 class _Progress:
     """Stage progress on stderr: long work is never silent."""
 
@@ -78,12 +77,12 @@ def _run_workflow(args, direct, flow_name: str, run_flow, check=None) -> int:
     if args.no_prefect:
         report = direct(cfg, run_id=args.run_id, progress=_Progress())
     else:
-        from flows.common import prefect_env_defaults, starting
+        from flows.common import starting
+        from flows.server import project_prefect
 
-        prefect_env_defaults()
-        with starting(f"the Prefect flow '{flow_name}' (embedded server unless "
-                      "PREFECT_API_URL is set)"):
-            report = run_flow()(args.job, run_id=args.run_id)
+        with project_prefect(cfg.storage_root) as api, \
+                starting(f"the Prefect flow '{flow_name}' (server {api})"):
+            report = run_flow()(args.job, run_id=args.run_id, cfg=cfg)
     print(report, file=sys.stderr)
     print(report.run_dir)
     return 0
@@ -101,8 +100,6 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_nightly(args) -> int:
-    from flows.common import prefect_env_defaults, starting
-
     cfg = _check_job(args.job, files=False)  # an empty drop folder is a normal night
     if args.no_prefect:
         from pipeline.nightly import run_nightly_direct
@@ -110,8 +107,11 @@ def _cmd_nightly(args) -> int:
         rows = run_nightly_direct(cfg, retry_failed=args.retry_failed,
                                   say=lambda line: print(line, file=sys.stderr, flush=True))
     else:
-        prefect_env_defaults()
-        with starting("the Prefect flow 'nightly'"):
+        from flows.common import starting
+        from flows.server import project_prefect
+
+        with project_prefect(cfg.storage_root) as api, \
+                starting(f"the Prefect flow 'nightly' (server {api})"):
             from flows.nightly import run_nightly
 
             rows = run_nightly(args.job, retry_failed=args.retry_failed)
@@ -203,6 +203,39 @@ def _cmd_serve(args) -> int:
     return serve([Path(p) for p in jobs], limit=args.limit, once=args.once)
 
 
+def _cmd_server(args) -> int:
+    from flows.server import (
+        configured_api_url,
+        ensure_server,
+        server_home,
+        server_status,
+        stop_server,
+    )
+
+    if args.job:
+        from pipeline.adapters.config import load_job
+
+        root = load_job(args.job).storage_root
+    else:
+        from pipeline.adapters.safe_write import check_path_length
+
+        root = check_path_length(args.storage, "--storage").resolve()
+    home = server_home(root)
+    if args.action == "start":
+        st = ensure_server(home)
+        print(f"running: {st.api_url} (pid {st.pid}); dashboard "
+              f"{st.api_url.removesuffix('/api')}; stop it with plantdyn server stop")
+    elif args.action == "stop":
+        print(stop_server(home))
+    else:
+        print(server_status(home).describe())
+    configured = configured_api_url()
+    if configured and args.action != "stop":
+        print(f"note: PREFECT_API_URL={configured} is set: commands use that server, not "
+              "this one", file=sys.stderr)
+    return 0
+
+
 def _cmd_discrepancy(args) -> int:
     from pipeline.discrepancy_job import check_job, run_discrepancy
 
@@ -273,6 +306,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--once", action="store_true",
                    help="register the deployments, run each once now, and exit")
     s.set_defaults(fn=_cmd_serve)
+    sv = sub.add_parser("server", help="the project's local Prefect server that run, "
+                                       "discrepancy, nightly, demo and serve start and reuse")
+    sv.add_argument("action", choices=("start", "stop", "status"),
+                    help="start (or find) it, stop it, or say whether it runs")
+    where = sv.add_mutually_exclusive_group()
+    where.add_argument("--storage", default="storage",
+                       help="results root whose server (state in <storage>/.prefect, or "
+                            "$PREFECT_HOME when set) is meant (default: ./storage)")
+    where.add_argument("--job", default=None,
+                       help="a job YAML: the server of its storage root")
+    sv.set_defaults(fn=_cmd_server)
     ru = sub.add_parser("runs", help="list runs of a job (pairs changed against the "
                                      "monitoring baseline first) and plot its trend")
     ru.add_argument("job", help="job name or job YAML")

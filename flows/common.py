@@ -12,17 +12,16 @@ import time
 
 from pipeline.errors import UserInputError
 
-
-#: Longest wait for Prefect's embedded (ephemeral) server, s.  Prefect's default is 20 s;
-#: its start-up took 15-46 s on this project's 2-core machines with other work running,
-#: and a timeout ended the command with a traceback (3 of a new user's first 6 runs).
-#: A loaded machine is slow, not broken: wait, and say so every few seconds.
+#: Longest wait for Prefect's embedded (ephemeral) server, s, when a flow is called from
+#: Python with no API configured (the CLI uses the project server, :mod:`flows.server`).
+#: Prefect's default is 20 s; its start-up took 15-46 s on this project's loaded 2-core
+#: machines, and a timeout ended the command with a traceback.
 EPHEMERAL_STARTUP_TIMEOUT_S = 300
 
 
 def prefect_env_defaults() -> None:
-    """Offline, no telemetry; the embedded server unless PREFECT_API_URL is set, with a
-    start-up wait that tolerates a loaded machine (:data:`EPHEMERAL_STARTUP_TIMEOUT_S`)."""
+    """Offline, no telemetry, console logs at WARNING, and an embedded-server start-up wait
+    that tolerates a loaded machine (:data:`EPHEMERAL_STARTUP_TIMEOUT_S`)."""
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("DO_NOT_TRACK", "1")
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
@@ -69,31 +68,11 @@ def flow_started() -> None:
     _STARTED.set()
 
 
-class PrefectStartError(UserInputError):
-    """Prefect's embedded server did not start (CLI exit code 2, like bad input: the
-    user can go on -- the message says how)."""
-
-
-def _start_lock():
-    """An exclusive lock on ``$PREFECT_HOME/plantdyn-start.lock`` (``~/.prefect`` by
-    default), held while a command's embedded server starts: two commands started
-    together raced on the Prefect database's migration (a traceback).  ``fcntl.flock``:
-    released by the kernel if the process dies."""
-    import fcntl
-
-    home = os.environ.get("PREFECT_HOME") or os.path.join(os.path.expanduser("~"), ".prefect")
-    os.makedirs(home, exist_ok=True)
-    fh = open(os.path.join(home, "plantdyn-start.lock"), "a+")  # noqa: SIM115 - held open
-    fcntl.flock(fh, fcntl.LOCK_EX)
-    return fh
-
-
 @contextlib.contextmanager
 def starting(what: str, every_s: float = 5.0):
     """Say that ``what`` is starting and, until the flow's first stage line, how long it has
-    taken (Prefect's embedded server takes 10-46 s, in silence).  Start-ups of several
-    commands are serialised (:func:`_start_lock`); a server that does not answer within
-    :data:`EPHEMERAL_STARTUP_TIMEOUT_S` ends in :class:`PrefectStartError` with the fix.
+    taken (importing Prefect and the flow and creating the flow run take seconds on a
+    loaded machine; the server itself is :mod:`flows.server`'s).
 
     Parameters
     ----------
@@ -106,38 +85,21 @@ def starting(what: str, every_s: float = 5.0):
     _STARTED.clear()
     print(f"starting {what}...", file=sys.stderr, flush=True)
     stop = threading.Event()
-    lock = None if os.environ.get("PREFECT_API_URL") else _start_lock()
 
     def tick():
         while not stop.wait(every_s):
             if _STARTED.is_set():
                 return
-            print(f"[{time.perf_counter() - t0:7.1f} s] still starting Prefect (embedded "
-                  "server and database)...", file=sys.stderr, flush=True)
-
-    def release():
-        _STARTED.wait()
-        if lock is not None:
-            lock.close()
+            print(f"[{time.perf_counter() - t0:7.1f} s] still starting the Prefect flow...",
+                  file=sys.stderr, flush=True)
 
     th = threading.Thread(target=tick, daemon=True)
     th.start()
-    threading.Thread(target=release, daemon=True).start()
     try:
         yield
-    except RuntimeError as exc:
-        if "ephemeral Prefect API server" not in str(exc):
-            raise
-        raise PrefectStartError(
-            f"Prefect's embedded server did not answer within "
-            f"{os.environ.get('PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS')} s "
-            f"({str(exc).splitlines()[0][:300]}); run the command again with --no-prefect "
-            "(the same work without Prefect), raise PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_"
-            "SECONDS, or start a server (plantdyn serve, or prefect server start) and set "
-            "PREFECT_API_URL to its /api address") from None
     finally:
         stop.set()
-        _STARTED.set()  # the lock goes with the command at the latest
+        _STARTED.set()
         th.join(timeout=1)
 
 

@@ -39,14 +39,14 @@ def _run(job: Path, *, no_prefect: bool, progress, discrepancy: bool):
         else:
             from pipeline.jobs import run_job as direct
         return direct(load_job(job), progress=progress or quiet)
-    from flows.common import prefect_env_defaults
+    from flows.server import project_prefect
 
-    prefect_env_defaults()
-    if discrepancy:
-        from flows.discrepancy import run_discrepancy_flow as through_flow
-    else:
-        from flows.estimate import run_estimate as through_flow
-    return through_flow(job)
+    with project_prefect(load_job(job).storage_root):  # the project server, started or reused
+        if discrepancy:
+            from flows.discrepancy import run_discrepancy_flow as through_flow
+        else:
+            from flows.estimate import run_estimate as through_flow
+        return through_flow(job)
 
 
 def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:

@@ -32,46 +32,13 @@ from pipeline.stages import StageRunner
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 
-@task(name="ingest", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
-def ingest_task(cfg, files):
-    """Ingest and grid the job's files (:func:`pipeline.recording.load_recording`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    files : list of Path or None
-        Files to read; ``None`` resolves the job's ``source``.
-    """
-    return recording.load_recording(cfg, files)
-
-
-@task(name="model", **_T)
-def model_task(cfg):
-    """Load and check the job's model (:func:`pipeline.discrepancy_job.load_discrepancy_model`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    """
-    return dj.load_discrepancy_model(cfg)
-
-
-@task(name="prepare", **_T)
-def prepare_task(cfg, rec, model):
-    """The analysed stretch (:func:`pipeline.discrepancy_job.prepare_discrepancy`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    rec : Recording
-        The gridded signals from :func:`ingest_task`.
-    model : Model
-        The job's model from :func:`model_task`.
-    """
-    return dj.prepare_discrepancy(cfg, rec, model)
+# Stages that add nothing to the library call are the library function as a task.
+ingest_task = task(recording.load_recording, name="ingest", retries=2, retry_delay_seconds=1,
+                   retry_condition_fn=retry_transient_io, **_T)
+model_task = task(dj.load_discrepancy_model, name="model", **_T)
+prepare_task = task(dj.prepare_discrepancy, name="prepare", **_T)
+store_task = task(dj.finish_discrepancy, name="store", retries=2, retry_delay_seconds=1,
+                  retry_condition_fn=retry_transient_io, **_T)
 
 
 @task(name="analyse", **_T)
@@ -91,31 +58,6 @@ def analyse_task(cfg, model, data):
     start = time.perf_counter()
     return dj.analyse(cfg, model, data,
                       progress=lambda stage, message: say(start, f"analyse/{stage}", message))
-
-
-@task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
-def store_task(cfg, model, source, data, result, timings, run_id):
-    """Write the run directory and build the report
-    (:func:`pipeline.discrepancy_job.finish_discrepancy`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    model : Model
-        The nominal model.
-    source : str
-        ``"model"`` or ``"external_simulator"``.
-    data : DiscrepancyData
-        The analysed stretch.
-    result : DiscrepancyResult
-        The core's outcome.
-    timings : dict
-        Seconds per stage, recorded with the run.
-    run_id : str or None
-        Id of the run directory; ``None`` lets the store choose one.
-    """
-    return dj.finish_discrepancy(cfg, model, source, data, result, timings, run_id=run_id)
 
 
 @flow(name="discrepancy", log_prints=True)
@@ -146,7 +88,7 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
     result = stage("analyse", analyse_task, cfg, model, data)
     update_progress_artifact(progress, 90.0, description=f"verdict {result.verdict}")
     timings = stage.timings
-    report = store_task(cfg, model, source, data, result, timings, run_id)
+    report = store_task(cfg, model, source, data, result, timings, run_id=run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(report.report_md,
                              key=artifact_key(cfg.job, "report"),
@@ -159,7 +101,7 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
     return report
 
 
-def run_discrepancy_flow(job_path: str | Path, *, files=None, run_id=None):
+def run_discrepancy_flow(job_path: str | Path, *, files=None, run_id=None, cfg=None):
     """Run the discrepancy flow (the CLI's ``plantdyn discrepancy``).
 
     Parameters
@@ -170,7 +112,10 @@ def run_discrepancy_flow(job_path: str | Path, *, files=None, run_id=None):
         Files to read instead of the job's ``source.path``.
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
+    cfg : JobConfig, optional
+        ``job_path`` already loaded and validated (the CLI checked it).
     """
-    load_job(job_path)  # validate before Prefect starts: fast, clear errors
+    if cfg is None:
+        load_job(job_path)  # validate before the flow starts: fast, clear errors
     console_without_user_error_tracebacks()
     return discrepancy_flow(str(job_path), [str(f) for f in files] if files else None, run_id)

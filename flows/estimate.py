@@ -26,9 +26,9 @@ from flows.common import (
 )
 from pipeline import jobs, monitor_job, recording
 from pipeline.adapters.config import load_job
+from pipeline.adapters.progress import bar as progress_bar
 from pipeline.monitor import monitor_banner, monitor_markdown
 from pipeline.stages import StageRunner
-from pipeline.adapters.progress import bar as progress_bar
 
 # Big arrays flow between tasks: hashing them for a cache key would cost more than the
 # work, and results are not persisted, so caching is off.
@@ -51,18 +51,13 @@ def ingest_task(cfg, files):
         return recording.load_recording(cfg, files, tick=tick)
 
 
-@task(name="prepare", **_T)
-def prepare_task(cfg, rec):
-    """Sample period, decimation and conditioning (:func:`pipeline.jobs.prepare`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    rec : Recording
-        The gridded signals from :func:`ingest_task`.
-    """
-    return jobs.prepare(cfg, rec)
+# Stages that add nothing to the library call are the library function as a task.
+prepare_task = task(jobs.prepare, name="prepare", **_T)
+estimate_task = task(jobs.estimate_window, name="estimate-window", **_T)
+summarise_task = task(jobs.summarise, name="summarise", **_T)
+monitor_task = task(monitor_job.monitor_run, name="monitor", **_T)
+store_task = task(jobs.finish_run, name="store", retries=2, retry_delay_seconds=1,
+                  retry_condition_fn=retry_transient_io, **_T)
 
 
 @task(name="search", **_T)
@@ -79,87 +74,6 @@ def search_task(cfg, prep):
     """
     with progress_bar("search", "steps") as tick:
         return jobs.search_orders(cfg, prep, tick=tick)
-
-
-@task(name="estimate-window", **_T)
-def estimate_task(prep, window, n_p, n_k, noise, use_instruments, method):
-    """Estimate on one window (:func:`pipeline.jobs.estimate_window`); mapped over windows.
-
-    Parameters
-    ----------
-    prep : Prepared
-        The conditioned record.
-    window : (int, int) or None
-        Sample slice of ``prep``; ``None`` for every sample.
-    n_p, n_k : int array (n_y, n_x)
-        Order and known delay per pair (``SearchResult.n_p``, ``.n_k``).
-    noise : ``"white"``, ``"auto"`` or int
-        The estimator's noise setting (``SearchResult.noise``).
-    use_instruments : bool
-        Estimate with the instruments (``SearchResult.instruments``).
-    method : str
-        The job's ``estimation.method``.
-    """
-    return jobs.estimate_window(prep, window, n_p, n_k, noise, use_instruments, method)
-
-
-@task(name="summarise", **_T)
-def summarise_task(cfg, prep, sr, all_est, wins):
-    """Tables, checks and report of the run (:func:`pipeline.jobs.summarise`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    prep : Prepared
-        The conditioned record.
-    sr : SearchResult
-        The order search's outcome.
-    all_est : StepResponseEstimate
-        The estimate on every usable sample.
-    wins : list of StepResponseEstimate or WindowFailure
-        One per ``sr.windows``, in order.
-    """
-    return jobs.summarise(cfg, prep, sr, all_est, wins)
-
-
-@task(name="monitor", **_T)
-def monitor_task(cfg, summary, run_id):
-    """Compare the run with the job's baseline run before it is written
-    (:func:`pipeline.monitor_job.monitor_run`); returns ``(summary, run_id)``.
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job, with a ``monitor`` section.
-    summary : Summary
-        From :func:`summarise_task`.
-    run_id : str or None
-        Id of the run directory; ``None`` chooses one now.
-    """
-    return monitor_job.monitor_run(cfg, summary, run_id)
-
-
-@task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
-def store_task(cfg, summary, prep, sr, timings, run_id):
-    """Write the run directory and build the report (:func:`pipeline.jobs.finish_run`).
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    summary : Summary
-        From :func:`summarise_task`.
-    prep : Prepared
-        The conditioned record.
-    sr : SearchResult
-        The order search's outcome.
-    timings : dict
-        Seconds per stage, recorded with the run.
-    run_id : str or None
-        Id of the run directory; ``None`` lets the store choose one.
-    """
-    return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
 
 
 def _estimate_windows(prep, windows: list, settings: tuple) -> list:
@@ -207,7 +121,7 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
         say(start, "monitor", monitor_banner(summary.checks["monitor"]))
     timings = stage.timings
     say(start, "store", "writing run directory and Rerun recording")
-    report = store_task(cfg, summary, prep, sr, timings, run_id)
+    report = store_task(cfg, summary, prep, sr, timings, run_id=run_id)
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(summary.report_md, key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")
@@ -229,7 +143,7 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     return report
 
 
-def run_estimate(job_path: str | Path, *, files=None, run_id=None):
+def run_estimate(job_path: str | Path, *, files=None, run_id=None, cfg=None):
     """Run the estimate flow, on a Dask cluster when ``dask.address`` is configured.
 
     Parameters
@@ -240,8 +154,10 @@ def run_estimate(job_path: str | Path, *, files=None, run_id=None):
         Files to read instead of the job's ``source.path``.
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
+    cfg : JobConfig, optional
+        ``job_path`` already loaded (the CLI checked it): not parsed again here.
     """
-    cfg = load_job(job_path)
+    cfg = cfg if cfg is not None else load_job(job_path)
     console_without_user_error_tracebacks()
     runner = task_runner_for(cfg.dask.address)
     fl = estimate_flow.with_options(task_runner=runner) if runner else estimate_flow

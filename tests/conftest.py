@@ -57,6 +57,11 @@ def _prefect_env(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
                 updates={PREFECT_HOME: str(home), PREFECT_SERVER_ANALYTICS_ENABLED: False}))
         yield home
     mp.undo()
+    # a command run on the default path with this PREFECT_HOME left the project's Prefect
+    # server running for reuse (flows/server.py): tests leave no server behind
+    from flows.server import stop_server
+
+    stop_server(home, note=lambda _msg: None)
 
 
 @pytest.fixture(scope="session")

@@ -1,8 +1,9 @@
-"""``plantdyn serve``: deployments from job schedules, a real local Prefect server, a real
+"""``plantdyn serve``: deployments from job schedules, the project's Prefect server, a real
 cron firing, and ``prefect.yaml``.
 
-The two slow tests start real ``prefect server start`` processes (no test harness): they
-share one ``PREFECT_HOME`` so the database migrates once (≈ 13 s; a later start ≈ 5 s).
+The two slow tests use the project server (``flows/server.py``, no test harness) of one
+module-wide ``PREFECT_HOME``: the first starts it, the second reuses it (serve leaves it
+running, like every command), and the module's fixture stops it.
 """
 
 from __future__ import annotations
@@ -19,15 +20,17 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flows.serve import build_deployments, local_prefect_server, scheduled_jobs, serve
+from flows.serve import build_deployments, scheduled_jobs, serve
+from flows.server import healthy, read_state, stop_server
 from pipeline.adapters.config import load_job
 from pipeline.adapters.store import ResultStore, file_sha256
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError
 from pipeline.nightly import nightly_run_id
 from tests.conftest import subprocess_env, write_job, write_plant_csv
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-SERVER_LINE = re.compile(r"Prefect server at http://127\.0\.0\.1:(\d+)/api \(pid (\d+)\)")
+SERVER_LINE = re.compile(r"Prefect server (?:ready )?at http://127\.0\.0\.1:(\d+)/api "
+                         r"\(pid (\d+)\)")
 
 
 def _alive(pid: int) -> bool:
@@ -117,28 +120,24 @@ def test_prefect_yaml_declares_the_demo_nightly_deployment():
     assert dep["name"] == cfg.job
 
 
-def test_local_server_that_cannot_start_reports_its_stderr(tmp_path, monkeypatch):
-    """A server whose database cannot be opened exits; the error carries its stderr."""
-    monkeypatch.setenv("PREFECT_SERVER_DATABASE_CONNECTION_URL",
-                       f"sqlite+aiosqlite:///{tmp_path}/no/such/folder/prefect.db")
-    with pytest.raises(PipelineError, match=r"(?s)the local Prefect server \(PREFECT_HOME=.*\) "
-                       r"exited with code \d+; its stderr ends with:\n.*unable to open "
-                       r"database file.*set PREFECT_API_URL"):
-        with local_prefect_server(prefect_home=tmp_path / "home", startup_timeout_s=60):
-            pytest.fail("the server came up although its database cannot be opened")
-
-
 # ------------------------------------------------------------- real servers (slow)
 @pytest.fixture(scope="module")
-def server_home(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("served_prefect_home")
+def server_home(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """``PREFECT_HOME`` of the module's project server, stopped at the end."""
+    home = tmp_path_factory.mktemp("served_prefect_home")
+    yield home
+    stop_server(home, note=lambda _msg: None)
 
 
 @pytest.fixture
 def no_api(monkeypatch) -> Iterator[None]:
     """No API configured — not in the environment and not in the settings (the harness
     of another test module on this worker may have set it)."""
-    from prefect.settings import PREFECT_API_URL, get_current_settings, temporary_settings
+    from prefect.settings import (
+        PREFECT_API_URL,
+        get_current_settings,
+        temporary_settings,
+    )
 
     monkeypatch.delenv("PREFECT_API_URL", raising=False)
     with temporary_settings(restore_defaults={PREFECT_API_URL}):
@@ -147,7 +146,7 @@ def no_api(monkeypatch) -> Iterator[None]:
 
 
 @pytest.mark.slow
-def test_serve_once_starts_a_server_runs_the_deployment_and_stops_it(
+def test_serve_once_starts_a_server_runs_the_deployment_and_keeps_the_server(
         tmp_path, server_home, no_api, capfd):
     files = _drop(tmp_path, 2)
     job = write_job(tmp_path, schedule="0 2 * * *")
@@ -164,18 +163,21 @@ def test_serve_once_starts_a_server_runs_the_deployment_and_stops_it(
     assert _committed(storage) == expected
     assert ResultStore(storage).processed("plant")["status"].to_list() == ["ok", "ok"]
     assert not (storage / "adhoc").exists()
-    # the server this call started is stopped again
+    # the project server serve used keeps running for the next command
     match = SERVER_LINE.search(err)
     assert match, err
     port, pid = int(match[1]), int(match[2])
-    assert not _alive(pid) and not _port_open(port)
+    state = read_state(server_home)
+    assert state is not None and (state.port, state.pid) == (port, pid)
+    assert _alive(pid) and healthy(state.api_url)
 
 
 @pytest.mark.slow
 def test_cron_schedule_fires_under_plantdyn_serve(tmp_path, server_home):
     """``plantdyn serve`` with cron ``* * * * *`` in a subprocess: the scheduled run
     comes (the next minute boundary, so ≤ 60 s after registration plus the runner's
-    10 s poll), processes the drop folder, and SIGINT stops serve and its server."""
+    10 s poll), processes the drop folder, and SIGINT stops serve; the project server
+    stays for the next command (``plantdyn server stop`` stops it)."""
     [export] = _drop(tmp_path, 1)
     job = write_job(tmp_path, schedule="* * * * *")
     manifest = tmp_path / "storage" / "plant" / nightly_run_id(file_sha256(export)) / \
@@ -204,5 +206,8 @@ def test_cron_schedule_fires_under_plantdyn_serve(tmp_path, server_home):
     match = SERVER_LINE.search(log)
     assert match, log
     port, pid = int(match[1]), int(match[2])
-    assert _wait_gone(pid, 30), f"the Prefect server (pid {pid}) outlived plantdyn serve"
-    assert not _port_open(port)
+    assert _alive(pid) and _port_open(port)  # kept for reuse
+    stop = subprocess.run([sys.executable, "-m", "flows.cli", "server", "stop"], env=env,
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert stop.returncode == 0 and f"(pid {pid})" in stop.stdout, stop.stdout + stop.stderr
+    assert _wait_gone(pid, 30) and not _port_open(port)
