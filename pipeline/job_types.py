@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,12 +73,40 @@ class Prepared:
 
 
 @dataclass(frozen=True)
+class LongTable:
+    """A long result table (``signals.parquet``, ``residuals.parquet``: a row per signal
+    and sample) made chunk by chunk from the arrays it describes, so the whole table
+    never exists in memory at once; iterating it yields the chunks in order.
+
+    Attributes
+    ----------
+    rows : int
+        Rows of the whole table (an upper bound when rows are filtered per chunk).
+    make : callable (int) -> iterator of polars.DataFrame
+        Yields the chunks of at most the given number of rows.
+    chunk_rows : int
+        Rows per chunk when iterated.
+    """
+
+    rows: int
+    make: Callable[[int], Iterator[pl.DataFrame]]
+    chunk_rows: int = 1 << 20
+
+    def __iter__(self) -> Iterator[pl.DataFrame]:
+        return iter(self.make(self.chunk_rows))
+
+    def to_frame(self) -> pl.DataFrame:
+        """The whole table as one frame (small records and tests)."""
+        return pl.concat(list(self))
+
+
+@dataclass(frozen=True)
 class Summary:
     """Everything a run writes, as tables and documents (no I/O yet)."""
 
     step_responses: pl.DataFrame
-    signals: pl.DataFrame
-    residuals: pl.DataFrame
+    signals: LongTable
+    residuals: LongTable
     checks: dict
     metrics: list
     report_md: str

@@ -82,6 +82,66 @@ def generate_long_csv(path: Path, *, days: float, n_tags: int = N_TAGS, seed: in
     return path
 
 
+PLANT_TAGS = 40
+PLANT_INPUTS = 4
+PLANT_OUTPUTS = 8
+
+
+def _plant_input(n: int, k: int, seed: int) -> np.ndarray:
+    """Input tag ``k``: random steps (holds of ~2 min on average) plus a little noise."""
+    rng = np.random.default_rng([seed, k])
+    holds = rng.exponential(120.0, n // 60 + 10).astype(int) + 1
+    levels = rng.normal(50.0, 5.0, holds.size)
+    u = np.repeat(levels, holds)[:n]
+    return u + rng.normal(0.0, 0.02, n)
+
+
+def _plant_value(n: int, k: int, seed: int) -> np.ndarray:
+    """The 1 Hz values of tag ``k`` of the plant export (inputs, outputs, others)."""
+    from scipy.signal import lfilter
+
+    if k < PLANT_INPUTS:
+        return _plant_input(n, k, seed)
+    rng = np.random.default_rng([seed, k])
+    if k < PLANT_INPUTS + PLANT_OUTPUTS:  # first-order lags (2-6 s) of every input
+        y = np.full(n, 100.0)
+        for i in range(PLANT_INPUTS):
+            u = _plant_input(n, i, seed) - 50.0
+            gain, tau_s, delay = rng.uniform(-2, 2), rng.uniform(2, 6), int(rng.integers(0, 3))
+            a = np.exp(-1.0 / tau_s)
+            y += gain * lfilter([0.0] * delay + [1 - a], [1, -a], u)
+        return y + rng.normal(0.0, 0.05, n)
+    return np.cumsum(rng.normal(0, 0.1, n)) + 50.0  # tags the job does not read
+
+
+def generate_plant_csv(path: Path, *, days: float, seed: int = 0) -> Path:
+    """Write a 40-tag PI-style long CSV at 1 Hz of a plant (4 step inputs, 8 outputs that
+    are first-order lags of them, 28 random walks), one tag at a time (bounded memory).
+
+    Columns and text states as :func:`generate_long_csv`.
+    """
+    n = int(days * 86_400)
+    start = np.datetime64("2024-01-01T00:00:00", "ms")
+    offsets = np.arange(n).astype("timedelta64[s]").astype("timedelta64[ms]")
+    stamps = pl.Series("timestamp", start + offsets).dt.strftime("%Y-%m-%dT%H:%M:%SZ")
+    tmp = path.with_suffix(".partial")
+    with tmp.open("wb") as f:
+        f.write(b"tag,timestamp,value,status\n")
+        for k in range(PLANT_TAGS):
+            value = pl.Series("value", np.round(_plant_value(n, k, seed), 4)).cast(pl.String)
+            is_state = pl.Series((np.arange(n) % STATE_EVERY) == (k * 997) % STATE_EVERY)
+            pl.DataFrame({
+                "tag": pl.repeat(f"PLANT.TAG{k:03d}.PV", n, dtype=pl.String, eager=True),
+                "timestamp": stamps,
+                "value": pl.select(pl.when(pl.lit(is_state)).then(pl.lit("Bad Input"))
+                                   .otherwise(pl.lit(value))).to_series(),
+                "status": pl.select(pl.when(pl.lit(is_state)).then(pl.lit("Bad"))
+                                    .otherwise(pl.lit("Good"))).to_series(),
+            }).write_csv(f, include_header=False)
+    tmp.replace(path)
+    return path
+
+
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 

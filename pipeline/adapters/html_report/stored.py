@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import polars as pl
 
+from pipeline.adapters.series_reader import read_key
 from pipeline.checks import cross_correlation_check, ljung_box
 from pipeline.noise_model import NUISANCE_NAMES
 from pipeline.prediction import whiten_residual
@@ -33,8 +34,11 @@ class StoredRun:
         ``manifest.json`` (or what the writer passed before the manifest exists).
     checks : dict or None
         ``checks.json``.
-    steps, signals, residuals : polars.DataFrame or None
-        ``step_responses.parquet``, ``signals.parquet``, ``residuals.parquet``.
+    steps : polars.DataFrame or None
+        ``step_responses.parquet``.
+    signals, residuals : Path or None
+        ``signals.parquet``, ``residuals.parquet``: long tables read a series at a time
+        (:mod:`pipeline.adapters.series_reader`), never whole.
     outputs, inputs : list of str
         Names in ``checks.json``'s pair order (else as stored).
     """
@@ -43,8 +47,8 @@ class StoredRun:
     manifest: dict
     checks: dict | None
     steps: pl.DataFrame | None
-    signals: pl.DataFrame | None
-    residuals: pl.DataFrame | None
+    signals: Path | None
+    residuals: Path | None
     outputs: list
     inputs: list
 
@@ -101,8 +105,9 @@ def load_run(run_dir: Path, manifest: Mapping[str, Any] | None = None) -> Stored
     if steps is not None:
         outputs += steps["output"].unique(maintain_order=True).to_list()
         inputs += steps["input"].unique(maintain_order=True).to_list()
-    return StoredRun(run_dir, man, checks, steps, _read_parquet(run_dir / "signals.parquet"),
-                     _read_parquet(run_dir / "residuals.parquet"),
+    sig, res = run_dir / "signals.parquet", run_dir / "residuals.parquet"
+    return StoredRun(run_dir, man, checks, steps, sig if sig.is_file() else None,
+                     res if res.is_file() else None,
                      list(dict.fromkeys(outputs)), list(dict.fromkeys(inputs)))
 
 
@@ -144,11 +149,12 @@ def step_arrays(run: StoredRun, window: str, column: str = "delta_h") -> np.ndar
     return out
 
 
-def _signal_matrix(signals: pl.DataFrame, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Conditioned values (N, n) with NaN where masked, and the sample times."""
+def _signal_matrix(signals: Path, names: list[str]) -> tuple[np.ndarray, pl.Series]:
+    """Conditioned values (N, n) with NaN where masked, and the sample times (read a
+    signal at a time)."""
     cols, times = [], None
     for name in names:
-        df = signals.filter(pl.col("signal") == name).sort("time")
+        df = read_key(signals, {"signal": name}, ["conditioned", "good"])
         vals = df["conditioned"].cast(pl.Float64).fill_null(np.nan).to_numpy()
         cols.append(np.where(df["good"].to_numpy(), vals, np.nan))
         times = df["time"] if times is None else times
@@ -222,7 +228,7 @@ def held_out_fit(run: StoredRun) -> dict[str, Any] | None:
 
 
 def _aligned_residual(run: StoredRun, output: str, times: pl.Series) -> np.ndarray:
-    df = run.residuals.filter(pl.col("output") == output).select("time", "residual")
+    df = read_key(run.residuals, {"output": output}, ["residual"]).select("time", "residual")
     grid = pl.DataFrame({"time": times})
     joined = grid.join(df, on="time", how="left", maintain_order="left")
     return joined["residual"].cast(pl.Float64).fill_null(np.nan).to_numpy()
