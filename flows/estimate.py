@@ -141,7 +141,7 @@ def monitor_task(cfg, summary, run_id):
 
 
 @task(name="store", retries=2, retry_delay_seconds=1, retry_condition_fn=retry_transient_io, **_T)
-def store_task(cfg, summary, prep, sr, timings, run_id):
+def store_task(cfg, summary, prep, sr, timings, run_id, progress=None):
     """Write the run directory and build the report (:func:`pipeline.jobs.finish_run`).
 
     Parameters
@@ -158,8 +158,11 @@ def store_task(cfg, summary, prep, sr, timings, run_id):
         Seconds per stage, recorded with the run.
     run_id : str or None
         Id of the run directory; ``None`` lets the store choose one.
+    progress : callable (stage, message), optional
+        Told when the store stage and its parts start and end (with their done lines).
     """
-    return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id)
+    return jobs.finish_run(cfg, summary, prep, sr, timings, run_id=run_id,
+                           progress=progress or (lambda stage, message: None))
 
 
 def _estimate_windows(prep, windows: list, settings: tuple) -> list:
@@ -206,8 +209,8 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
         summary, run_id = stage("monitor", monitor_task, cfg, summary, run_id)
         say(start, "monitor", monitor_banner(summary.checks["monitor"]))
     timings = stage.timings
-    say(start, "store", "writing run directory and Rerun recording")
-    report = store_task(cfg, summary, prep, sr, timings, run_id)
+    report = store_task(cfg, summary, prep, sr, timings, run_id,
+                        lambda name, message: say(start, name, message))
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(summary.report_md, key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")

@@ -140,7 +140,26 @@ class RunReport:
             lines.append(f"  {pair}: {head}N_p={self.n_p[pair]}, windows {v}")
         if self.recording:
             lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
+        if self.timings_s:
+            lines.append("  " + stage_times(self.timings_s))
         return "\n".join(lines)
+
+
+def stage_times(timings_s: dict) -> str:
+    """``stage times: ingest 1.2 s, …, store 3.4 s (tables …, commit …); stages 9.9 s``:
+    the top-level stages in order, the store's parts (``store/<part>``) in brackets.
+
+    Parameters
+    ----------
+    timings_s : dict of str to float
+        Seconds per stage (:attr:`RunReport.timings_s`).
+    """
+    top = {k: v for k, v in timings_s.items() if "/" not in k}
+    parts = {k.split("/", 1)[1]: v for k, v in timings_s.items() if k.startswith("store/")}
+    text = ", ".join(f"{k} {v:.1f} s" for k, v in top.items())
+    if parts:
+        text += " (" + ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()) + ")"
+    return f"stage times: {text}; stages {sum(top.values()):.1f} s"
 
 
 @dataclass(frozen=True)

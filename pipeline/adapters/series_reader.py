@@ -19,7 +19,13 @@ import numpy as np
 import polars as pl
 import pyarrow.parquet as pq
 
-from pipeline.envelope import DISPLAY_POINTS, bucket_ids, bucket_width, envelope_points, first_flagged
+from pipeline.envelope import (
+    DISPLAY_POINTS,
+    bucket_ids,
+    bucket_width,
+    envelope_points,
+    first_flagged,
+)
 
 __all__ = ["KeyInfo", "Reduced", "Spec", "read_key", "reduce_series", "scan_keys"]
 

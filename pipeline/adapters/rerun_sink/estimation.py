@@ -38,7 +38,13 @@ from pipeline.adapters.rerun_sink.common import (
     write_recording,
     x_range,
 )
-from pipeline.adapters.series_reader import KeyInfo, Reduced, Spec, reduce_series, scan_keys
+from pipeline.adapters.series_reader import (
+    KeyInfo,
+    Reduced,
+    Spec,
+    reduce_series,
+    scan_keys,
+)
 from pipeline.errors import ConfigError, DataQualityError
 
 #: Points of a pair's band fill: a triangle wave between the ±2σ bounds, about one pixel
