@@ -315,9 +315,10 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
               run_id: str | None = None, progress: Progress = quiet
               ) -> tuple[str, Path, Path | None]:
     """Write the run directory atomically (store) with its report and Rerun recording,
-    each part a timed stage (``store/tables``, ``store/html_report``, ``store/rerun``,
-    ``store/commit``) told to ``progress`` with its done line; the first three are
-    recorded in the manifest's timings (the commit writes the manifest).
+    each part a timed stage (``store/hash_inputs``, ``store/tables``,
+    ``store/html_report``, ``store/rerun``, ``store/commit``) told to ``progress`` with its
+    done line; all but the commit are recorded in the manifest's timings (the commit
+    writes the manifest).
 
     Returns ``(run_id, run_dir, recording_path)``.
 
@@ -342,13 +343,16 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
     resolved = cfg.model_dump(mode="json")
     stage = StageRunner(progress)
     rrd = None
-    with store.new_run(cfg.job, run_id=run_id, config=resolved, inputs=files) as run:
+    from pipeline.adapters.store.run_writer import normalise_inputs
+
+    hashed = stage("store/hash_inputs", normalise_inputs, files)  # sha256 of every input
+    with store.new_run(cfg.job, run_id=run_id, config=resolved, inputs=hashed) as run:
         stage("store/tables", _write_tables, run, summary)
         stage("store/html_report", _write_report_html, run, resolved, files)
         if cfg.rerun.enabled:
             stage("store/rerun", _write_recording, cfg, store, run, resolved)
         for name, sec in {**timings, **stage.timings}.items():
-            key = name.removeprefix("store/")  # manifest keys: tables, html_report, rerun
+            key = name.removeprefix("store/")  # manifest keys: tables, html_report, …
             if key not in run.timings_s:  # add_report_html records its own
                 run.record_timing(key, sec)
         rid = run.run_id

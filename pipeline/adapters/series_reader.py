@@ -179,8 +179,8 @@ def _reduce_frame(df: pl.DataFrame, state: _State, specs: Mapping[str, Spec]) ->
         buckets = bucket_ids(pos, 0.0, state.width_s)
     for name, spec in specs.items():
         value = df.select(spec.value.cast(pl.Float64).fill_null(np.nan)).to_series().to_numpy()
-        if value.size != times.size:  # a literal: the same value at every sample
-            value = np.broadcast_to(value, times.shape)
+        if value.size == 1 != times.size:  # a literal: the same value at every sample
+            value = np.full(times.shape, value[0])
         if spec.flag is None:
             env = envelope_points(buckets, value)
             idx, vals = env.index, env.value
@@ -205,7 +205,7 @@ def _feed(state: _State, df: pl.DataFrame, specs: Mapping[str, Spec], final: boo
     """Append a key's next rows; reduce every bucket that is complete (all of them when
     ``final``), carrying the last one into the next batch."""
     if state.carry is not None:
-        df = pl.concat([state.carry, df], how="vertical_relaxed")
+        df = pl.concat([state.carry, df], how="vertical_relaxed", rechunk=True)
         state.carry = None
     if df.height == 0:
         return

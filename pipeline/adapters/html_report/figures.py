@@ -25,8 +25,14 @@ from pipeline.adapters.series_reader import Spec, reduce_series
 from pipeline.envelope import bucket_ids, bucket_width, envelope_points
 from pipeline.frequency import frequency_response_from_step
 
-__all__ = ["step_matrix", "frequency_matrix", "correlation_figures", "fit_figure",
-           "search_trace_figure", "masked_figure"]
+__all__ = [
+    "correlation_figures",
+    "fit_figure",
+    "frequency_matrix",
+    "masked_figure",
+    "search_trace_figure",
+    "step_matrix",
+]
 
 _BAND = "#9ecae1"
 FIGURE_POINTS = 4000
@@ -336,7 +342,7 @@ def masked_figure(run: StoredRun) -> str | None:
     def keep(info, series) -> None:
         marks[str(info.key[0])] = series["masked"].time
 
-    infos = reduce_series(run.signals, ["signal"], {"masked": Spec(pl.lit(0.0), flag=~pl.col("good"))},
+    infos = reduce_series(run.signals, ["signal"], {"masked": Spec(pl.col("good").cast(pl.Float64), flag=~pl.col("good"))},
                           columns=["good"], max_points=FIGURE_POINTS, on_key=keep)
     if not any(m.size for m in marks.values()):
         return None

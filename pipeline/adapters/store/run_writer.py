@@ -27,7 +27,6 @@ from pipeline.adapters.store.schemas import (
     DOCUMENT_KEYS,
     FILE_NAME_RE,
     FRAME_SPECS,
-    MANIFEST_KEYS,
     MANIFEST_NAME,
     STATUS_RE,
     ResultSchemaError,
@@ -35,7 +34,6 @@ from pipeline.adapters.store.schemas import (
     validate_frame,
 )
 from pipeline.errors import ConfigError, PipelineError
-
 
 _METRIC_KEYS = ("window", "output", "input", "metric")
 CHUNK_ROWS = 1 << 20
@@ -231,6 +229,7 @@ class RunWriter:
         chunks : iterable of polars.DataFrame
             The table's rows in order, each chunk with the same columns.
         """
+        import pyarrow as pa
         import pyarrow.parquet as pq
 
         target = self._target(name)
@@ -245,8 +244,10 @@ class RunWriter:
                         df = validate_frame(df, name=name)
                         _check_key_ranges(df, spec.key, seen, name)
                     table = df.to_arrow(compat_level=pl.CompatLevel.oldest())
-                    if writer is None:
-                        writer = pq.ParquetWriter(fh, table.schema, compression="zstd")
+                    if writer is None:  # dictionaries for the names, not the numbers
+                        names = [f.name for f in table.schema if f.type in (pa.string(), pa.large_string())]
+                        writer = pq.ParquetWriter(fh, table.schema, compression="zstd",
+                                                  use_dictionary=names)
                     writer.write_table(table, row_group_size=max(1, table.num_rows))
                 if writer is None:  # no rows: the schema alone
                     empty = pl.DataFrame(schema=spec.schema) if spec is not None else pl.DataFrame()
