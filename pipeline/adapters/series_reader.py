@@ -105,6 +105,40 @@ def _batches(path: Path, columns: Sequence[str], where: pl.Expr | None):
         yield df.filter(where) if where is not None else df
 
 
+def _constant(column) -> tuple[bool, object]:
+    """(True, value) when a row group's column statistics say it holds one value."""
+    st = column.statistics
+    if st is None or not st.has_min_max or st.null_count or st.min != st.max:
+        return False, None
+    return True, st.min
+
+
+def _row_group_keys(path: Path, keys: list[str], cols: list[str], where: pl.Expr | None):
+    """Per row group, a frame of ``keys`` and ``time``: from the statistics alone (one
+    row per row group: its key, time min and max as two rows) when the row group holds
+    one key and ``where`` is decided by its constant columns, else its decoded rows."""
+    pf = pq.ParquetFile(path)
+    meta = pf.metadata
+    names = [meta.schema.column(i).name for i in range(meta.num_columns)]
+    for g in range(meta.num_row_groups):
+        rg = meta.row_group(g)
+        consts = {names[i]: _constant(rg.column(i)) for i in range(rg.num_columns)}
+        fixed = [c for c in cols if c != "time"]
+        t = rg.column(names.index("time")).statistics if "time" in names else None
+        if rg.num_rows and all(consts.get(c, (False,))[0] for c in fixed) and t is not None \
+                and t.has_min_max and not t.null_count:
+            row = {c: consts[c][1] for c in fixed}
+            df = pl.DataFrame({**{c: [v, v] for c, v in row.items()}, "time": [t.min, t.max]})
+            if where is not None and df.filter(where).height == 0:
+                continue
+            # two rows carry the span; the count is the row group's
+            yield df.with_columns(pl.lit(rg.num_rows).alias("_rows"))
+            continue
+        table = pf.read_row_group(g, columns=cols)
+        df = pl.from_arrow(table)
+        yield df.filter(where) if where is not None else df
+
+
 def scan_keys(path: Path, keys: Sequence[str], *, where: pl.Expr | None = None,
               where_columns: Sequence[str] = ()) -> list[KeyInfo]:
     """Every key of a long table with its row count and time span, in file order (reads
@@ -123,11 +157,12 @@ def scan_keys(path: Path, keys: Sequence[str], *, where: pl.Expr | None = None,
     """
     seen: dict[tuple, list] = {}
     cols = list(dict.fromkeys([*keys, "time", *where_columns]))
-    for df in _batches(Path(path), cols, where):
+    for df in _row_group_keys(Path(path), list(keys), cols, where):
         if df.height == 0:
             continue
+        count = pl.col("_rows").first() if "_rows" in df.columns else pl.len()
         agg = df.group_by(list(keys), maintain_order=True).agg(
-            pl.len().alias("n"), pl.col("time").min().alias("lo"), pl.col("time").max().alias("hi"))
+            count.alias("n"), pl.col("time").min().alias("lo"), pl.col("time").max().alias("hi"))
         lo, hi = _ns(agg["lo"]), _ns(agg["hi"])
         for k, row in enumerate(agg.select(list(keys)).rows()):
             if row not in seen:

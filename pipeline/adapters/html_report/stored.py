@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +41,9 @@ class StoredRun:
         (:mod:`pipeline.adapters.series_reader`), never whole.
     outputs, inputs : list of str
         Names in ``checks.json``'s pair order (else as stored).
+    read : dict
+        Series already read from ``signals.parquet`` (the held-out fit and the residual
+        checks share the inputs instead of reading them twice).
     """
 
     run_dir: Path
@@ -51,6 +54,7 @@ class StoredRun:
     residuals: Path | None
     outputs: list
     inputs: list
+    read: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def config(self) -> dict:
@@ -161,6 +165,14 @@ def _signal_matrix(signals: Path, names: list[str]) -> tuple[np.ndarray, pl.Seri
     return np.column_stack(cols), times
 
 
+def _signals(run: StoredRun, names: list[str]) -> tuple[np.ndarray, pl.Series]:
+    """:func:`_signal_matrix` of ``names``, read once per run."""
+    key = tuple(names)
+    if key not in run.read:
+        run.read[key] = _signal_matrix(run.signals, names)
+    return run.read[key]
+
+
 def _integrating(run: StoredRun) -> list[bool]:
     outs = (run.config.get("signals") or {}).get("outputs") or {}
     return [bool((outs.get(o) or {}).get("integrating")) for o in run.outputs]
@@ -185,8 +197,8 @@ def held_out_fit(run: StoredRun) -> dict[str, Any] | None:
         return None
     wins = [w for w in (run.checks.get("search") or {}).get("windows") or []
             if w.get("status") == "ok" and w.get("window") in window_labels(run.steps)]
-    x, times = _signal_matrix(run.signals, run.inputs)
-    y, _ = _signal_matrix(run.signals, run.outputs)
+    x, times = _signals(run, run.inputs)
+    y, _ = _signals(run, run.outputs)
     dh_all = step_arrays(run, "all")
     if len(wins) >= 2:
         held, train = wins[-1], wins[:-1]
@@ -247,7 +259,7 @@ def residual_correlations(run: StoredRun) -> dict[str, Any] | None:
     """
     if run.residuals is None or run.signals is None or run.checks is None:
         return None
-    x, times = _signal_matrix(run.signals, run.inputs)
+    x, times = _signals(run, run.inputs)
     x0 = np.nan_to_num(x)
     cfg_checks = run.config.get("checks") or {}
     white = ((run.checks.get("residuals") or {}).get("whiteness") or {})
