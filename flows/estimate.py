@@ -120,8 +120,8 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
         summary, run_id = stage("monitor", monitor_task, cfg, summary, run_id)
         say(start, "monitor", monitor_banner(summary.checks["monitor"]))
     timings = stage.timings
-    say(start, "store", "writing run directory and Rerun recording")
-    report = store_task(cfg, summary, prep, sr, timings, run_id=run_id)
+    report = store_task(cfg, summary, prep, sr, timings, run_id=run_id,
+                        progress=lambda name, message: say(start, name, message))
     update_progress_artifact(progress, 100.0, description=f"stored {report.run_id}")
     create_markdown_artifact(summary.report_md, key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")

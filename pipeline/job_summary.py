@@ -7,7 +7,7 @@ import polars as pl
 
 from pipeline.checks import cross_correlation_check, ljung_box, window_agreement
 from pipeline.errors import PipelineError
-from pipeline.job_types import Prepared, Summary, WindowFailure
+from pipeline.job_types import LongTable, Prepared, Summary, WindowFailure
 from pipeline.prediction import innovations, residuals
 from pipeline.quality import GRADE_MEANING, GRADE_RULE, grade_from_checks
 from pipeline.search import SearchResult
@@ -280,16 +280,24 @@ def _checks(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate
     }
 
 
-def _residuals_table(prep: Prepared, res: np.ndarray) -> pl.DataFrame:
-    """The residuals table (long form; rows where lags touch a gap left out)."""
-    outs = prep.outputs
-    return pl.DataFrame({
-        "window": ["all"] * (res.shape[0] * len(outs)),
-        "time": np.concatenate([prep.time] * len(outs)),
-        "output": np.repeat(outs, res.shape[0]),
-        "residual": res.T.ravel()}).with_columns(
-            pl.col("time").cast(pl.Datetime("us", "UTC"))).filter(
-                pl.col("residual").is_not_nan())  # undefined where lags touch a gap
+def _residuals_table(prep: Prepared, res: np.ndarray) -> LongTable:
+    """The residuals table (long form, an output at a time; rows where lags touch a gap
+    left out)."""
+    outs, n = prep.outputs, res.shape[0]
+
+    def make(rows: int):
+        for i, o in enumerate(outs):
+            for a in range(0, n, rows):
+                b = min(a + rows, n)
+                yield pl.DataFrame({
+                    "window": pl.repeat("all", b - a, dtype=pl.String, eager=True),
+                    "time": prep.time[a:b],
+                    "output": pl.repeat(o, b - a, dtype=pl.String, eager=True),
+                    "residual": res[a:b, i]}).with_columns(
+                        pl.col("time").cast(pl.Datetime("us", "UTC"))).filter(
+                            pl.col("residual").is_not_nan())  # undefined where lags touch a gap
+
+    return LongTable(n * len(outs), make)
 
 
 def _settling_increments(est: StepResponseEstimate, i: int, j: int):
@@ -364,18 +372,28 @@ def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
     return out
 
 
-def _signals_table(prep: Prepared) -> pl.DataFrame:
+def _signals_table(prep: Prepared) -> LongTable:
+    """The signals table (long form, a signal at a time, in chunks)."""
     rec = prep.recording
-    cond = np.concatenate([prep.x, prep.y] + ([prep.r] if prep.r is not None else []), axis=1)
-    frames = []
-    for k, (name, role) in enumerate(zip(rec.names, rec.roles)):
-        frames.append(pl.DataFrame({
-            "time": prep.time, "signal": [name] * prep.time.size,
-            "role": [role] * prep.time.size,
-            "raw": prep.raw[:, k], "conditioned": cond[:, k],
-            "good": prep.good[:, k]}).with_columns(
-                pl.col("raw").fill_nan(None), pl.col("conditioned").fill_nan(None)))
-    return pl.concat(frames).with_columns(pl.col("time").cast(pl.Datetime("us", "UTC")))
+    blocks = [prep.x, prep.y] + ([prep.r] if prep.r is not None else [])
+    columns = [(blk, j) for blk in blocks for j in range(blk.shape[1])]  # conditioned, by signal
+    n = prep.time.size
+
+    def make(rows: int):
+        for k, (name, role) in enumerate(zip(rec.names, rec.roles)):
+            blk, j = columns[k]
+            for a in range(0, n, rows):
+                b = min(a + rows, n)
+                yield pl.DataFrame({
+                    "time": prep.time[a:b],
+                    "signal": pl.repeat(name, b - a, dtype=pl.String, eager=True),
+                    "role": pl.repeat(role, b - a, dtype=pl.String, eager=True),
+                    "raw": prep.raw[a:b, k], "conditioned": blk[a:b, j],
+                    "good": prep.good[a:b, k]}).with_columns(
+                        pl.col("raw").fill_nan(None), pl.col("conditioned").fill_nan(None),
+                        pl.col("time").cast(pl.Datetime("us", "UTC")))
+
+    return LongTable(n * len(rec.names), make)
 
 
 def _unit(cfg, name: str) -> str:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,12 +73,40 @@ class Prepared:
 
 
 @dataclass(frozen=True)
+class LongTable:
+    """A long result table (``signals.parquet``, ``residuals.parquet``: a row per signal
+    and sample) made chunk by chunk from the arrays it describes, so the whole table
+    never exists in memory at once; iterating it yields the chunks in order.
+
+    Attributes
+    ----------
+    rows : int
+        Rows of the whole table (an upper bound when rows are filtered per chunk).
+    make : callable (int) -> iterator of polars.DataFrame
+        Yields the chunks of at most the given number of rows.
+    chunk_rows : int
+        Rows per chunk when iterated.
+    """
+
+    rows: int
+    make: Callable[[int], Iterator[pl.DataFrame]]
+    chunk_rows: int = 1 << 20
+
+    def __iter__(self) -> Iterator[pl.DataFrame]:
+        return iter(self.make(self.chunk_rows))
+
+    def to_frame(self) -> pl.DataFrame:
+        """The whole table as one frame (small records and tests)."""
+        return pl.concat(list(self))
+
+
+@dataclass(frozen=True)
 class Summary:
     """Everything a run writes, as tables and documents (no I/O yet)."""
 
     step_responses: pl.DataFrame
-    signals: pl.DataFrame
-    residuals: pl.DataFrame
+    signals: LongTable
+    residuals: LongTable
     checks: dict
     metrics: list
     report_md: str
@@ -111,7 +140,26 @@ class RunReport:
             lines.append(f"  {pair}: {head}N_p={self.n_p[pair]}, windows {v}")
         if self.recording:
             lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
+        if self.timings_s:
+            lines.append("  " + stage_times(self.timings_s))
         return "\n".join(lines)
+
+
+def stage_times(timings_s: dict) -> str:
+    """``stage times: ingest 1.2 s, …, store 3.4 s (tables …, commit …); stages 9.9 s``:
+    the top-level stages in order, the store's parts (``store/<part>``) in brackets.
+
+    Parameters
+    ----------
+    timings_s : dict of str to float
+        Seconds per stage (:attr:`RunReport.timings_s`).
+    """
+    top = {k: v for k, v in timings_s.items() if "/" not in k}
+    parts = {k.split("/", 1)[1]: v for k, v in timings_s.items() if k.startswith("store/")}
+    text = ", ".join(f"{k} {v:.1f} s" for k, v in top.items())
+    if parts:
+        text += " (" + ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()) + ")"
+    return f"stage times: {text}; stages {sum(top.values()):.1f} s"
 
 
 @dataclass(frozen=True)

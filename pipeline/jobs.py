@@ -312,8 +312,13 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
 
 
 def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, float],
-              run_id: str | None = None) -> tuple[str, Path, Path | None]:
-    """Write the run directory atomically (store) with its Rerun recording.
+              run_id: str | None = None, progress: Progress = quiet
+              ) -> tuple[str, Path, Path | None]:
+    """Write the run directory atomically (store) with its report and Rerun recording,
+    each part a timed stage (``store/hash_inputs``, ``store/tables``,
+    ``store/html_report``, ``store/rerun``, ``store/commit``) told to ``progress`` with its
+    done line; all but the commit are recorded in the manifest's timings (the commit
+    writes the manifest).
 
     Returns ``(run_id, run_dir, recording_path)``.
 
@@ -326,41 +331,67 @@ def write_run(cfg, summary: Summary, *, files: list[str], timings: dict[str, flo
     files : list of str
         Input files, recorded in the run's manifest.
     timings : dict of str to float
-        Seconds per stage, recorded with the run.
+        Seconds per stage, recorded with the run; the store's parts are added to it.
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
+    progress : callable (stage, message)
+        Told when each part starts and ends.
     """
     from pipeline.adapters.store import ResultStore
 
     store = ResultStore(cfg.storage_root)
     resolved = cfg.model_dump(mode="json")
+    stage = StageRunner(progress)
     rrd = None
-    with store.new_run(cfg.job, run_id=run_id, config=resolved, inputs=files) as run:
-        for stage, sec in timings.items():
-            run.record_timing(stage, sec)
-        run.write_step_responses(summary.step_responses)
-        run.write_signals(summary.signals)
-        run.write_residuals(summary.residuals)
-        run.write_checks(summary.checks)
-        run.write_report(summary.report_md)
-        run.set_status(summary.status)
-        run.add_metrics(summary.metrics)
-        from pipeline.adapters.html_report import add_report_html
+    from pipeline.adapters.store.run_writer import normalise_inputs
 
-        add_report_html(run, config=resolved, inputs=files)
+    hashed = stage("store/hash_inputs", normalise_inputs, files)  # sha256 of every input
+    with store.new_run(cfg.job, run_id=run_id, config=resolved, inputs=hashed) as run:
+        stage("store/tables", _write_tables, run, summary)
+        stage("store/html_report", _write_report_html, run, resolved, files)
         if cfg.rerun.enabled:
-            from pipeline.adapters.rerun_sink import render_run
-
-            t0 = time.perf_counter()
-            trends = store.trend(cfg.job) if store.list_runs(cfg.job).height else None
-            render_run(run.path, trends=trends, ident=f"{cfg.job}/{run.run_id}",
-                       config=resolved)
-            run.record_timing("rerun", time.perf_counter() - t0)
+            stage("store/rerun", _write_recording, cfg, store, run, resolved)
+        for name, sec in {**timings, **stage.timings}.items():
+            key = name.removeprefix("store/")  # manifest keys: tables, html_report, …
+            if key not in run.timings_s:  # add_report_html records its own
+                run.record_timing(key, sec)
         rid = run.run_id
+        progress("store/commit", "start")  # manifest, rename into place, catalog row
+        t0 = time.perf_counter()
+    stage.timings["store/commit"] = time.perf_counter() - t0
+    progress("store/commit", f"done in {stage.timings['store/commit']:.2f} s")
+    timings.update(stage.timings)
     run_dir = store.run_dir(cfg.job, rid)
     if cfg.rerun.enabled:
         rrd = run_dir / "recording.rrd"
     return rid, run_dir, rrd
+
+
+def _write_tables(run, summary: Summary) -> None:
+    """The run's tables and documents; the long ones a chunk at a time."""
+    run.write_step_responses(summary.step_responses)
+    run.write_signals(summary.signals)
+    run.write_residuals(summary.residuals)
+    run.write_checks(summary.checks)
+    run.write_report(summary.report_md)
+    run.set_status(summary.status)
+    run.add_metrics(summary.metrics)
+
+
+def _write_report_html(run, resolved: dict, files: list[str]) -> None:
+    """``report.html`` from the files written so far (matplotlib is imported here, inside
+    the timed stage)."""
+    from pipeline.adapters.html_report import add_report_html
+
+    add_report_html(run, config=resolved, inputs=files)
+
+
+def _write_recording(cfg, store, run, resolved: dict) -> None:
+    """``recording.rrd`` from the files written so far (and the job's earlier runs)."""
+    from pipeline.adapters.rerun_sink import render_run
+
+    trends = store.trend(cfg.job) if store.list_runs(cfg.job).height else None
+    render_run(run.path, trends=trends, ident=f"{cfg.job}/{run.run_id}", config=resolved)
 
 
 def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
@@ -412,13 +443,14 @@ def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings:
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
     progress : callable (stage, message)
-        Told before the run directory is written (stage ``"store"``).
+        Told when the store stage (``"store"``) and its parts start and end.
     """
-    progress("store", "writing run directory")
+    progress("store", "writing run directory, report and recording")
     t0 = time.perf_counter()
     rid, run_dir, rrd = write_run(cfg, summary, files=list(prep.recording.files),
-                                  timings=timings, run_id=run_id)
+                                  timings=timings, run_id=run_id, progress=progress)
     timings["store"] = time.perf_counter() - t0
+    progress("store", f"done in {timings['store']:.2f} s")
     ins, outs = prep.inputs, prep.outputs
     n_p = {f"{o}<-{u}": int(sr.n_p[i, j]) for i, o in enumerate(outs) for j, u in enumerate(ins)}
     verdicts = {f"{p['output']}<-{p['input']}": p["agreement"]["verdict"]

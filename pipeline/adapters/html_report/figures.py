@@ -21,12 +21,24 @@ from pipeline.adapters.html_report.page import (
     ratio_unit,
 )
 from pipeline.adapters.html_report.stored import StoredRun, step_arrays, window_labels
+from pipeline.adapters.series_reader import Spec, reduce_series
+from pipeline.envelope import bucket_ids, bucket_width, envelope_points
 from pipeline.frequency import frequency_response_from_step
 
-__all__ = ["step_matrix", "frequency_matrix", "correlation_figures", "fit_figure",
-           "search_trace_figure", "masked_figure"]
+__all__ = [
+    "correlation_figures",
+    "fit_figure",
+    "frequency_matrix",
+    "masked_figure",
+    "search_trace_figure",
+    "step_matrix",
+]
 
 _BAND = "#9ecae1"
+FIGURE_POINTS = 4000
+"""Points per line (or markers per row) of a long time-series figure: a 12-inch PNG is
+about 1200 pixels wide, so longer series are drawn as min/max envelopes
+(:mod:`pipeline.envelope`)."""
 _SMALL = 7
 
 
@@ -230,15 +242,17 @@ def fit_figure(run: StoredRun, fit: dict[str, Any], units: dict[str, str]) -> st
     hours = (times - times[0]).dt.total_seconds().to_numpy() / 3600.0 if len(times) else \
         np.zeros(0)
     start = f"{times[0]:%Y-%m-%d %H:%M:%S}" if len(times) else ""
+    width = bucket_width(float(hours[-1] - hours[0]) if hours.size else 0.0, hours.size, FIGURE_POINTS)
+    buckets = bucket_ids(hours, float(hours[0]), width) if width is not None else np.arange(hours.size)
     for i, o in enumerate(run.outputs):
         r = fit["outputs"][o]
         ax = axes[i][0]
-        ax.plot(hours, r["measured"], color="#888888", lw=0.6, label="measured")
+        ax.plot(*_drawn(hours, buckets, r["measured"]), color="#888888", lw=0.6, label="measured")
         if "held_out" in r:
-            ax.plot(hours, r["held_out"], color="#d62728", lw=0.9,
+            ax.plot(*_drawn(hours, buckets, r["held_out"]), color="#d62728", lw=0.9,
                     label=f"simulated, model of the other windows (fit {r['fit_held_out']:.1f} %)")
         if "all" in r:
-            ax.plot(hours, r["all"], color="#1f77b4", lw=0.7, ls="--",
+            ax.plot(*_drawn(hours, buckets, r["all"]), color="#1f77b4", lw=0.7, ls="--",
                     label=f"simulated, all-data estimate, in-sample (fit {r['fit_all']:.1f} %)")
         what = "Δ" if r["differenced"] else ""
         ax.set_title(o, fontsize=8, loc="left")
@@ -247,6 +261,13 @@ def fit_figure(run: StoredRun, fit: dict[str, Any], units: dict[str, str]) -> st
         ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=3,
                   frameon=False, borderaxespad=0.1)
     return figure_png(fig, alt="measured vs simulated outputs on the held-out window")
+
+
+def _drawn(x: np.ndarray, buckets: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, y)`` to plot: every sample, or the min/max envelope per bucket (a PNG a
+    thousand pixels wide shows no more; the statistics use every sample)."""
+    env = envelope_points(buckets, np.asarray(y, dtype=float))
+    return x[env.index], env.value
 
 
 def search_trace_figure(run: StoredRun) -> str:
@@ -316,22 +337,27 @@ def masked_figure(run: StoredRun) -> str | None:
     run : StoredRun
         The run (``signals.parquet``).
     """
-    sig = run.signals
-    bad = sig.filter(~pl.col("good"))
-    if bad.height == 0:
+    marks: dict[str, np.ndarray] = {}
+
+    def keep(info, series) -> None:
+        marks[str(info.key[0])] = series["masked"].time
+
+    infos = reduce_series(run.signals, ["signal"], {"masked": Spec(pl.col("good").cast(pl.Float64), flag=~pl.col("good"))},
+                          columns=["good"], max_points=FIGURE_POINTS, on_key=keep)
+    if not any(m.size for m in marks.values()):
         return None
-    names = sig["signal"].unique(maintain_order=True).to_list()
-    t0 = sig["time"].min()
+    names = [str(k.key[0]) for k in infos]
+    t0 = min(k.first for k in infos)
     h = 0.9 + 0.28 * len(names)
     fig = new_figure(12.0, h)
     ax = fig.add_axes((0.16, 0.6 / h, 0.8, 0.28 * len(names) / h))
     for k, name in enumerate(names):
-        ts = bad.filter(pl.col("signal") == name)["time"]
-        hours = (ts - t0).dt.total_seconds().to_numpy() / 3600.0
+        hours = (marks.get(name, np.zeros(0, "datetime64[ns]")) - t0) / np.timedelta64(3600, "s")
         ax.scatter(hours, np.full(hours.size, k), marker="|", s=60, color="#c62828")
     ax.set_yticks(range(len(names)), names)
     ax.set_ylim(-0.6, len(names) - 0.4)
-    span = (sig["time"].max() - t0).total_seconds() / 3600.0
+    span = float((max(k.last for k in infos) - t0) / np.timedelta64(3600, "s"))
     ax.set_xlim(0, max(span, 1e-9))
-    _style(ax, xlabel=f"time since {t0:%Y-%m-%d %H:%M:%S} UTC (h)", ylabel="")
+    start = np.datetime_as_string(t0, unit="s").replace("T", " ")
+    _style(ax, xlabel=f"time since {start} UTC (h)", ylabel="")
     return figure_png(fig, alt="masked samples per signal")

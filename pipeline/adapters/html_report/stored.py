@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import polars as pl
 
+from pipeline.adapters.series_reader import read_key
 from pipeline.checks import cross_correlation_check, ljung_box
 from pipeline.noise_model import NUISANCE_NAMES
 from pipeline.prediction import whiten_residual
@@ -33,20 +34,27 @@ class StoredRun:
         ``manifest.json`` (or what the writer passed before the manifest exists).
     checks : dict or None
         ``checks.json``.
-    steps, signals, residuals : polars.DataFrame or None
-        ``step_responses.parquet``, ``signals.parquet``, ``residuals.parquet``.
+    steps : polars.DataFrame or None
+        ``step_responses.parquet``.
+    signals, residuals : Path or None
+        ``signals.parquet``, ``residuals.parquet``: long tables read a series at a time
+        (:mod:`pipeline.adapters.series_reader`), never whole.
     outputs, inputs : list of str
         Names in ``checks.json``'s pair order (else as stored).
+    read : dict
+        Series already read from ``signals.parquet`` (the held-out fit and the residual
+        checks share the inputs instead of reading them twice).
     """
 
     run_dir: Path
     manifest: dict
     checks: dict | None
     steps: pl.DataFrame | None
-    signals: pl.DataFrame | None
-    residuals: pl.DataFrame | None
+    signals: Path | None
+    residuals: Path | None
     outputs: list
     inputs: list
+    read: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def config(self) -> dict:
@@ -101,8 +109,9 @@ def load_run(run_dir: Path, manifest: Mapping[str, Any] | None = None) -> Stored
     if steps is not None:
         outputs += steps["output"].unique(maintain_order=True).to_list()
         inputs += steps["input"].unique(maintain_order=True).to_list()
-    return StoredRun(run_dir, man, checks, steps, _read_parquet(run_dir / "signals.parquet"),
-                     _read_parquet(run_dir / "residuals.parquet"),
+    sig, res = run_dir / "signals.parquet", run_dir / "residuals.parquet"
+    return StoredRun(run_dir, man, checks, steps, sig if sig.is_file() else None,
+                     res if res.is_file() else None,
                      list(dict.fromkeys(outputs)), list(dict.fromkeys(inputs)))
 
 
@@ -144,15 +153,24 @@ def step_arrays(run: StoredRun, window: str, column: str = "delta_h") -> np.ndar
     return out
 
 
-def _signal_matrix(signals: pl.DataFrame, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Conditioned values (N, n) with NaN where masked, and the sample times."""
+def _signal_matrix(signals: Path, names: list[str]) -> tuple[np.ndarray, pl.Series]:
+    """Conditioned values (N, n) with NaN where masked, and the sample times (read a
+    signal at a time)."""
     cols, times = [], None
     for name in names:
-        df = signals.filter(pl.col("signal") == name).sort("time")
+        df = read_key(signals, {"signal": name}, ["conditioned", "good"])
         vals = df["conditioned"].cast(pl.Float64).fill_null(np.nan).to_numpy()
         cols.append(np.where(df["good"].to_numpy(), vals, np.nan))
         times = df["time"] if times is None else times
     return np.column_stack(cols), times
+
+
+def _signals(run: StoredRun, names: list[str]) -> tuple[np.ndarray, pl.Series]:
+    """:func:`_signal_matrix` of ``names``, read once per run."""
+    key = tuple(names)
+    if key not in run.read:
+        run.read[key] = _signal_matrix(run.signals, names)
+    return run.read[key]
 
 
 def _integrating(run: StoredRun) -> list[bool]:
@@ -179,8 +197,8 @@ def held_out_fit(run: StoredRun) -> dict[str, Any] | None:
         return None
     wins = [w for w in (run.checks.get("search") or {}).get("windows") or []
             if w.get("status") == "ok" and w.get("window") in window_labels(run.steps)]
-    x, times = _signal_matrix(run.signals, run.inputs)
-    y, _ = _signal_matrix(run.signals, run.outputs)
+    x, times = _signals(run, run.inputs)
+    y, _ = _signals(run, run.outputs)
     dh_all = step_arrays(run, "all")
     if len(wins) >= 2:
         held, train = wins[-1], wins[:-1]
@@ -222,7 +240,7 @@ def held_out_fit(run: StoredRun) -> dict[str, Any] | None:
 
 
 def _aligned_residual(run: StoredRun, output: str, times: pl.Series) -> np.ndarray:
-    df = run.residuals.filter(pl.col("output") == output).select("time", "residual")
+    df = read_key(run.residuals, {"output": output}, ["residual"]).select("time", "residual")
     grid = pl.DataFrame({"time": times})
     joined = grid.join(df, on="time", how="left", maintain_order="left")
     return joined["residual"].cast(pl.Float64).fill_null(np.nan).to_numpy()
@@ -241,7 +259,7 @@ def residual_correlations(run: StoredRun) -> dict[str, Any] | None:
     """
     if run.residuals is None or run.signals is None or run.checks is None:
         return None
-    x, times = _signal_matrix(run.signals, run.inputs)
+    x, times = _signals(run, run.inputs)
     x0 = np.nan_to_num(x)
     cfg_checks = run.config.get("checks") or {}
     white = ((run.checks.get("residuals") or {}).get("whiteness") or {})

@@ -38,6 +38,13 @@ from pipeline.adapters.rerun_sink.common import (
     write_recording,
     x_range,
 )
+from pipeline.adapters.series_reader import (
+    KeyInfo,
+    Reduced,
+    Spec,
+    reduce_series,
+    scan_keys,
+)
 from pipeline.errors import ConfigError, DataQualityError
 
 #: Points of a pair's band fill: a triangle wave between the ±2σ bounds, about one pixel
@@ -139,7 +146,7 @@ def _step_plot(pair: pl.DataFrame) -> StepPlot | None:
 
 
 def _layout(ident: str, units: dict[str, str], checks: dict[str, Any] | None, steps: pl.DataFrame | None,
-            signals: pl.DataFrame | None, resid: pl.DataFrame | None, trends: pl.DataFrame | None,
+            signals: Sequence[KeyInfo], resid: Sequence[KeyInfo], trends: pl.DataFrame | None,
             start: np.datetime64 | None) -> Layout:
     pairs = _pairs(checks, steps)
     plots: dict[tuple[str, str], StepPlot] = {}
@@ -159,9 +166,8 @@ def _layout(ident: str, units: dict[str, str], checks: dict[str, Any] | None, st
         ident=ident, units=units,
         outputs=list(dict.fromkeys(o for o, _ in pairs)), inputs=list(dict.fromkeys(i for _, i in pairs)),
         steps=plots,
-        signals=[] if signals is None else [tuple(r) for r in signals.select("signal", "role").unique(
-            maintain_order=True).rows()],
-        residual_outputs=[] if resid is None else resid["output"].unique(maintain_order=True).to_list(),
+        signals=[(str(k.key[0]), str(k.key[1])) for k in signals],
+        residual_outputs=[str(k.key[0]) for k in resid],
         trend_metrics=trend_metrics, start=start, trend_span=trend_span)
 
 
@@ -304,61 +310,81 @@ def render_run(run_dir: Path, *, trends: pl.DataFrame | None = None, out_name: s
     checks_path = run_dir / "checks.json"
     checks = json.loads(checks_path.read_text(encoding="utf-8")) if checks_path.is_file() else None
     steps = read_parquet(run_dir, "step_responses.parquet")
-    signals = read_parquet(run_dir, "signals.parquet")
-    resid = read_parquet(run_dir, "residuals.parquet")
-    if resid is not None:
-        resid = resid.filter(pl.col("window") == "all")
+    sig_path, res_path = run_dir / "signals.parquet", run_dir / "residuals.parquet"
+    signals = scan_keys(sig_path, ["signal", "role"]) if sig_path.is_file() else []
+    resid = scan_keys(res_path, ["output"], where=_ALL_WINDOW, where_columns=["window"]) \
+        if res_path.is_file() else []
     trends = _check_trends(trends) if trends is not None and trends.height else None
-    start = _first_time(signals, resid)
+    firsts = [k.first for k in [*signals, *resid] if k.rows]
+    start = min(firsts) if firsts else None
     layout = _layout(ident, units_of(config), checks, steps, signals, resid, trends, start)
 
     def send(rec: rr.RecordingStream) -> None:
-        if signals is not None:
-            _send_signals(rec, signals, start)
+        if signals:
+            reduce_series(sig_path, ["signal", "role"], _SIGNAL_SPECS, columns=["raw", "conditioned", "good"],
+                          infos=signals, on_key=lambda info, series: _send_signal(rec, info, series, start))
         if steps is not None:
             _send_steps(rec, steps, [(o, i) for o in layout.outputs for i in layout.inputs])
-        if resid is not None:
-            for (output,), df in resid.sort("time").group_by(["output"], maintain_order=True):
-                send_series(rec, f"residuals/{path_part(output)}", _time_indexes(df["time"], start),
-                            float_values(df["residual"]), name=f"residual {output}", colour=RESIDUAL_COLOUR,
-                            width=1.0)
+        if resid:
+            reduce_series(res_path, ["output"], _RESIDUAL_SPECS, columns=["residual", "window"],
+                          where=_ALL_WINDOW, infos=resid,
+                          on_key=lambda info, series: _send_residual(rec, info, series, start))
         if trends is not None:
             _send_trends(rec, trends)
 
     return write_recording(run_dir / out_name, ident, _blueprint(layout), send)
 
 
-def _first_time(*frames: pl.DataFrame | None) -> np.datetime64 | None:
-    """The first stored sample time: ``elapsed`` 0 of signals and residuals alike."""
-    firsts = [f["time"].min() for f in frames if f is not None and f.height]
-    firsts = [np.datetime64(t.replace(tzinfo=None), "ns") for t in firsts if t is not None]
-    return min(firsts) if firsts else None
+_ALL_WINDOW = pl.col("window") == "all"
+#: What is drawn per signal: raw, conditioned (a masked sample is not part of the
+#: conditioned signal the estimator used: a gap) and the masked samples as markers.
+_SIGNAL_SPECS = {
+    "raw": Spec(pl.col("raw")),
+    "conditioned": Spec(pl.when(pl.col("good")).then(pl.col("conditioned"))),
+    "masked": Spec(pl.col("raw"), flag=~pl.col("good") & pl.col("raw").is_not_null()),
+}
+_RESIDUAL_SPECS = {"residual": Spec(pl.col("residual"))}
 
 
-def _time_indexes(times: pl.Series, start: np.datetime64 | None) -> list[rr.TimeColumn]:
-    """The samples on ``elapsed`` (since ``start``) and on ``time`` (UTC)."""
-    stamps = times.dt.replace_time_zone(None).cast(pl.Datetime("ns")).to_numpy()
+def _time_indexes(stamps: np.ndarray, start: np.datetime64 | None) -> list[rr.TimeColumn]:
+    """The points on ``elapsed`` (since ``start``) and on ``time`` (UTC)."""
+    stamps = np.asarray(stamps, dtype="datetime64[ns]")
     return [rr.TimeColumn(TIMELINES["elapsed"], duration=(stamps - start).astype("timedelta64[ns]")),
             rr.TimeColumn(TIMELINES["signals"], timestamp=stamps)]
 
 
-def _send_signals(rec: rr.RecordingStream, signals: pl.DataFrame, start: np.datetime64 | None) -> None:
-    for (name, role), df in signals.sort("time").group_by(["signal", "role"], maintain_order=True):
-        index = _time_indexes(df["time"], start)
-        colour = ROLE_COLOURS.get(str(role))
-        send_series(rec, f"signals/raw/{path_part(name)}", index, float_values(df["raw"]), name=f"{name} ({role})",
-                    colour=colour, width=1.0)
-        # A masked sample is not part of the conditioned signal the estimator used: gap.
-        conditioned = np.where(df["good"].to_numpy(), float_values(df["conditioned"]), np.nan)
-        send_series(rec, f"signals/conditioned/{path_part(name)}", index, conditioned,
-                    name=f"{name} ({role}) conditioned", colour=colour, width=1.0)
-        bad = df.filter(~pl.col("good") & pl.col("raw").is_not_null())
-        if bad.height:
-            path = f"signals/masked/{path_part(name)}"
-            rec.log(path, rr.SeriesPoints(names=f"{name} masked", colors=[MASKED_COLOUR],
-                                          markers="cross", marker_sizes=6.0), static=True, strict=True)
-            rec.send_columns(path, indexes=_time_indexes(bad["time"], start),
-                             columns=rr.Scalars.columns(scalars=float_values(bad["raw"])), strict=True)
+def _line(rec: rr.RecordingStream, path: str, series: Reduced, start: np.datetime64 | None, *, name: str,
+          colour: tuple[int, int, int] | None) -> None:
+    """One line: every sample, or the min/max envelope drawn with the viewer's min/max
+    aggregation (so zooming out keeps the band)."""
+    if series.envelope:
+        name = f"{name}, min/max envelope"
+    send_series(rec, path, _time_indexes(series.time, start), series.value, name=name, colour=colour,
+                width=1.0, aggregation="MinMax" if series.envelope else None)
+
+
+def _send_signal(rec: rr.RecordingStream, info: KeyInfo, series: Mapping[str, Reduced],
+                 start: np.datetime64 | None) -> None:
+    name, role = str(info.key[0]), str(info.key[1])
+    colour = ROLE_COLOURS.get(role)
+    _line(rec, f"signals/raw/{path_part(name)}", series["raw"], start, name=f"{name} ({role})", colour=colour)
+    _line(rec, f"signals/conditioned/{path_part(name)}", series["conditioned"], start,
+          name=f"{name} ({role}) conditioned", colour=colour)
+    masked = series["masked"]
+    if masked.time.size:
+        path = f"signals/masked/{path_part(name)}"
+        label = f"{name} masked" + (", first per bucket" if masked.envelope else "")
+        rec.log(path, rr.SeriesPoints(names=label, colors=[MASKED_COLOUR],
+                                      markers="cross", marker_sizes=6.0), static=True, strict=True)
+        rec.send_columns(path, indexes=_time_indexes(masked.time, start),
+                         columns=rr.Scalars.columns(scalars=masked.value), strict=True)
+
+
+def _send_residual(rec: rr.RecordingStream, info: KeyInfo, series: Mapping[str, Reduced],
+                   start: np.datetime64 | None) -> None:
+    output = str(info.key[0])
+    _line(rec, f"residuals/{path_part(output)}", series["residual"], start, name=f"residual {output}",
+          colour=RESIDUAL_COLOUR)
 
 
 def _send_steps(rec: rr.RecordingStream, steps: pl.DataFrame, pairs: Sequence[tuple[str, str]]) -> None:

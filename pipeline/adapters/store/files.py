@@ -178,10 +178,30 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
     StorageError
         Something other than a regular file is at ``path``; nothing was written.
     """
+    atomic_write_with(path, lambda fh: fh.write(data))
+
+
+def atomic_write_with(path: Path, write: Any) -> None:
+    """:func:`atomic_write_bytes` for content written piece by piece: ``write(fh)`` gets
+    the temporary file open for binary writing (a streaming writer that never holds the
+    whole content); then fsync, the same check of ``path`` and the rename.
+
+    Parameters
+    ----------
+    path : Path
+        Destination file.
+    write : callable (file object) -> object
+        Writes the content into the open temporary file.
+
+    Raises
+    ------
+    StorageError
+        Something other than a regular file is at ``path``; nothing was written.
+    """
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
     try:
         with open(tmp, "xb") as fh:
-            fh.write(data)
+            write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         _refuse_special(path)

@@ -16,21 +16,29 @@ from typing import Any
 import numpy as np
 import polars as pl
 
-from pipeline.adapters.store.files import atomic_write_bytes, check_name, file_sha256, to_json_text
+from pipeline.adapters.store.files import (
+    atomic_write_bytes,
+    atomic_write_with,
+    check_name,
+    file_sha256,
+    to_json_text,
+)
 from pipeline.adapters.store.schemas import (
     DOCUMENT_KEYS,
     FILE_NAME_RE,
     FRAME_SPECS,
-    MANIFEST_KEYS,
     MANIFEST_NAME,
     STATUS_RE,
+    ResultSchemaError,
     validate_document,
     validate_frame,
 )
 from pipeline.errors import ConfigError, PipelineError
 
-
 _METRIC_KEYS = ("window", "output", "input", "metric")
+CHUNK_ROWS = 1 << 20
+"""Rows per parquet row group of a table written in chunks (signals, residuals): the
+most the writer, and a reader going a row group at a time, hold at once."""
 
 
 def _normalise_metric(row: Mapping[str, Any], index: int) -> dict[str, Any]:
@@ -82,6 +90,26 @@ def normalise_inputs(inputs: Iterable[str | os.PathLike[str] | Mapping[str, Any]
                 raise ConfigError(f"inputs[{i}]: input file {str(path)!r} does not exist; check source.path in the job YAML")
             out.append({"path": str(path), "sha256": file_sha256(path), "bytes": path.stat().st_size})
     return out
+
+
+def _check_key_ranges(df: pl.DataFrame, key: tuple[str, ...], seen: dict, name: str) -> None:
+    """Refuse a chunk whose key ranges (per leading key columns, the last key column's
+    min..max) overlap an earlier chunk's: a key stored twice."""
+    if df.height == 0:
+        return
+    *head, last = key
+    if head:
+        ranges = df.group_by(head).agg(pl.col(last).min().alias("lo"), pl.col(last).max().alias("hi"))
+        rows = [(tuple(r[:-2]), r[-2], r[-1]) for r in ranges.select(*head, "lo", "hi").rows()]
+    else:
+        rows = [((), df[last].min(), df[last].max())]
+    for prefix, lo, hi in rows:
+        for a, b in seen.get(prefix, []):
+            if lo <= b and a <= hi:
+                raise ResultSchemaError(
+                    f"{name}: rows for {dict(zip(head, prefix, strict=True))} between {lo} and {hi} "
+                    f"overlap an earlier chunk's ({a}..{b}); each key must appear once")
+        seen.setdefault(prefix, []).append((lo, hi))
 
 
 # --------------------------------------------------------------------------- writer
@@ -187,6 +215,57 @@ class RunWriter:
         df.write_parquet(buffer, compression="zstd", statistics=True)
         return self.write_bytes(name, buffer.getvalue())
 
+    def write_parquet_chunks(self, name: str, chunks: Iterable[pl.DataFrame]) -> Path:
+        """Write a table that arrives in chunks as one parquet file, a row group per
+        chunk, never holding more than one chunk (atomic, as :meth:`write_parquet`).
+
+        Known result files are schema-checked chunk by chunk, and a key must not appear
+        in two chunks (each chunk's key ranges are compared with the earlier ones').
+
+        Parameters
+        ----------
+        name : str
+            File name inside the run directory (as in :meth:`write_parquet`).
+        chunks : iterable of polars.DataFrame
+            The table's rows in order, each chunk with the same columns.
+        """
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        target = self._target(name)
+        spec = FRAME_SPECS.get(name)
+        seen: dict[tuple, list[tuple[Any, Any]]] = {}
+
+        def write(fh) -> None:
+            writer = None
+            try:
+                for df in chunks:
+                    if spec is not None:
+                        df = validate_frame(df, name=name)
+                        _check_key_ranges(df, spec.key, seen, name)
+                    table = df.to_arrow(compat_level=pl.CompatLevel.oldest())
+                    if writer is None:  # dictionaries for the names, not the numbers
+                        names = [f.name for f in table.schema if f.type in (pa.string(), pa.large_string())]
+                        writer = pq.ParquetWriter(fh, table.schema, compression="zstd",
+                                                  use_dictionary=names)
+                    writer.write_table(table, row_group_size=max(1, table.num_rows))
+                if writer is None:  # no rows: the schema alone
+                    empty = pl.DataFrame(schema=spec.schema) if spec is not None else pl.DataFrame()
+                    writer = pq.ParquetWriter(
+                        fh, empty.to_arrow(compat_level=pl.CompatLevel.oldest()).schema,
+                        compression="zstd")
+            finally:
+                if writer is not None:
+                    writer.close()
+
+        atomic_write_with(target, write)
+        return target
+
+    def _write_table(self, name: str, df) -> Path:
+        if isinstance(df, pl.DataFrame):
+            return self.write_parquet(name, df)
+        return self.write_parquet_chunks(name, df)
+
     def write_step_responses(self, df: pl.DataFrame) -> Path:
         """Write ``step_responses.parquet`` (schema :data:`STEP_RESPONSES_SCHEMA`).
 
@@ -197,25 +276,26 @@ class RunWriter:
         """
         return self.write_parquet("step_responses.parquet", df)
 
-    def write_signals(self, df: pl.DataFrame) -> Path:
+    def write_signals(self, df: pl.DataFrame | Iterable[pl.DataFrame]) -> Path:
         """Write ``signals.parquet`` (schema :data:`SIGNALS_SCHEMA`).
 
         Parameters
         ----------
-        df : polars.DataFrame
-            The signals table.
+        df : polars.DataFrame or iterable of them
+            The signals table, whole or in chunks (:meth:`write_parquet_chunks`; a
+            :class:`pipeline.job_types.LongTable` is one).
         """
-        return self.write_parquet("signals.parquet", df)
+        return self._write_table("signals.parquet", df)
 
-    def write_residuals(self, df: pl.DataFrame) -> Path:
+    def write_residuals(self, df: pl.DataFrame | Iterable[pl.DataFrame]) -> Path:
         """Write ``residuals.parquet`` (schema :data:`RESIDUALS_SCHEMA`).
 
         Parameters
         ----------
-        df : polars.DataFrame
-            The residuals table.
+        df : polars.DataFrame or iterable of them
+            The residuals table, whole or in chunks (as :meth:`write_signals`).
         """
-        return self.write_parquet("residuals.parquet", df)
+        return self._write_table("residuals.parquet", df)
 
     def write_checks(self, checks: Mapping[str, Any]) -> Path:
         """Write ``checks.json``.
