@@ -33,7 +33,7 @@ contiguous range of lags — whose unknowns are ordered lag-major inside the blo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import math
 
@@ -41,7 +41,7 @@ import numpy as np
 import scipy.fft
 
 __all__ = ["Block", "LagGram", "build_lag_gram", "filtered_gram", "shifted_products", "take",
-           "first_block_row", "assemble_gram"]
+           "first_block_row", "assemble_gram", "signal_gram"]
 
 
 @dataclass(frozen=True)
@@ -96,6 +96,9 @@ class LagGram:
     n_d: int
     n_segments: int
     profiled: tuple = ()
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
+    """Arithmetic shared by every fit on this Gram (contiguous sub-Grams, the white
+    factor); :func:`signal_gram` fills it."""
 
     @property
     def n_lags(self) -> int:
@@ -126,6 +129,34 @@ class LagGram:
         if nuisance > len(self.profiled):
             raise ValueError("the profiled lag Gram was not built (pass centred=True)")
         return self.profiled[nuisance - 1]
+
+
+def signal_gram(lg: LagGram, nuisance: int, s1: tuple[int, int],
+                s2: tuple[int, int]) -> np.ndarray:
+    """Contiguous copy ``G[:, s1, :, s2]`` of a lag Gram, cached on ``lg``.
+
+    Every fit on the Gram slices the same signal ranges (the inputs against themselves
+    for every output, one output against the inputs); strided 4-D slices of the full
+    Gram cost a copy per use, a contiguous copy costs it once.
+
+    Parameters
+    ----------
+    lg : LagGram
+        The lag Gram.
+    nuisance : int
+        Which Gram (:meth:`LagGram.gram`).
+    s1, s2 : tuple of int
+        Signal ranges ``(lo, hi)`` of rows and columns.
+
+    Returns
+    -------
+    ndarray (n_lags, s1 width, n_lags, s2 width)
+    """
+    key = ("signal_gram", nuisance, tuple(s1), tuple(s2))
+    if key not in lg.cache:
+        G = lg.gram(nuisance)
+        lg.cache[key] = np.ascontiguousarray(G[:, s1[0]:s1[1], :, s2[0]:s2[1]])
+    return lg.cache[key]
 
 
 def filtered_gram(G: np.ndarray, d: np.ndarray, b1: Block, b2: Block) -> np.ndarray:

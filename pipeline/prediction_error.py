@@ -38,7 +38,14 @@ import numpy as np
 import scipy.linalg
 
 from pipeline.errors import InsufficientDataError, SingularSystemError
-from pipeline.lag_products import Block, LagGram, filtered_gram, shifted_products, take
+from pipeline.lag_products import (
+    Block,
+    LagGram,
+    filtered_gram,
+    shifted_products,
+    signal_gram,
+    take,
+)
 from pipeline.noise_model import (
     DEFAULT_AR_ORDER_MAX,
     ar_order_by_bic,
@@ -191,9 +198,18 @@ def filtered_normal_equations(G: np.ndarray, design: Design, d: np.ndarray):
 
 
 class _Problem:
-    """Cached pieces of one output's regression on a lag Gram."""
+    """Cached pieces of one output's regression on a lag Gram.
+
+    A design with one regressor block (every direct and differenced fit, the feedback
+    test) is served from contiguous sub-Grams shared on the :class:`LagGram`
+    (:func:`pipeline.lag_products.signal_gram`): the inputs' Gram once for every output,
+    the output's own rows once per output.  The white (``d = 1``) system and its factor
+    are the same for every output of one design and are shared too.  Other designs
+    (level form, instruments) slice the full Gram.
+    """
 
     def __init__(self, lg: LagGram, design: Design, what: str):
+        self.lg = lg
         self.G = lg.gram(design.nuisance)
         self.n_d = lg.n_d
         self.n_const = lg.n_segments * design.nuisance
@@ -204,6 +220,23 @@ class _Problem:
         offs = np.cumsum([0] + [b.size for b in self.blocks])
         self.offsets = offs
         self._cache: dict[bytes, tuple] = {}
+        self._factors: dict[bytes, tuple] = {}
+        self.single = len(self.blocks) == 1 and design.y.size == 1
+        self.full_sel = bool(self.sel.size == design.full_size
+                             and np.array_equal(self.sel, np.arange(self.sel.size)))
+        self._white_key = ("white", design.nuisance, tuple(self.blocks),
+                           self.sel.tobytes())
+
+    def _sub(self):
+        """The contiguous sub-Grams of a one-block design and its blocks in them."""
+        blk, yb, nu = self.blocks[0], self.design.y, self.design.nuisance
+        sx, sy = (blk.sig_lo, blk.sig_hi), (yb.sig_lo, yb.sig_hi)
+        Gxx = signal_gram(self.lg, nu, sx, sx)
+        Gyx = signal_gram(self.lg, nu, sy, sx)
+        Gyy = signal_gram(self.lg, nu, sy, sy)
+        xb = Block(0, blk.n_sig, blk.lag_lo, blk.lag_hi)
+        yl = Block(0, 1, yb.lag_lo, yb.lag_hi)
+        return Gxx, Gyx, Gyy, xb, yl
 
     def filtered(self, d: np.ndarray):
         """``(A~, c~, y~'y~)`` for the filter ``d`` (the last few filters are cached: the
@@ -212,19 +245,71 @@ class _Problem:
         if key not in self._cache:
             if len(self._cache) > 4:
                 self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self._filtered(d)
+            self._cache[key] = self._filtered(np.asarray(d, dtype=float))
         return self._cache[key]
 
     def _filtered(self, d: np.ndarray):
-        return filtered_normal_equations(self.G, self.design, d)
+        if not self.single:
+            return filtered_normal_equations(self.G, self.design, d)
+        Gxx, Gyx, Gyy, xb, yl = self._sub()
+        white = d.size == 1 and d[0] == 1.0
+        A = self.lg.cache.get(self._white_key + ("A",)) if white else None
+        if A is None:
+            A = filtered_gram(Gxx, d, xb, xb)
+            if not self.full_sel:
+                A = A[np.ix_(self.sel, self.sel)]
+            if white:
+                self.lg.cache[self._white_key + ("A",)] = A
+        c = filtered_gram(Gyx, d, yl, xb)[0][self.sel]
+        yy = float(filtered_gram(Gyy, d, yl, yl)[0, 0])
+        return A, c, yy
+
+    def factor(self, d: np.ndarray):
+        """Scaled Cholesky factor of ``A~`` for the filter ``d`` (cached; the white one is
+        shared by every output of the design)."""
+        key = np.asarray(d, dtype=float).tobytes()
+        if key in self._factors:
+            return self._factors[key]
+        white = self.single and d.size == 1 and d[0] == 1.0
+        fac = self.lg.cache.get(self._white_key + ("factor",)) if white else None
+        if fac is None:
+            fac = _factor(self.filtered(d)[0], self.what)
+            if white:
+                self.lg.cache[self._white_key + ("factor",)] = fac
+        if len(self._factors) > 2:
+            self._factors.pop(next(iter(self._factors)))
+        self._factors[key] = fac
+        return fac
 
     def residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
         """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts``."""
         full = np.zeros(self.design.full_size)
         full[self.sel] = b
+        if self.single:
+            return self._residual_products_single(full, shifts)
         coefs = [-full[self.offsets[i] : self.offsets[i + 1]] for i in range(len(self.blocks))]
         return shifted_products(self.G, self.blocks + [self.design.y], coefs + [np.ones(1)],
                                 shifts)
+
+    def _residual_products_single(self, full: np.ndarray, shifts: int) -> np.ndarray:
+        # one GEMM of the contiguous inputs' Gram with the coefficients placed at every
+        # shift, instead of a strided tensordot per shift; only the design's signals'
+        # rows are filled (the only ones take_u / take_e read)
+        Gxx, Gyx, Gyy, xb, yl = self._sub()
+        L, n_s = Gxx.shape[0], Gxx.shape[1]
+        B = np.zeros((L * n_s, shifts))
+        coef = full.reshape(xb.n_lag, n_s)
+        for a in range(shifts):
+            B[(xb.lag_lo + a) * n_s : (xb.lag_hi + a) * n_s, a] = coef.reshape(-1)
+        Gyx2 = Gyx.reshape(L, L * n_s)
+        lag_y = yl.lag_lo + np.arange(shifts)
+        qx = Gyx2[lag_y].T - Gxx.reshape(L * n_s, L * n_s) @ B  # (L n_s, shifts)
+        qy = Gyy[:, 0, lag_y, 0] - Gyx2 @ B  # (L, shifts)
+        blk, yb = self.blocks[0], self.design.y
+        q = np.zeros((shifts, L, self.G.shape[1]))
+        q[:, :, blk.sig_lo : blk.sig_hi] = qx.T.reshape(shifts, L, n_s)
+        q[:, :, yb.sig_lo] = qy.T
+        return q
 
     def take_e(self, qa: np.ndarray, b: np.ndarray, shift: int) -> float:
         """``sum_k e(k - shift) * (the quantity behind qa)``."""
@@ -248,7 +333,7 @@ def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
 
 def _gls(prob: _Problem, d: np.ndarray):
     A, c, yy = prob.filtered(d)
-    fac = _factor(A, prob.what)
+    fac = prob.factor(d)
     b = _solve(fac, c)
     V = max(yy - b @ c, 0.0)
     return b, V, fac, A
@@ -281,15 +366,49 @@ def _gn_matrices(prob: _Problem, b, d, q, R):
     return A, J, g_b, g_d
 
 
-def _covariance(prob: _Problem, A, J, R11):
-    """Factor of the b-block of the inverse GN matrix (Schur complement)."""
-    if J.shape[1]:
-        fr = _factor(R11, prob.what + " (noise model)")
-        S = A - J @ _solve(fr, J.T)
-        S = 0.5 * (S + S.T)
-    else:
-        S = A
-    return _inv_factor(_factor(S, prob.what))
+def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
+    """``(fac, U, C, sr)`` of the Gauss–Newton matrix ``[[A~, -J], [-J', R11]]`` by block
+    elimination on the factor of ``A~`` (shared with the GLS solve at the same ``d``):
+    ``U = A~^-1 J`` and ``C`` the Cholesky factor of the Schur complement
+    ``R11 - J'U`` scaled by ``sr = sqrt(diag R11)`` — the trailing block of the scaled
+    Cholesky factor of the whole matrix, so the same rank test applies to its pivots."""
+    fac = prob.factor(d)
+    U = _solve(fac, J)
+    sr = np.sqrt(np.clip(np.diag(R11), 1e-300, None))
+    Sig = R11 - J.T @ U
+    Sig = 0.5 * (Sig + Sig.T) / np.outer(sr, sr)
+    try:
+        C = np.linalg.cholesky(Sig)
+    except np.linalg.LinAlgError:
+        raise SingularSystemError(f"normal equations of {prob.what} (noise model) are "
+                                  "singular") from None
+    piv = np.abs(np.concatenate([np.diag(fac[0][0]), np.diag(C)]))
+    if piv.min() ** 2 < _RCOND * piv.max() ** 2:
+        raise SingularSystemError(
+            f"normal equations of {prob.what} (noise model) are singular (rank deficient: "
+            f"pivot ratio {(piv.min() / piv.max()) ** 2:.2e})")
+    return fac, U, C, sr
+
+
+def _gn_step(prob: _Problem, d, J, R11, g_b, g_d) -> np.ndarray:
+    """Solve ``[[A~, -J], [-J', R11]] [x_b; x_d] = [g_b; -g_d]`` (block elimination)."""
+    fac, U, C, sr = _schur(prob, d, J, R11)
+    w = _solve(fac, g_b)
+    x_d = scipy.linalg.cho_solve((C, True), (J.T @ w - g_d) / sr, check_finite=False) / sr
+    return np.concatenate([w + U @ x_d, x_d])
+
+
+def _covariance(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
+    """Factor of the b-block of the inverse GN matrix (Schur complement
+    ``S = A~ - J R11^-1 J'``): by Woodbury ``S^-1 = A~^-1 + U Sig^-1 U'`` with
+    ``U = A~^-1 J`` and ``Sig = R11 - J'U``, so the factor is ``A~``'s (shared with the
+    GLS solve) with ``p`` rows ``C^-1 U'`` stacked under it — no second factorisation."""
+    if not J.shape[1]:
+        return _inv_factor(prob.factor(d))
+    fac, U, C, sr = _schur(prob, d, J, R11)
+    extra = scipy.linalg.solve_triangular(C, (U / sr[None, :]).T, lower=True,
+                                          check_finite=False)
+    return np.vstack([_inv_factor(fac), extra])
 
 
 def _dof(prob: _Problem, m: int, p: int) -> int:
@@ -394,11 +513,9 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
     for it in range(1, max_iter + 1):
         if p == 0:
             break
-        A, J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
-        H = np.block([[A, -J], [-J.T, R[1:, 1:]]])
-        rhs = np.concatenate([g_b, -g_d])
+        _, J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
         try:
-            step = _solve(_factor(H, what), rhs)
+            step = _gn_step(prob, d, J, R[1:, 1:], g_b, g_d)
         except SingularSystemError:
             break
         lam = 1.0
@@ -420,8 +537,8 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
         b, d, q, R, V = b_try, d_try, q_t, R_t, V_t
         if rel < tol:
             break
-    A, J, _, _ = _gn_matrices(prob, b, d, q, R)
-    F = _covariance(prob, A, J, R[1:, 1:])
+    _, J, _, _ = _gn_matrices(prob, b, d, q, R)
+    F = _covariance(prob, d, J, R[1:, 1:])
     s2 = V / (prob.n_d - n_par)
     return OutputFit(b, F, s2, d, V, prob.n_d, n_par, it, selection, "prediction_error")
 
