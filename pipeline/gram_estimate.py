@@ -462,3 +462,98 @@ def check_instruments(ctx: GramContext, P: int) -> dict:
                 "with steps, a measured disturbance), or drop the instruments",
                 input=s, numbers=v)
     return {int(s): v for s, v in first.items()}
+
+
+def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, forms,
+                       d_fixed, sigma2_fixed):
+    """Generalised least squares at every order ``m <= P`` from one factor per output.
+
+    With the noise filter and the form of each output fixed (the search's stage 1),
+    unknowns ordered lag-major and known delays below every order tried, the filtered
+    normal equations of order ``m`` are the leading block of those of order ``P``, whose
+    Cholesky factor and inverse factor hold those of every ``m`` as leading blocks —
+    one factorisation per output instead of one per output and order.
+
+    Returns ``est_at(m, cov_lags=None)`` -> :class:`StepResponseEstimate`, the same
+    estimate as :func:`estimate_from_context` with ``n_p=m`` and the given filters, or
+    None when an output cannot be nested (level form, a failed factorisation: the caller
+    then uses :func:`estimate_from_context`, which raises what it must).
+
+    Parameters
+    ----------
+    ctx : GramContext
+        Lag Gram of the record.
+    P : int
+        Largest order.
+    n_k : int array (n_y, n_x)
+        Known delays (samples), below every order asked for.
+    dt : float
+        Sample period (s).
+    forms : sequence of str
+        Per output, its form.
+    d_fixed : sequence of ndarray
+        Per output, the noise filter ``[1, d_1..d_p]``.
+    sigma2_fixed : sequence of float
+        Per output, the innovation variance reported.
+    """
+    import scipy.linalg
+
+    from pipeline.noise_model import NoiseModel
+    from pipeline.prediction_error import _Problem, _dof, _inv_factor
+    from pipeline.solve import RCOND_SINGULAR
+
+    n_x, n_y = ctx.n_x, ctx.n_y
+    if "level" in forms:
+        return None
+    parts = []
+    try:
+        for i in range(n_y):
+            design, _, _, _ = output_design(ctx, i, np.full(n_x, P), n_k[i], forms[i])
+            prob = _Problem(ctx.lg, design, f"output {i}")
+            d = np.asarray(d_fixed[i], dtype=float)
+            _, c, yy = prob.filtered(d)
+            fac = prob.factor(d)
+            parts.append((prob, design, d, c, yy, fac, _inv_factor(fac)))
+        ne_P = ctx.white_normal_equations(P)
+        sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
+        white = scipy.linalg.cho_factor(ne_P.A / np.outer(sc, sc), lower=True,
+                                        check_finite=False)[0]
+    except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
+        return None
+
+    def est_at(m: int, cov_lags=None):
+        if np.any(n_k >= m):
+            return None
+        npm = np.full((n_y, n_x), m)
+        arr = PairArrays(n_y, n_x, m)
+        sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
+        for i, (prob, design, d, c, yy, fac, F) in enumerate(parts):
+            k = int(np.searchsorted(design.sel, m * n_x))
+            L, scale = fac[0][0][:k, :k], fac[1][:k]
+            piv = np.abs(np.diag(L))
+            if piv.min() ** 2 < RCOND_SINGULAR * piv.max() ** 2:
+                return None
+            try:
+                _dof(prob, k, d.size - 1)
+            except InsufficientDataError:
+                return None
+            b = scipy.linalg.cho_solve((L, True), c[:k] / scale, check_finite=False) / scale
+            V = max(yy - b @ c[:k], 0.0)
+            sigma2[i] = float(sigma2_fixed[i])
+            rms[i] = np.sqrt(V / prob.n_d)
+            sel = design.sel[:k]
+            fill_output(arr, i, b, F[:k, :k], sigma2[i], sel % n_x, sel // n_x, npm[i],
+                        forms[i], dt, cov_lags)
+            models.append(NoiseModel("white" if d.size == 1 else "ar", forms[i], d.size - 1,
+                                     tuple(float(v) for v in d[1:]), float(np.sqrt(sigma2[i])),
+                                     {"iterations": 0}, design.nuisance))
+        ne = ctx.white_normal_equations(m)
+        return StepResponseEstimate(
+            delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
+            delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
+            n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
+            integrating=ctx.integrating, method="prediction_error",
+            diagnostics=diagnostics_of(ne, (white[: m * n_x, : m * n_x], True)),
+            noise_model=tuple(models), n_k=n_k.copy(), step_cov=arr.step_cov)
+
+    return est_at

@@ -168,6 +168,20 @@ def _material(v: float, sd: float, peak: float, sigmas: float) -> bool:
     return abs(v) > sigmas * sd and abs(v) > SETTLED_BAND * peak
 
 
+def tail_lags(n: int) -> np.ndarray:
+    """The lags of a pair's step covariance :func:`tail_moving` reads, for ``n`` lags:
+    the last and the one ``ceil(TAIL_FRACTION n)`` before it, each with its predecessor
+    (an integrating output's slope).
+
+    Parameters
+    ----------
+    n : int
+        Lags of the pair's step response.
+    """
+    m = int(max(1, np.ceil(TAIL_FRACTION * n)))
+    return np.unique(np.clip([n - 1, n - 2, n - 1 - m, n - 2 - m], 0, n - 1))
+
+
 def tail_moving(q: np.ndarray, C: np.ndarray) -> bool:
     """Whether the curve ``q`` (covariance ``C``) still moves over its tail (module doc):
     the one rule the order search and the verdict share.

@@ -246,7 +246,7 @@ class PairArrays:
 
 def fill_output(arr: PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: float,
                  inp_of: np.ndarray, lag_of: np.ndarray, n_p_row: np.ndarray, form: str,
-                 dt: float) -> None:
+                 dt: float, cov_lags=None) -> None:
     """Map one output's unknowns to step responses, their stds and per-pair covariance.
 
     ``b`` (m,) unknowns with covariance ``sigma2 * F' F``; unknown ``u`` belongs to input
@@ -278,6 +278,11 @@ def fill_output(arr: PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: f
         last two also fill ``delta_g``, ``rate`` and ``rate_std``.
     dt : float
         Sample period (s), turning the rate into output units per input unit per second.
+    cov_lags : callable, optional
+        ``cov_lags(n)`` -> the 0-based lags whose rows and columns of ``step_cov`` are
+        filled for a pair of ``n`` lags (the rest stay zero); default every lag.  The
+        order search's candidate fits read only a few lags of the covariance (their
+        tail), and the full ``n x n`` block per pair would cost more than the fit.
     """
     sd = np.sqrt(sigma2)
     for j in range(arr.n_x):
@@ -297,7 +302,14 @@ def fill_output(arr: PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: f
         arr.step[i, j, :n] = np.cumsum(dh)
         arr.dh_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fdh, Fdh))
         arr.step_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fs, Fs))
-        arr.step_cov[i, j, :n, :n] = sigma2 * (Fs.T @ Fs)
+        if cov_lags is None:
+            arr.step_cov[i, j, :n, :n] = sigma2 * (Fs.T @ Fs)
+        else:
+            lags = np.asarray(cov_lags(n), dtype=int)
+            rows = sigma2 * (Fs[:, lags].T @ Fs)
+            C = arr.step_cov[i, j]  # a view
+            C[:n, lags] = rows.T
+            C[lags, :n] = rows
         if form in ("differenced", "level"):
             arr.delta_g[i, j, :] = 0.0
             arr.delta_g[i, j, :n] = theta if form == "differenced" else np.diff(dh, prepend=0.0)
