@@ -499,7 +499,7 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
     import scipy.linalg
 
     from pipeline.noise_model import NoiseModel
-    from pipeline.prediction_error import _Problem, _dof, _inv_factor
+    from pipeline.prediction_error import _dof, _inv_factor, _Problem
     from pipeline.solve import RCOND_SINGULAR
 
     n_x, n_y = ctx.n_x, ctx.n_y
@@ -511,8 +511,8 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             design, _, _, _ = output_design(ctx, i, np.full(n_x, P), n_k[i], forms[i])
             prob = _Problem(ctx.lg, design, f"output {i}")
             d = np.asarray(d_fixed[i], dtype=float)
-            _, c, yy = prob.filtered(d)
-            fac = prob.factor(d)
+            c, yy = prob.rhs(d)
+            fac = prob.factor(d, dense=True)
             parts.append((prob, design, d, c, yy, fac, _inv_factor(fac)))
         ne_P = ctx.white_normal_equations(P)
         sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))

@@ -46,6 +46,7 @@ from pipeline.lag_products import (
     signal_gram,
     take,
 )
+from pipeline.structured_gls import InputGramInverse, StructuredFactor, structured_factor
 from pipeline.noise_model import (
     DEFAULT_AR_ORDER_MAX,
     ar_order_by_bic,
@@ -154,6 +155,8 @@ def _factor(M: np.ndarray, what: str):
 
 
 def _solve(fac, rhs):
+    if isinstance(fac, StructuredFactor):
+        return fac.solve(rhs)
     c, scale = fac
     s = scale if np.ndim(rhs) == 1 else scale[:, None]
     return scipy.linalg.cho_solve(c, rhs / s, check_finite=False) / s
@@ -161,6 +164,8 @@ def _solve(fac, rhs):
 
 def _inv_factor(fac) -> np.ndarray:
     """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled)."""
+    if isinstance(fac, StructuredFactor):
+        return fac.inv_factor()
     c, scale = fac
     Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
     if info != 0:
@@ -219,7 +224,8 @@ class _Problem:
         self.sel = design.sel
         offs = np.cumsum([0] + [b.size for b in self.blocks])
         self.offsets = offs
-        self._cache: dict[bytes, tuple] = {}
+        self._cache: dict[bytes, np.ndarray] = {}
+        self._rhs: dict[bytes, tuple] = {}
         self._factors: dict[bytes, tuple] = {}
         self.single = len(self.blocks) == 1 and design.y.size == 1
         self.full_sel = bool(self.sel.size == design.full_size
@@ -239,19 +245,39 @@ class _Problem:
         return Gxx, Gyx, Gyy, xb, yl
 
     def filtered(self, d: np.ndarray):
-        """``(A~, c~, y~'y~)`` for the filter ``d`` (the last few filters are cached: the
-        alternation and Gauss–Newton ask for the same one in turn)."""
-        key = np.asarray(d, dtype=float).tobytes()
+        """``(A~, c~, y~'y~)`` for the filter ``d``."""
+        return (self.matrix(d), *self.rhs(d))
+
+    def matrix(self, d: np.ndarray) -> np.ndarray:
+        """``A~`` for the filter ``d`` (cached: the alternation and Gauss–Newton ask for
+        the same one in turn; a structured factor never needs it)."""
+        d = np.asarray(d, dtype=float)
+        key = d.tobytes()
         if key not in self._cache:
             if len(self._cache) > 4:
                 self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self._filtered(np.asarray(d, dtype=float))
+            self._cache[key] = self._matrix(d)
         return self._cache[key]
 
-    def _filtered(self, d: np.ndarray):
+    def rhs(self, d: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(c~, y~'y~)`` for the filter ``d``."""
+        d = np.asarray(d, dtype=float)
+        key = d.tobytes()
+        if key not in self._rhs:
+            if len(self._rhs) > 4:
+                self._rhs.pop(next(iter(self._rhs)))
+            if self.single:
+                _, Gyx, Gyy, xb, yl = self._sub()
+                self._rhs[key] = (filtered_gram(Gyx, d, yl, xb)[0][self.sel],
+                                  float(filtered_gram(Gyy, d, yl, yl)[0, 0]))
+            else:
+                self._rhs[key] = filtered_normal_equations(self.G, self.design, d)[1:]
+        return self._rhs[key]
+
+    def _matrix(self, d: np.ndarray) -> np.ndarray:
         if not self.single:
-            return filtered_normal_equations(self.G, self.design, d)
-        Gxx, Gyx, Gyy, xb, yl = self._sub()
+            return filtered_normal_equations(self.G, self.design, d)[0]
+        Gxx, _, _, xb, _ = self._sub()
         white = d.size == 1 and d[0] == 1.0
         A = self.lg.cache.get(self._white_key + ("A",)) if white else None
         if A is None:
@@ -260,26 +286,37 @@ class _Problem:
                 A = A[np.ix_(self.sel, self.sel)]
             if white:
                 self.lg.cache[self._white_key + ("A",)] = A
-        c = filtered_gram(Gyx, d, yl, xb)[0][self.sel]
-        yy = float(filtered_gram(Gyy, d, yl, yl)[0, 0])
-        return A, c, yy
+        return A
 
-    def factor(self, d: np.ndarray):
+    def factor(self, d: np.ndarray, dense: bool = False):
         """Scaled Cholesky factor of ``A~`` for the filter ``d`` (cached; the white one is
-        shared by every output of the design)."""
-        key = np.asarray(d, dtype=float).tobytes()
+        shared by every output of the design), or for a coloured filter on a one-block
+        design the :class:`StructuredFactor` when it is cheaper and safe (``dense``
+        refuses it: callers that need the triangular factor itself)."""
+        key = np.asarray(d, dtype=float).tobytes() + bytes([dense])
         if key in self._factors:
             return self._factors[key]
         white = self.single and d.size == 1 and d[0] == 1.0
         fac = self.lg.cache.get(self._white_key + ("factor",)) if white else None
+        if fac is None and not white and not dense and self.single \
+                and self.blocks[0].lag_lo == 0:
+            fac = structured_factor(self._ginv(), np.asarray(d, dtype=float), self.sel,
+                                    self.blocks[0].n_lag)
         if fac is None:
-            fac = _factor(self.filtered(d)[0], self.what)
+            fac = _factor(self.matrix(d), self.what)
             if white:
                 self.lg.cache[self._white_key + ("factor",)] = fac
         if len(self._factors) > 2:
             self._factors.pop(next(iter(self._factors)))
         self._factors[key] = fac
         return fac
+
+    def _ginv(self) -> InputGramInverse:
+        blk = self.blocks[0]
+        key = ("ginv", self.design.nuisance, blk.sig_lo, blk.sig_hi)
+        if key not in self.lg.cache:
+            self.lg.cache[key] = InputGramInverse(self._sub()[0])
+        return self.lg.cache[key]
 
     def residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
         """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts``."""
@@ -303,8 +340,9 @@ class _Problem:
             B[(xb.lag_lo + a) * n_s : (xb.lag_hi + a) * n_s, a] = coef.reshape(-1)
         Gyx2 = Gyx.reshape(L, L * n_s)
         lag_y = yl.lag_lo + np.arange(shifts)
-        qx = Gyx2[lag_y].T - Gxx.reshape(L * n_s, L * n_s) @ B  # (L n_s, shifts)
-        qy = Gyy[:, 0, lag_y, 0] - Gyx2 @ B  # (L, shifts)
+        cols = slice(xb.lag_lo * n_s, (xb.lag_hi + shifts - 1) * n_s)  # B's non-zero rows
+        qx = Gyx2[lag_y].T - Gxx.reshape(L * n_s, L * n_s)[:, cols] @ B[cols]
+        qy = Gyy[:, 0, lag_y, 0] - Gyx2[:, cols] @ B[cols]  # (L, shifts)
         blk, yb = self.blocks[0], self.design.y
         q = np.zeros((shifts, L, self.G.shape[1]))
         q[:, :, blk.sig_lo : blk.sig_hi] = qx.T.reshape(shifts, L, n_s)
@@ -332,11 +370,11 @@ def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
 
 
 def _gls(prob: _Problem, d: np.ndarray):
-    A, c, yy = prob.filtered(d)
+    c, yy = prob.rhs(d)
     fac = prob.factor(d)
     b = _solve(fac, c)
     V = max(yy - b @ c, 0.0)
-    return b, V, fac, A
+    return b, V, fac
 
 
 def _criterion_parts(prob: _Problem, b: np.ndarray, d: np.ndarray):
@@ -353,7 +391,6 @@ def _criterion_parts(prob: _Problem, b: np.ndarray, d: np.ndarray):
 
 def _gn_matrices(prob: _Problem, b, d, q, R):
     p = d.size - 1
-    A, c, yy = prob.filtered(d)
     # J[:, a-1] = sum_k (DU)(k) e(k-a),  a = 1..p
     J = np.zeros((b.size, p))
     g_b = np.zeros(b.size)
@@ -363,7 +400,7 @@ def _gn_matrices(prob: _Problem, b, d, q, R):
             J[:, a - 1] = v
         g_b += d[a] * v
     g_d = R[1:, :] @ d
-    return A, J, g_b, g_d
+    return J, g_b, g_d
 
 
 def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
@@ -382,7 +419,10 @@ def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
     except np.linalg.LinAlgError:
         raise SingularSystemError(f"normal equations of {prob.what} (noise model) are "
                                   "singular") from None
-    piv = np.abs(np.concatenate([np.diag(fac[0][0]), np.diag(C)]))
+    # a structured factor is used only far from singular (its unit-diagonal pivots lie
+    # well inside the bounds), so the scaled Schur pivots are tested against 1
+    pivA = np.ones(1) if isinstance(fac, StructuredFactor) else np.diag(fac[0][0])
+    piv = np.abs(np.concatenate([pivA, np.diag(C)]))
     if piv.min() ** 2 < _RCOND * piv.max() ** 2:
         raise SingularSystemError(
             f"normal equations of {prob.what} (noise model) are singular (rank deficient: "
@@ -445,7 +485,7 @@ def fit_fixed_noise(lg: LagGram, design: Design, d: np.ndarray, *, what: str,
         Innovation variance to report; default this fit's ``V / (n_d - n_par)``.
     """
     prob = _Problem(lg, design, what)
-    b, V, fac, _ = _gls(prob, d)
+    b, V, fac = _gls(prob, d)
     n_par = _dof(prob, b.size, d.size - 1)
     s2 = V / (prob.n_d - n_par) if sigma2 is None else float(sigma2)
     return OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, 0, {}, "gls")
@@ -485,7 +525,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
             f"{what}: AR order {order} needs {order} more lags than the lag products "
             f"hold (at most {p_cap}); lower estimation.noise or n_p")
     d = np.ones(1)
-    b, V, fac, _ = _gls(prob, d)
+    b, V, fac = _gls(prob, d)
     selection: dict = {}
     p_prev = -1
     for _ in range(6):
@@ -501,7 +541,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
         d_new = np.concatenate([[1.0], coef])
         converged = p == p_prev and np.allclose(d_new, d, atol=1e-4)
         d = d_new
-        b, V, fac, _ = _gls(prob, d)
+        b, V, fac = _gls(prob, d)
         if converged or p == 0:
             break
         p_prev = p
@@ -513,7 +553,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
     for it in range(1, max_iter + 1):
         if p == 0:
             break
-        _, J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
+        J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
         try:
             step = _gn_step(prob, d, J, R[1:, 1:], g_b, g_d)
         except SingularSystemError:
@@ -537,7 +577,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
         b, d, q, R, V = b_try, d_try, q_t, R_t, V_t
         if rel < tol:
             break
-    _, J, _, _ = _gn_matrices(prob, b, d, q, R)
+    J, _, _ = _gn_matrices(prob, b, d, q, R)
     F = _covariance(prob, d, J, R[1:, 1:])
     s2 = V / (prob.n_d - n_par)
     return OutputFit(b, F, s2, d, V, prob.n_d, n_par, it, selection, "prediction_error")

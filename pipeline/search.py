@@ -79,12 +79,12 @@ from pipeline.checks import AgreementResult, window_agreement
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
 from pipeline.estimate import estimate_from_normal_equations, estimate_step_responses
 from pipeline.gram_estimate import (
-    nested_fixed_noise,
     NOISE_AUTO,
     lags_needed,
     check_instruments,
     estimate_from_context,
     lag_gram_context,
+    nested_fixed_noise,
     noise_order,
 )
 from pipeline.normal_equations import NormalEquations, normal_equations

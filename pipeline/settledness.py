@@ -42,6 +42,7 @@ is not.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -178,8 +179,8 @@ def tail_lags(n: int) -> np.ndarray:
     n : int
         Lags of the pair's step response.
     """
-    m = int(max(1, np.ceil(TAIL_FRACTION * n)))
-    return np.unique(np.clip([n - 1, n - 2, n - 1 - m, n - 2 - m], 0, n - 1))
+    m = max(1, math.ceil(TAIL_FRACTION * n))
+    return np.array(sorted({min(max(v, 0), n - 1) for v in (n - 1, n - 2, n - 1 - m, n - 2 - m)}))
 
 
 def tail_moving(q: np.ndarray, C: np.ndarray) -> bool:

@@ -285,35 +285,41 @@ def fill_output(arr: PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: f
         tail), and the full ``n x n`` block per pair would cost more than the fit.
     """
     sd = np.sqrt(sigma2)
-    for j in range(arr.n_x):
+    n_x, P = arr.n_x, int(np.max(n_p_row))
+    # every pair at once: (k, n_x, P) factor of the placed unknowns (zero past a pair's
+    # own n_p and at known delays), one cumsum and one einsum for all pairs
+    theta = np.zeros((n_x, P))
+    theta[inp_of, lag_of] = b
+    Ft = np.zeros((F.shape[0], n_x, P))
+    Ft[:, inp_of, lag_of] = F
+    if form == "differenced":
+        dh, Fdh = np.cumsum(theta, axis=1), np.cumsum(Ft, axis=2)
+    else:
+        dh, Fdh = theta, Ft
+    Fs = np.cumsum(Fdh, axis=2)
+    step = np.cumsum(dh, axis=1)
+    dh_std = sd * np.sqrt(np.einsum("kja,kja->ja", Fdh, Fdh))
+    step_std = sd * np.sqrt(np.einsum("kja,kja->ja", Fs, Fs))
+    for j in range(n_x):
         n = int(n_p_row[j])
-        sel = np.flatnonzero(inp_of == j)
-        sel = sel[np.argsort(lag_of[sel])]
-        theta = np.zeros(n)
-        theta[lag_of[sel]] = b[sel]
-        Ft = np.zeros((F.shape[0], n))
-        Ft[:, lag_of[sel]] = F[:, sel]  # factor of the placed unknowns
-        if form == "differenced":
-            dh, Fdh = np.cumsum(theta), np.cumsum(Ft, axis=1)
-        else:
-            dh, Fdh = theta, Ft
-        Fs = np.cumsum(Fdh, axis=1)
-        arr.delta_h[i, j, :n] = dh
-        arr.step[i, j, :n] = np.cumsum(dh)
-        arr.dh_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fdh, Fdh))
-        arr.step_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fs, Fs))
+        arr.delta_h[i, j, :n] = dh[j, :n]
+        arr.step[i, j, :n] = step[j, :n]
+        arr.dh_std[i, j, :n] = dh_std[j, :n]
+        arr.step_std[i, j, :n] = step_std[j, :n]
+        Fj = Fs[:, j, :n]
         if cov_lags is None:
-            arr.step_cov[i, j, :n, :n] = sigma2 * (Fs.T @ Fs)
+            arr.step_cov[i, j, :n, :n] = sigma2 * (Fj.T @ Fj)
         else:
             lags = np.asarray(cov_lags(n), dtype=int)
-            rows = sigma2 * (Fs[:, lags].T @ Fs)
+            rows = sigma2 * (Fj[:, lags].T @ Fj)
             C = arr.step_cov[i, j]  # a view
             C[:n, lags] = rows.T
             C[lags, :n] = rows
         if form in ("differenced", "level"):
             arr.delta_g[i, j, :] = 0.0
-            arr.delta_g[i, j, :n] = theta if form == "differenced" else np.diff(dh, prepend=0.0)
-            arr.rate[i, j] = dh[-1] / dt
+            arr.delta_g[i, j, :n] = theta[j, :n] if form == "differenced" else \
+                np.diff(dh[j, :n], prepend=0.0)
+            arr.rate[i, j] = dh[j, n - 1] / dt
             arr.rate_std[i, j] = arr.dh_std[i, j, n - 1] / dt
 
 
