@@ -46,12 +46,16 @@ from pipeline.lag_products import (
     signal_gram,
     take,
 )
-from pipeline.structured_gls import InputGramInverse, StructuredFactor, structured_factor
 from pipeline.noise_model import (
     DEFAULT_AR_ORDER_MAX,
     ar_order_by_bic,
     is_minimum_phase,
     levinson,
+)
+from pipeline.structured_gls import (
+    InputGramInverse,
+    StructuredFactor,
+    structured_factor,
 )
 
 __all__ = ["Design", "OutputFit", "fit_prediction_error", "fit_fixed_noise",
@@ -525,7 +529,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
             f"{what}: AR order {order} needs {order} more lags than the lag products "
             f"hold (at most {p_cap}); lower estimation.noise or n_p")
     d = np.ones(1)
-    b, V, fac = _gls(prob, d)
+    b, V, _ = _gls(prob, d)
     selection: dict = {}
     p_prev = -1
     for _ in range(6):
@@ -541,7 +545,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
         d_new = np.concatenate([[1.0], coef])
         converged = p == p_prev and np.allclose(d_new, d, atol=1e-4)
         d = d_new
-        b, V, fac = _gls(prob, d)
+        b, V, _ = _gls(prob, d)
         if converged or p == 0:
             break
         p_prev = p

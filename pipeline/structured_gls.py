@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-__all__ = ["InputGramInverse", "StructuredFactor", "structured_factor", "COND_LIMIT"]
+__all__ = ["COND_LIMIT", "InputGramInverse", "StructuredFactor", "structured_factor"]
 
 COND_LIMIT = 1e8
 """Largest bound ``cond(G) * (max|D| / min|D|)^2`` on the filtered system's condition
