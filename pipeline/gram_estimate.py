@@ -499,8 +499,7 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
     import scipy.linalg
 
     from pipeline.noise_model import NoiseModel
-    from pipeline.prediction_error import _dof, _inv_factor, _Problem
-    from pipeline.solve import RCOND_SINGULAR
+    from pipeline.prediction_error import NestedGLS
 
     n_x, n_y = ctx.n_x, ctx.n_y
     if "level" in forms:
@@ -509,11 +508,7 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
     try:
         for i in range(n_y):
             design, _, _, _ = output_design(ctx, i, np.full(n_x, P), n_k[i], forms[i])
-            prob = _Problem(ctx.lg, design, f"output {i}")
-            d = np.asarray(d_fixed[i], dtype=float)
-            c, yy = prob.rhs(d)
-            fac = prob.factor(d, dense=True)
-            parts.append((prob, design, d, c, yy, fac, _inv_factor(fac)))
+            parts.append((design, NestedGLS(ctx.lg, design, d_fixed[i], what=f"output {i}")))
         ne_P = ctx.white_normal_equations(P)
         sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
         white = scipy.linalg.cho_factor(ne_P.A / np.outer(sc, sc), lower=True,
@@ -527,26 +522,20 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
         npm = np.full((n_y, n_x), m)
         arr = PairArrays(n_y, n_x, m)
         sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
-        for i, (prob, design, d, c, yy, fac, F) in enumerate(parts):
+        for i, (design, nested) in enumerate(parts):
             k = int(np.searchsorted(design.sel, m * n_x))
-            L, scale = fac[0][0][:k, :k], fac[1][:k]
-            piv = np.abs(np.diag(L))
-            if piv.min() ** 2 < RCOND_SINGULAR * piv.max() ** 2:
+            fit = nested.fit(k, sigma2_fixed[i])
+            if fit is None:
                 return None
-            try:
-                _dof(prob, k, d.size - 1)
-            except InsufficientDataError:
-                return None
-            b = scipy.linalg.cho_solve((L, True), c[:k] / scale, check_finite=False) / scale
-            V = max(yy - b @ c[:k], 0.0)
-            sigma2[i] = float(sigma2_fixed[i])
-            rms[i] = np.sqrt(V / prob.n_d)
+            sigma2[i] = fit.sigma2
+            rms[i] = np.sqrt(fit.V / fit.n_d)
             sel = design.sel[:k]
-            fill_output(arr, i, b, F[:k, :k], sigma2[i], sel % n_x, sel // n_x, npm[i],
-                        forms[i], dt, cov_lags)
-            models.append(NoiseModel("white" if d.size == 1 else "ar", forms[i], d.size - 1,
-                                     tuple(float(v) for v in d[1:]), float(np.sqrt(sigma2[i])),
-                                     {"iterations": 0}, design.nuisance))
+            fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, sel % n_x, sel // n_x,
+                        npm[i], forms[i], dt, cov_lags)
+            models.append(NoiseModel("white" if fit.order == 0 else "ar", forms[i], fit.order,
+                                     tuple(float(v) for v in fit.d[1:]),
+                                     float(np.sqrt(fit.sigma2)), {"iterations": 0},
+                                     design.nuisance))
         ne = ctx.white_normal_equations(m)
         return StepResponseEstimate(
             delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,

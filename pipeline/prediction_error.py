@@ -58,7 +58,7 @@ from pipeline.structured_gls import (
     structured_factor,
 )
 
-__all__ = ["Design", "OutputFit", "fit_prediction_error", "fit_fixed_noise",
+__all__ = ["Design", "OutputFit", "NestedGLS", "fit_prediction_error", "fit_fixed_noise",
            "fit_instrumental", "first_stage_strength", "filtered_normal_equations",
            "WEAK_INSTRUMENT_F"]
 
@@ -493,6 +493,64 @@ def fit_fixed_noise(lg: LagGram, design: Design, d: np.ndarray, *, what: str,
     n_par = _dof(prob, b.size, d.size - 1)
     s2 = V / (prob.n_d - n_par) if sigma2 is None else float(sigma2)
     return OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, 0, {}, "gls")
+
+
+class NestedGLS:
+    """Generalised least squares with a fixed filter for every leading block of a
+    design's unknowns, from one Cholesky factor (the order search, method.md §5 (b)).
+
+    With unknowns ordered lag-major the filtered normal equations of the first ``k``
+    unknowns are the leading block of the full ones; so are their Cholesky factor and
+    its inverse.
+
+    Parameters
+    ----------
+    lg : LagGram
+        Lag Gram of the output's signals.
+    design : Design
+        The output's regression at the largest order.
+    d : ndarray (p + 1,)
+        Noise filter ``[1, d_1, ..., d_p]``.
+    what : str
+        Name of the fit in error messages (e.g. ``"output 0"``).
+
+    Raises
+    ------
+    SingularSystemError
+        The full system is singular (the caller then fits each order on its own).
+    """
+
+    def __init__(self, lg: LagGram, design: Design, d: np.ndarray, *, what: str):
+        self.prob = _Problem(lg, design, what)
+        self.d = np.asarray(d, dtype=float)
+        self.c, self.yy = self.prob.rhs(self.d)
+        self.fac = self.prob.factor(self.d, dense=True)
+        self.F = _inv_factor(self.fac)
+
+    def fit(self, k: int, sigma2: float) -> OutputFit | None:
+        """The fit of the first ``k`` unknowns (:func:`fit_fixed_noise` with ``sigma2``),
+        or None when that system fails the rank test or has too few observations.
+
+        Parameters
+        ----------
+        k : int
+            Number of leading unknowns.
+        sigma2 : float
+            Innovation variance to report.
+        """
+        L, scale = self.fac[0][0][:k, :k], self.fac[1][:k]
+        piv = np.abs(np.diag(L))
+        if piv.min() ** 2 < _RCOND * piv.max() ** 2:
+            return None
+        try:
+            n_par = _dof(self.prob, k, self.d.size - 1)
+        except InsufficientDataError:
+            return None
+        c = self.c[:k]
+        b = scipy.linalg.cho_solve((L, True), c / scale, check_finite=False) / scale
+        V = max(self.yy - b @ c, 0.0)
+        return OutputFit(b, self.F[:k, :k], float(sigma2), self.d, V, self.prob.n_d, n_par,
+                         0, {}, "gls")
 
 
 def fit_prediction_error(lg: LagGram, design: Design, *, what: str,

@@ -117,25 +117,30 @@ class StructuredFactor:
         Y = _filter_rows(ginv.Rinv[:n1, :n1].reshape(n_lag + p, n_s, n1), d).reshape(n1, n1)
         keep = np.zeros(n1, dtype=bool)
         keep[sel] = True
-        W = Y[sel]
-        if not keep.all():
-            Qr, _ = np.linalg.qr(Y[~keep].T)  # orthonormal basis of Y_r's row space
-            W = W - (W @ Qr) @ Qr.T
-        self.W = W
+        full = np.array_equal(sel, np.arange(sel.size))
+        self.Ys = Y[: sel.size] if full else Y[sel]
+        # orthonormal basis of Y_r's row space (None: nothing to project out)
+        self.Qr = np.linalg.qr(Y[~keep].T)[0] if not keep.all() else None
+        self._F = None
+
+    def _project(self, z: np.ndarray) -> np.ndarray:
+        return z if self.Qr is None else z - self.Qr @ (self.Qr.T @ z)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``A~^-1 rhs``.
+        """``A~^-1 rhs = Y_s P Y_s' rhs`` (two products with ``Y_s``, no ``W`` formed).
 
         Parameters
         ----------
         rhs : ndarray (m,) or (m, k)
             Right-hand side(s).
         """
-        return self.W @ (self.W.T @ rhs)
+        return self.Ys @ self._project(self.Ys.T @ rhs)
 
     def inv_factor(self) -> np.ndarray:
-        """``F`` with ``A~^-1 = F' F`` (``n x m``)."""
-        return self.W.T
+        """``F = W' = P Y_s'`` with ``A~^-1 = F' F`` (``n x m``), formed once."""
+        if self._F is None:
+            self._F = self._project(self.Ys.T)
+        return self._F
 
 
 def structured_factor(ginv: InputGramInverse | None, d: np.ndarray, sel: np.ndarray,
