@@ -516,6 +516,8 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
     except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
         return None
 
+    moments: dict = {}
+
     def est_at(m: int, cov_lags=None):
         if np.any(n_k >= m):
             return None
@@ -530,8 +532,13 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             sigma2[i] = fit.sigma2
             rms[i] = np.sqrt(fit.V / fit.n_d)
             sel = design.sel[:k]
-            fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, sel % n_x, sel // n_x,
-                        npm[i], forms[i], dt, cov_lags)
+            if cov_lags is not None and forms[i] == "direct" and design.sel.size == P * n_x:
+                if i not in moments:
+                    moments[i] = _nested_moments(nested.F, P, n_x, cov_lags)
+                _fill_nested(arr, i, fit.b, fit.sigma2, m, moments[i], cov_lags)
+            else:
+                fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, sel % n_x, sel // n_x,
+                            npm[i], forms[i], dt, cov_lags)
             models.append(NoiseModel("white" if fit.order == 0 else "ar", forms[i], fit.order,
                                      tuple(float(v) for v in fit.d[1:]),
                                      float(np.sqrt(fit.sigma2)), {"iterations": 0},
@@ -546,3 +553,43 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             noise_model=tuple(models), n_k=n_k.copy(), step_cov=arr.step_cov)
 
     return est_at
+
+
+def _nested_moments(F: np.ndarray, P: int, n_x: int, cov_lags):
+    """Every order's step-response variances and tail covariances from the inverse factor
+    at ``P`` (direct form, every unknown): the order-``m`` factor is ``F[:m n_x, :m n_x]``,
+    so its cumulative sums over lags are the first ``m n_x`` rows of those of ``F``, and
+    variances are sums of their squares over those rows — prefix sums over row blocks.
+
+    Returns ``(dh_var, step_var, tail)``: ``dh_var[m-1, l, j]`` and ``step_var`` (unit
+    innovation variance) at order ``m``, and ``tail[m-1] = (lags, C)`` with ``C`` (n_x,
+    |lags|, |lags|) the step covariance at ``cov_lags(m)``.
+    """
+    K = P * n_x
+    F3 = F.reshape(K, P, n_x)
+    CS = np.cumsum(F3, axis=1)
+    dh_var = np.cumsum((F3 ** 2).reshape(P, n_x, P, n_x).sum(axis=1), axis=0)
+    step_var = np.cumsum((CS ** 2).reshape(P, n_x, P, n_x).sum(axis=1), axis=0)
+    tail = []
+    for m in range(1, P + 1):
+        lags = np.asarray(cov_lags(m), dtype=int)
+        sub = CS[: m * n_x, lags, :]  # (m n_x, |lags|, n_x)
+        tail.append((lags, np.einsum("kaj,kbj->jab", sub, sub)))
+    return dh_var, step_var, tail
+
+
+def _fill_nested(arr: PairArrays, i: int, b: np.ndarray, sigma2: float, m: int, moments,
+                 cov_lags) -> None:
+    """:func:`pipeline.step_result.fill_output` of a direct-form candidate order from
+    :func:`_nested_moments`: increments, step and their standard deviations at every lag,
+    the step covariance at ``cov_lags(m)`` only."""
+    dh_var, step_var, tail = moments
+    n_x = arr.n_x
+    theta = b.reshape(m, n_x).T  # (n_x, m)
+    arr.delta_h[i, :, :m] = theta
+    arr.step[i, :, :m] = np.cumsum(theta, axis=1)
+    arr.dh_std[i, :, :m] = np.sqrt(sigma2 * dh_var[m - 1, :m, :]).T
+    arr.step_std[i, :, :m] = np.sqrt(sigma2 * step_var[m - 1, :m, :]).T
+    lags, C = tail[m - 1]
+    for j in range(n_x):
+        arr.step_cov[i, j][np.ix_(lags, lags)] = sigma2 * C[j]
