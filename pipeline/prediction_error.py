@@ -526,6 +526,10 @@ class NestedGLS:
         self.c, self.yy = self.prob.rhs(self.d)
         self.fac = self.prob.factor(self.d, dense=True)
         self.F = _inv_factor(self.fac)
+        c0, scale = self.fac
+        # the forward half of every order's solve: leading entries of L^-1 (c / scale)
+        self.z = scipy.linalg.solve_triangular(c0[0], self.c / scale, lower=True,
+                                               check_finite=False)
 
     def fit(self, k: int, sigma2: float) -> OutputFit | None:
         """The fit of the first ``k`` unknowns (:func:`fit_fixed_noise` with ``sigma2``),
@@ -547,7 +551,8 @@ class NestedGLS:
         except InsufficientDataError:
             return None
         c = self.c[:k]
-        b = scipy.linalg.cho_solve((L, True), c / scale, check_finite=False) / scale
+        b = scipy.linalg.solve_triangular(L, self.z[:k], lower=True, trans="T",
+                                          check_finite=False) / scale
         V = max(self.yy - b @ c, 0.0)
         return OutputFit(b, self.F[:k, :k], float(sigma2), self.d, V, self.prob.n_d, n_par,
                          0, {}, "gls")
