@@ -56,6 +56,7 @@ from pipeline.structured_gls import (
     InputGramInverse,
     StructuredFactor,
     structured_factor,
+    structured_pays,
 )
 
 __all__ = ["Design", "OutputFit", "NestedGLS", "fit_prediction_error", "fit_fixed_noise",
@@ -304,8 +305,11 @@ class _Problem:
         fac = self.lg.cache.get(self._white_key + ("factor",)) if white else None
         if fac is None and not white and not dense and self.single \
                 and self.blocks[0].lag_lo == 0:
-            fac = structured_factor(self._ginv(), np.asarray(d, dtype=float), self.sel,
-                                    self.blocks[0].n_lag)
+            d = np.asarray(d, dtype=float)
+            blk = self.blocks[0]
+            # the inputs' inverse factor is computed only when a structured solve pays
+            if structured_pays(blk.n_sig, d, self.sel.size, blk.n_lag):
+                fac = structured_factor(self._ginv(), d, self.sel, blk.n_lag)
         if fac is None:
             fac = _factor(self.matrix(d), self.what)
             if white:

@@ -33,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-__all__ = ["COND_LIMIT", "InputGramInverse", "StructuredFactor", "structured_factor"]
+__all__ = ["COND_LIMIT", "InputGramInverse", "StructuredFactor", "structured_factor",
+           "structured_pays"]
 
 COND_LIMIT = 1e8
 """Largest bound ``cond(G) * (max|D| / min|D|)^2`` on the filtered system's condition
@@ -143,6 +144,27 @@ class StructuredFactor:
         return self._F
 
 
+def structured_pays(n_s: int, d: np.ndarray, m: int, n_lag: int) -> bool:
+    """Whether the structured solve costs fewer flops than a Cholesky factorisation of
+    the filtered system (``m`` unknowns in a block of ``n_lag`` lags of ``n_s`` inputs).
+
+    Parameters
+    ----------
+    n_s : int
+        Inputs in the regressor block.
+    d : ndarray (p + 1,)
+        Noise filter.
+    m : int
+        Unknowns estimated.
+    n_lag : int
+        Lags ``Q`` of the regressor block.
+    """
+    p = d.size - 1
+    n1 = (n_lag + p) * n_s
+    structured = 4.0 * m * n1 * (n1 - m) + 2.0 * p * n1 * n1
+    return structured < m ** 3 / 3.0 + 2.0 * (p + 1) * m * n1
+
+
 def structured_factor(ginv: InputGramInverse | None, d: np.ndarray, sel: np.ndarray,
                       n_lag: int) -> StructuredFactor | None:
     """A :class:`StructuredFactor` when it is cheaper than a Cholesky factorisation and
@@ -161,13 +183,8 @@ def structured_factor(ginv: InputGramInverse | None, d: np.ndarray, sel: np.ndar
     """
     if ginv is None or not ginv.ok or d[0] != 1.0:
         return None
-    n_s, p, m = ginv.n_s, d.size - 1, sel.size
-    n1 = (n_lag + p) * n_s
-    if n1 > ginv.Rinv.shape[0]:
-        return None
-    n_r = n1 - m
-    structured = 4.0 * m * n1 * n_r + 2.0 * p * n1 * n1
-    dense = m ** 3 / 3.0 + 2.0 * (p + 1) * m * n1
-    if structured >= dense or ginv.cond * _gain_range(d) >= COND_LIMIT:
+    n1 = (n_lag + d.size - 1) * ginv.n_s
+    if n1 > ginv.Rinv.shape[0] or not structured_pays(ginv.n_s, d, sel.size, n_lag) \
+            or ginv.cond * _gain_range(d) >= COND_LIMIT:
         return None
     return StructuredFactor(ginv, d, sel, n_lag)

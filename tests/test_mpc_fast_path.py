@@ -73,6 +73,7 @@ def path(request, monkeypatch):
                 return None
             return StructuredFactor(ginv, d, sel, n_lag)
         monkeypatch.setattr(pe, "structured_factor", force)
+        monkeypatch.setattr(pe, "structured_pays", lambda *a: True)
     else:
         monkeypatch.setattr(pe, "structured_factor", lambda *a: None)
     return request.param
