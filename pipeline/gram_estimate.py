@@ -462,3 +462,134 @@ def check_instruments(ctx: GramContext, P: int) -> dict:
                 "with steps, a measured disturbance), or drop the instruments",
                 input=s, numbers=v)
     return {int(s): v for s, v in first.items()}
+
+
+def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, forms,
+                       d_fixed, sigma2_fixed):
+    """Generalised least squares at every order ``m <= P`` from one factor per output.
+
+    With the noise filter and the form of each output fixed (the search's stage 1),
+    unknowns ordered lag-major and known delays below every order tried, the filtered
+    normal equations of order ``m`` are the leading block of those of order ``P``, whose
+    Cholesky factor and inverse factor hold those of every ``m`` as leading blocks —
+    one factorisation per output instead of one per output and order.
+
+    Returns ``est_at(m, cov_lags=None)`` -> :class:`StepResponseEstimate`, the same
+    estimate as :func:`estimate_from_context` with ``n_p=m`` and the given filters, or
+    None when an output cannot be nested (level form, a failed factorisation: the caller
+    then uses :func:`estimate_from_context`, which raises what it must).
+
+    Parameters
+    ----------
+    ctx : GramContext
+        Lag Gram of the record.
+    P : int
+        Largest order.
+    n_k : int array (n_y, n_x)
+        Known delays (samples), below every order asked for.
+    dt : float
+        Sample period (s).
+    forms : sequence of str
+        Per output, its form.
+    d_fixed : sequence of ndarray
+        Per output, the noise filter ``[1, d_1..d_p]``.
+    sigma2_fixed : sequence of float
+        Per output, the innovation variance reported.
+    """
+    import scipy.linalg
+
+    from pipeline.noise_model import NoiseModel
+    from pipeline.prediction_error import NestedGLS
+
+    n_x, n_y = ctx.n_x, ctx.n_y
+    if "level" in forms:
+        return None
+    parts = []
+    try:
+        for i in range(n_y):
+            design, _, _, _ = output_design(ctx, i, np.full(n_x, P), n_k[i], forms[i])
+            parts.append((design, NestedGLS(ctx.lg, design, d_fixed[i], what=f"output {i}")))
+        ne_P = ctx.white_normal_equations(P)
+        sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
+        white = scipy.linalg.cho_factor(ne_P.A / np.outer(sc, sc), lower=True,
+                                        check_finite=False)[0]
+    except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
+        return None
+
+    moments: dict = {}
+
+    def est_at(m: int, cov_lags=None):
+        if np.any(n_k >= m):
+            return None
+        npm = np.full((n_y, n_x), m)
+        arr = PairArrays(n_y, n_x, m)
+        sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
+        for i, (design, nested) in enumerate(parts):
+            k = int(np.searchsorted(design.sel, m * n_x))
+            fit = nested.fit(k, sigma2_fixed[i])
+            if fit is None:
+                return None
+            sigma2[i] = fit.sigma2
+            rms[i] = np.sqrt(fit.V / fit.n_d)
+            sel = design.sel[:k]
+            if cov_lags is not None and forms[i] == "direct" and design.sel.size == P * n_x:
+                if i not in moments:
+                    moments[i] = _nested_moments(nested.F, P, n_x, cov_lags)
+                _fill_nested(arr, i, fit.b, fit.sigma2, m, moments[i], cov_lags)
+            else:
+                fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, sel % n_x, sel // n_x,
+                            npm[i], forms[i], dt, cov_lags)
+            models.append(NoiseModel("white" if fit.order == 0 else "ar", forms[i], fit.order,
+                                     tuple(float(v) for v in fit.d[1:]),
+                                     float(np.sqrt(fit.sigma2)), {"iterations": 0},
+                                     design.nuisance))
+        ne = ctx.white_normal_equations(m)
+        return StepResponseEstimate(
+            delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
+            delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
+            n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
+            integrating=ctx.integrating, method="prediction_error",
+            diagnostics=diagnostics_of(ne, (white[: m * n_x, : m * n_x], True)),
+            noise_model=tuple(models), n_k=n_k.copy(), step_cov=arr.step_cov)
+
+    return est_at
+
+
+def _nested_moments(F: np.ndarray, P: int, n_x: int, cov_lags):
+    """Every order's step-response variances and tail covariances from the inverse factor
+    at ``P`` (direct form, every unknown): the order-``m`` factor is ``F[:m n_x, :m n_x]``,
+    so its cumulative sums over lags are the first ``m n_x`` rows of those of ``F``, and
+    variances are sums of their squares over those rows — prefix sums over row blocks.
+
+    Returns ``(dh_var, step_var, tail)``: ``dh_var[m-1, l, j]`` and ``step_var`` (unit
+    innovation variance) at order ``m``, and ``tail[m-1] = (lags, C)`` with ``C`` (n_x,
+    |lags|, |lags|) the step covariance at ``cov_lags(m)``.
+    """
+    K = P * n_x
+    F3 = F.reshape(K, P, n_x)
+    CS = np.cumsum(F3, axis=1)
+    dh_var = np.cumsum((F3 ** 2).reshape(P, n_x, P, n_x).sum(axis=1), axis=0)
+    step_var = np.cumsum((CS ** 2).reshape(P, n_x, P, n_x).sum(axis=1), axis=0)
+    tail = []
+    for m in range(1, P + 1):
+        lags = np.asarray(cov_lags(m), dtype=int)
+        sub = CS[: m * n_x, lags, :]  # (m n_x, |lags|, n_x)
+        tail.append((lags, np.einsum("kaj,kbj->jab", sub, sub)))
+    return dh_var, step_var, tail
+
+
+def _fill_nested(arr: PairArrays, i: int, b: np.ndarray, sigma2: float, m: int, moments,
+                 cov_lags) -> None:
+    """:func:`pipeline.step_result.fill_output` of a direct-form candidate order from
+    :func:`_nested_moments`: increments, step and their standard deviations at every lag,
+    the step covariance at ``cov_lags(m)`` only."""
+    dh_var, step_var, tail = moments
+    n_x = arr.n_x
+    theta = b.reshape(m, n_x).T  # (n_x, m)
+    arr.delta_h[i, :, :m] = theta
+    arr.step[i, :, :m] = np.cumsum(theta, axis=1)
+    arr.dh_std[i, :, :m] = np.sqrt(sigma2 * dh_var[m - 1, :m, :]).T
+    arr.step_std[i, :, :m] = np.sqrt(sigma2 * step_var[m - 1, :m, :]).T
+    lags, C = tail[m - 1]
+    for j in range(n_x):
+        arr.step_cov[i, j][np.ix_(lags, lags)] = sigma2 * C[j]

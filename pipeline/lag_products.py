@@ -33,7 +33,7 @@ contiguous range of lags — whose unknowns are ordered lag-major inside the blo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import math
 
@@ -41,7 +41,7 @@ import numpy as np
 import scipy.fft
 
 __all__ = ["Block", "LagGram", "build_lag_gram", "filtered_gram", "shifted_products", "take",
-           "first_block_row", "assemble_gram"]
+           "first_block_row", "assemble_gram", "assemble_lag_gram", "signal_gram"]
 
 
 @dataclass(frozen=True)
@@ -96,6 +96,9 @@ class LagGram:
     n_d: int
     n_segments: int
     profiled: tuple = ()
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
+    """Arithmetic shared by every fit on this Gram (contiguous sub-Grams, the white
+    factor); :func:`signal_gram` fills it."""
 
     @property
     def n_lags(self) -> int:
@@ -126,6 +129,34 @@ class LagGram:
         if nuisance > len(self.profiled):
             raise ValueError("the profiled lag Gram was not built (pass centred=True)")
         return self.profiled[nuisance - 1]
+
+
+def signal_gram(lg: LagGram, nuisance: int, s1: tuple[int, int],
+                s2: tuple[int, int]) -> np.ndarray:
+    """Contiguous copy ``G[:, s1, :, s2]`` of a lag Gram, cached on ``lg``.
+
+    Every fit on the Gram slices the same signal ranges (the inputs against themselves
+    for every output, one output against the inputs); strided 4-D slices of the full
+    Gram cost a copy per use, a contiguous copy costs it once.
+
+    Parameters
+    ----------
+    lg : LagGram
+        The lag Gram.
+    nuisance : int
+        Which Gram (:meth:`LagGram.gram`).
+    s1, s2 : tuple of int
+        Signal ranges ``(lo, hi)`` of rows and columns.
+
+    Returns
+    -------
+    ndarray (n_lags, s1 width, n_lags, s2 width)
+    """
+    key = ("signal_gram", nuisance, tuple(s1), tuple(s2))
+    if key not in lg.cache:
+        G = lg.gram(nuisance)
+        lg.cache[key] = np.ascontiguousarray(G[:, s1[0]:s1[1], :, s2[0]:s2[1]])
+    return lg.cache[key]
 
 
 def filtered_gram(G: np.ndarray, d: np.ndarray, b1: Block, b2: Block) -> np.ndarray:
@@ -298,6 +329,53 @@ def assemble_gram(r_xx: np.ndarray, x: np.ndarray, k0: int, n: int, P: int) -> n
 
 
 
+def assemble_lag_gram(r: np.ndarray, w: np.ndarray, k0: int, n: int, L: int) -> np.ndarray:
+    """The lag Gram ``G[q, :, p, :]`` (4-D, ``(L, n_w, L, n_w)``) from its first block row,
+    one block diagonal at a time.
+
+    Along a block diagonal ``p = q + s`` the diagonal recursion of method.md §2 is a
+    cumulative sum of the head and tail products, so each diagonal is one vectorised
+    pass; the lower diagonals are the upper ones transposed (exactly symmetric, no
+    averaging pass), written in place in the 4-D layout the estimators read.  Same
+    numbers as :func:`assemble_gram` to rounding, about 5x faster on the full Gram of
+    inputs and outputs (no lag-major transpose copy, no symmetrisation over the whole
+    matrix).
+
+    Parameters
+    ----------
+    r : ndarray (L, n_w, n_w)
+        First block row, ``r[p] = sum_k w(k) w(k-p)'`` (:func:`first_block_row` of ``w``
+        with itself).
+    w : ndarray (N, n_w)
+        The signals.
+    k0 : int
+        Index of the first observation (at least ``L - 1``).
+    n : int
+        Number of samples; observations are ``k = k0..n-1``.
+    L : int
+        Number of lags.
+    """
+    n_w = w.shape[1]
+    G = np.empty((L, n_w, L, n_w))
+    back = np.arange(L - 1)
+    head = w[k0 - 1 - back]  # w(k0-1-q): enters block (q+1, p+1)
+    tail = w[n - 1 - back]  # w(N-1-q): leaves it
+    for s in range(L):
+        m = L - s
+        vals = np.empty((m, n_w, n_w))
+        vals[0] = r[s]
+        if m > 1:
+            inc = head[: m - 1, :, None] * head[s : s + m - 1, None, :]
+            inc -= tail[: m - 1, :, None] * tail[s : s + m - 1, None, :]
+            np.cumsum(inc, axis=0, out=inc)
+            vals[1:] = r[s] + inc
+        q = np.arange(m)
+        G[q, :, q + s, :] = vals
+        if s:
+            G[q + s, :, q, :] = vals.transpose(0, 2, 1)
+    return G
+
+
 NUISANCE_DEGREES = 3
 """Profiled Grams are built for polynomials of 1, 2 and 3 terms per segment (a constant,
 plus a trend, plus a quadratic)."""
@@ -308,7 +386,7 @@ def _segment_gram(w: np.ndarray, k0: int, L: int, centred: bool):
     terms of ``1, t, t^2`` per segment profiled out (``t`` the scaled time)."""
     n, n_w = w.shape
     r = first_block_row(w, w, k0, L)  # (L, n_w, n_w): r[p, a, b] = sum_k w_a(k) w_b(k-p)
-    G2 = assemble_gram(r, w, k0, n, L)  # (L*n_w, L*n_w) lag-major
+    G2 = assemble_lag_gram(r, w, k0, n, L).reshape(L * n_w, L * n_w)  # lag-major
     if not centred:
         return G2, []
     n_obs = n - k0

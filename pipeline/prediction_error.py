@@ -38,15 +38,28 @@ import numpy as np
 import scipy.linalg
 
 from pipeline.errors import InsufficientDataError, SingularSystemError
-from pipeline.lag_products import Block, LagGram, filtered_gram, shifted_products, take
+from pipeline.lag_products import (
+    Block,
+    LagGram,
+    filtered_gram,
+    shifted_products,
+    signal_gram,
+    take,
+)
 from pipeline.noise_model import (
     DEFAULT_AR_ORDER_MAX,
     ar_order_by_bic,
     is_minimum_phase,
     levinson,
 )
+from pipeline.structured_gls import (
+    InputGramInverse,
+    StructuredFactor,
+    structured_factor,
+    structured_pays,
+)
 
-__all__ = ["Design", "OutputFit", "fit_prediction_error", "fit_fixed_noise",
+__all__ = ["Design", "OutputFit", "NestedGLS", "fit_prediction_error", "fit_fixed_noise",
            "fit_instrumental", "first_stage_strength", "filtered_normal_equations",
            "WEAK_INSTRUMENT_F"]
 
@@ -147,6 +160,8 @@ def _factor(M: np.ndarray, what: str):
 
 
 def _solve(fac, rhs):
+    if isinstance(fac, StructuredFactor):
+        return fac.solve(rhs)
     c, scale = fac
     s = scale if np.ndim(rhs) == 1 else scale[:, None]
     return scipy.linalg.cho_solve(c, rhs / s, check_finite=False) / s
@@ -154,6 +169,8 @@ def _solve(fac, rhs):
 
 def _inv_factor(fac) -> np.ndarray:
     """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled)."""
+    if isinstance(fac, StructuredFactor):
+        return fac.inv_factor()
     c, scale = fac
     Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
     if info != 0:
@@ -191,9 +208,18 @@ def filtered_normal_equations(G: np.ndarray, design: Design, d: np.ndarray):
 
 
 class _Problem:
-    """Cached pieces of one output's regression on a lag Gram."""
+    """Cached pieces of one output's regression on a lag Gram.
+
+    A design with one regressor block (every direct and differenced fit, the feedback
+    test) is served from contiguous sub-Grams shared on the :class:`LagGram`
+    (:func:`pipeline.lag_products.signal_gram`): the inputs' Gram once for every output,
+    the output's own rows once per output.  The white (``d = 1``) system and its factor
+    are the same for every output of one design and are shared too.  Other designs
+    (level form, instruments) slice the full Gram.
+    """
 
     def __init__(self, lg: LagGram, design: Design, what: str):
+        self.lg = lg
         self.G = lg.gram(design.nuisance)
         self.n_d = lg.n_d
         self.n_const = lg.n_segments * design.nuisance
@@ -203,28 +229,133 @@ class _Problem:
         self.sel = design.sel
         offs = np.cumsum([0] + [b.size for b in self.blocks])
         self.offsets = offs
-        self._cache: dict[bytes, tuple] = {}
+        self._cache: dict[bytes, np.ndarray] = {}
+        self._rhs: dict[bytes, tuple] = {}
+        self._factors: dict[bytes, tuple] = {}
+        self.single = len(self.blocks) == 1 and design.y.size == 1
+        self.full_sel = bool(self.sel.size == design.full_size
+                             and np.array_equal(self.sel, np.arange(self.sel.size)))
+        self._white_key = ("white", design.nuisance, tuple(self.blocks),
+                           self.sel.tobytes())
+
+    def _sub(self):
+        """The contiguous sub-Grams of a one-block design and its blocks in them."""
+        blk, yb, nu = self.blocks[0], self.design.y, self.design.nuisance
+        sx, sy = (blk.sig_lo, blk.sig_hi), (yb.sig_lo, yb.sig_hi)
+        Gxx = signal_gram(self.lg, nu, sx, sx)
+        Gyx = signal_gram(self.lg, nu, sy, sx)
+        Gyy = signal_gram(self.lg, nu, sy, sy)
+        xb = Block(0, blk.n_sig, blk.lag_lo, blk.lag_hi)
+        yl = Block(0, 1, yb.lag_lo, yb.lag_hi)
+        return Gxx, Gyx, Gyy, xb, yl
 
     def filtered(self, d: np.ndarray):
-        """``(A~, c~, y~'y~)`` for the filter ``d`` (the last few filters are cached: the
-        alternation and Gauss–Newton ask for the same one in turn)."""
-        key = np.asarray(d, dtype=float).tobytes()
+        """``(A~, c~, y~'y~)`` for the filter ``d``."""
+        return (self.matrix(d), *self.rhs(d))
+
+    def matrix(self, d: np.ndarray) -> np.ndarray:
+        """``A~`` for the filter ``d`` (cached: the alternation and Gauss–Newton ask for
+        the same one in turn; a structured factor never needs it)."""
+        d = np.asarray(d, dtype=float)
+        key = d.tobytes()
         if key not in self._cache:
             if len(self._cache) > 4:
                 self._cache.pop(next(iter(self._cache)))
-            self._cache[key] = self._filtered(d)
+            self._cache[key] = self._matrix(d)
         return self._cache[key]
 
-    def _filtered(self, d: np.ndarray):
-        return filtered_normal_equations(self.G, self.design, d)
+    def rhs(self, d: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(c~, y~'y~)`` for the filter ``d``."""
+        d = np.asarray(d, dtype=float)
+        key = d.tobytes()
+        if key not in self._rhs:
+            if len(self._rhs) > 4:
+                self._rhs.pop(next(iter(self._rhs)))
+            if self.single:
+                _, Gyx, Gyy, xb, yl = self._sub()
+                self._rhs[key] = (filtered_gram(Gyx, d, yl, xb)[0][self.sel],
+                                  float(filtered_gram(Gyy, d, yl, yl)[0, 0]))
+            else:
+                self._rhs[key] = filtered_normal_equations(self.G, self.design, d)[1:]
+        return self._rhs[key]
+
+    def _matrix(self, d: np.ndarray) -> np.ndarray:
+        if not self.single:
+            return filtered_normal_equations(self.G, self.design, d)[0]
+        Gxx, _, _, xb, _ = self._sub()
+        white = d.size == 1 and d[0] == 1.0
+        A = self.lg.cache.get(self._white_key + ("A",)) if white else None
+        if A is None:
+            A = filtered_gram(Gxx, d, xb, xb)
+            if not self.full_sel:
+                A = A[np.ix_(self.sel, self.sel)]
+            if white:
+                self.lg.cache[self._white_key + ("A",)] = A
+        return A
+
+    def factor(self, d: np.ndarray, dense: bool = False):
+        """Scaled Cholesky factor of ``A~`` for the filter ``d`` (cached; the white one is
+        shared by every output of the design), or for a coloured filter on a one-block
+        design the :class:`StructuredFactor` when it is cheaper and safe (``dense``
+        refuses it: callers that need the triangular factor itself)."""
+        key = np.asarray(d, dtype=float).tobytes() + bytes([dense])
+        if key in self._factors:
+            return self._factors[key]
+        white = self.single and d.size == 1 and d[0] == 1.0
+        fac = self.lg.cache.get(self._white_key + ("factor",)) if white else None
+        if fac is None and not white and not dense and self.single \
+                and self.blocks[0].lag_lo == 0:
+            d = np.asarray(d, dtype=float)
+            blk = self.blocks[0]
+            # the inputs' inverse factor is computed only when a structured solve pays
+            if structured_pays(blk.n_sig, d, self.sel.size, blk.n_lag):
+                fac = structured_factor(self._ginv(), d, self.sel, blk.n_lag)
+        if fac is None:
+            fac = _factor(self.matrix(d), self.what)
+            if white:
+                self.lg.cache[self._white_key + ("factor",)] = fac
+        if len(self._factors) > 2:
+            self._factors.pop(next(iter(self._factors)))
+        self._factors[key] = fac
+        return fac
+
+    def _ginv(self) -> InputGramInverse:
+        blk = self.blocks[0]
+        key = ("ginv", self.design.nuisance, blk.sig_lo, blk.sig_hi)
+        if key not in self.lg.cache:
+            self.lg.cache[key] = InputGramInverse(self._sub()[0])
+        return self.lg.cache[key]
 
     def residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
         """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts``."""
         full = np.zeros(self.design.full_size)
         full[self.sel] = b
+        if self.single:
+            return self._residual_products_single(full, shifts)
         coefs = [-full[self.offsets[i] : self.offsets[i + 1]] for i in range(len(self.blocks))]
         return shifted_products(self.G, self.blocks + [self.design.y], coefs + [np.ones(1)],
                                 shifts)
+
+    def _residual_products_single(self, full: np.ndarray, shifts: int) -> np.ndarray:
+        # one GEMM of the contiguous inputs' Gram with the coefficients placed at every
+        # shift, instead of a strided tensordot per shift; only the design's signals'
+        # rows are filled (the only ones take_u / take_e read)
+        Gxx, Gyx, Gyy, xb, yl = self._sub()
+        L, n_s = Gxx.shape[0], Gxx.shape[1]
+        B = np.zeros((L * n_s, shifts))
+        coef = full.reshape(xb.n_lag, n_s)
+        for a in range(shifts):
+            B[(xb.lag_lo + a) * n_s : (xb.lag_hi + a) * n_s, a] = coef.reshape(-1)
+        Gyx2 = Gyx.reshape(L, L * n_s)
+        lag_y = yl.lag_lo + np.arange(shifts)
+        cols = slice(xb.lag_lo * n_s, (xb.lag_hi + shifts - 1) * n_s)  # B's non-zero rows
+        qx = Gyx2[lag_y].T - Gxx.reshape(L * n_s, L * n_s)[:, cols] @ B[cols]
+        qy = Gyy[:, 0, lag_y, 0] - Gyx2[:, cols] @ B[cols]  # (L, shifts)
+        blk, yb = self.blocks[0], self.design.y
+        q = np.zeros((shifts, L, self.G.shape[1]))
+        q[:, :, blk.sig_lo : blk.sig_hi] = qx.T.reshape(shifts, L, n_s)
+        q[:, :, yb.sig_lo] = qy.T
+        return q
 
     def take_e(self, qa: np.ndarray, b: np.ndarray, shift: int) -> float:
         """``sum_k e(k - shift) * (the quantity behind qa)``."""
@@ -247,11 +378,11 @@ def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
 
 
 def _gls(prob: _Problem, d: np.ndarray):
-    A, c, yy = prob.filtered(d)
-    fac = _factor(A, prob.what)
+    c, yy = prob.rhs(d)
+    fac = prob.factor(d)
     b = _solve(fac, c)
     V = max(yy - b @ c, 0.0)
-    return b, V, fac, A
+    return b, V, fac
 
 
 def _criterion_parts(prob: _Problem, b: np.ndarray, d: np.ndarray):
@@ -268,7 +399,6 @@ def _criterion_parts(prob: _Problem, b: np.ndarray, d: np.ndarray):
 
 def _gn_matrices(prob: _Problem, b, d, q, R):
     p = d.size - 1
-    A, c, yy = prob.filtered(d)
     # J[:, a-1] = sum_k (DU)(k) e(k-a),  a = 1..p
     J = np.zeros((b.size, p))
     g_b = np.zeros(b.size)
@@ -278,18 +408,55 @@ def _gn_matrices(prob: _Problem, b, d, q, R):
             J[:, a - 1] = v
         g_b += d[a] * v
     g_d = R[1:, :] @ d
-    return A, J, g_b, g_d
+    return J, g_b, g_d
 
 
-def _covariance(prob: _Problem, A, J, R11):
-    """Factor of the b-block of the inverse GN matrix (Schur complement)."""
-    if J.shape[1]:
-        fr = _factor(R11, prob.what + " (noise model)")
-        S = A - J @ _solve(fr, J.T)
-        S = 0.5 * (S + S.T)
-    else:
-        S = A
-    return _inv_factor(_factor(S, prob.what))
+def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
+    """``(fac, U, C, sr)`` of the Gauss–Newton matrix ``[[A~, -J], [-J', R11]]`` by block
+    elimination on the factor of ``A~`` (shared with the GLS solve at the same ``d``):
+    ``U = A~^-1 J`` and ``C`` the Cholesky factor of the Schur complement
+    ``R11 - J'U`` scaled by ``sr = sqrt(diag R11)`` — the trailing block of the scaled
+    Cholesky factor of the whole matrix, so the same rank test applies to its pivots."""
+    fac = prob.factor(d)
+    U = _solve(fac, J)
+    sr = np.sqrt(np.clip(np.diag(R11), 1e-300, None))
+    Sig = R11 - J.T @ U
+    Sig = 0.5 * (Sig + Sig.T) / np.outer(sr, sr)
+    try:
+        C = np.linalg.cholesky(Sig)
+    except np.linalg.LinAlgError:
+        raise SingularSystemError(f"normal equations of {prob.what} (noise model) are "
+                                  "singular") from None
+    # a structured factor is used only far from singular (its unit-diagonal pivots lie
+    # well inside the bounds), so the scaled Schur pivots are tested against 1
+    pivA = np.ones(1) if isinstance(fac, StructuredFactor) else np.diag(fac[0][0])
+    piv = np.abs(np.concatenate([pivA, np.diag(C)]))
+    if piv.min() ** 2 < _RCOND * piv.max() ** 2:
+        raise SingularSystemError(
+            f"normal equations of {prob.what} (noise model) are singular (rank deficient: "
+            f"pivot ratio {(piv.min() / piv.max()) ** 2:.2e})")
+    return fac, U, C, sr
+
+
+def _gn_step(prob: _Problem, d, J, R11, g_b, g_d) -> np.ndarray:
+    """Solve ``[[A~, -J], [-J', R11]] [x_b; x_d] = [g_b; -g_d]`` (block elimination)."""
+    fac, U, C, sr = _schur(prob, d, J, R11)
+    w = _solve(fac, g_b)
+    x_d = scipy.linalg.cho_solve((C, True), (J.T @ w - g_d) / sr, check_finite=False) / sr
+    return np.concatenate([w + U @ x_d, x_d])
+
+
+def _covariance(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
+    """Factor of the b-block of the inverse GN matrix (Schur complement
+    ``S = A~ - J R11^-1 J'``): by Woodbury ``S^-1 = A~^-1 + U Sig^-1 U'`` with
+    ``U = A~^-1 J`` and ``Sig = R11 - J'U``, so the factor is ``A~``'s (shared with the
+    GLS solve) with ``p`` rows ``C^-1 U'`` stacked under it — no second factorisation."""
+    if not J.shape[1]:
+        return _inv_factor(prob.factor(d))
+    fac, U, C, sr = _schur(prob, d, J, R11)
+    extra = scipy.linalg.solve_triangular(C, (U / sr[None, :]).T, lower=True,
+                                          check_finite=False)
+    return np.vstack([_inv_factor(fac), extra])
 
 
 def _dof(prob: _Problem, m: int, p: int) -> int:
@@ -326,10 +493,73 @@ def fit_fixed_noise(lg: LagGram, design: Design, d: np.ndarray, *, what: str,
         Innovation variance to report; default this fit's ``V / (n_d - n_par)``.
     """
     prob = _Problem(lg, design, what)
-    b, V, fac, _ = _gls(prob, d)
+    b, V, fac = _gls(prob, d)
     n_par = _dof(prob, b.size, d.size - 1)
     s2 = V / (prob.n_d - n_par) if sigma2 is None else float(sigma2)
     return OutputFit(b, _inv_factor(fac), s2, d, V, prob.n_d, n_par, 0, {}, "gls")
+
+
+class NestedGLS:
+    """Generalised least squares with a fixed filter for every leading block of a
+    design's unknowns, from one Cholesky factor (the order search, method.md §5 (b)).
+
+    With unknowns ordered lag-major the filtered normal equations of the first ``k``
+    unknowns are the leading block of the full ones; so are their Cholesky factor and
+    its inverse.
+
+    Parameters
+    ----------
+    lg : LagGram
+        Lag Gram of the output's signals.
+    design : Design
+        The output's regression at the largest order.
+    d : ndarray (p + 1,)
+        Noise filter ``[1, d_1, ..., d_p]``.
+    what : str
+        Name of the fit in error messages (e.g. ``"output 0"``).
+
+    Raises
+    ------
+    SingularSystemError
+        The full system is singular (the caller then fits each order on its own).
+    """
+
+    def __init__(self, lg: LagGram, design: Design, d: np.ndarray, *, what: str):
+        self.prob = _Problem(lg, design, what)
+        self.d = np.asarray(d, dtype=float)
+        self.c, self.yy = self.prob.rhs(self.d)
+        self.fac = self.prob.factor(self.d, dense=True)
+        self.F = _inv_factor(self.fac)
+        c0, scale = self.fac
+        # the forward half of every order's solve: leading entries of L^-1 (c / scale)
+        self.z = scipy.linalg.solve_triangular(c0[0], self.c / scale, lower=True,
+                                               check_finite=False)
+
+    def fit(self, k: int, sigma2: float) -> OutputFit | None:
+        """The fit of the first ``k`` unknowns (:func:`fit_fixed_noise` with ``sigma2``),
+        or None when that system fails the rank test or has too few observations.
+
+        Parameters
+        ----------
+        k : int
+            Number of leading unknowns.
+        sigma2 : float
+            Innovation variance to report.
+        """
+        L, scale = self.fac[0][0][:k, :k], self.fac[1][:k]
+        piv = np.abs(np.diag(L))
+        if piv.min() ** 2 < _RCOND * piv.max() ** 2:
+            return None
+        try:
+            n_par = _dof(self.prob, k, self.d.size - 1)
+        except InsufficientDataError:
+            return None
+        c = self.c[:k]
+        b = scipy.linalg.solve_triangular(L, self.z[:k], lower=True, trans="T",
+                                          check_finite=False) / scale
+        V = max(self.yy - b @ c, 0.0)
+        return OutputFit(b, self.F[:k, :k], float(sigma2), self.d, V, self.prob.n_d, n_par,
+                         0, {}, "gls")
 
 
 def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
@@ -366,7 +596,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
             f"{what}: AR order {order} needs {order} more lags than the lag products "
             f"hold (at most {p_cap}); lower estimation.noise or n_p")
     d = np.ones(1)
-    b, V, fac, _ = _gls(prob, d)
+    b, V, _ = _gls(prob, d)
     selection: dict = {}
     p_prev = -1
     for _ in range(6):
@@ -382,7 +612,7 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
         d_new = np.concatenate([[1.0], coef])
         converged = p == p_prev and np.allclose(d_new, d, atol=1e-4)
         d = d_new
-        b, V, fac, _ = _gls(prob, d)
+        b, V, _ = _gls(prob, d)
         if converged or p == 0:
             break
         p_prev = p
@@ -394,11 +624,9 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
     for it in range(1, max_iter + 1):
         if p == 0:
             break
-        A, J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
-        H = np.block([[A, -J], [-J.T, R[1:, 1:]]])
-        rhs = np.concatenate([g_b, -g_d])
+        J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
         try:
-            step = _solve(_factor(H, what), rhs)
+            step = _gn_step(prob, d, J, R[1:, 1:], g_b, g_d)
         except SingularSystemError:
             break
         lam = 1.0
@@ -420,8 +648,8 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
         b, d, q, R, V = b_try, d_try, q_t, R_t, V_t
         if rel < tol:
             break
-    A, J, _, _ = _gn_matrices(prob, b, d, q, R)
-    F = _covariance(prob, A, J, R[1:, 1:])
+    J, _, _ = _gn_matrices(prob, b, d, q, R)
+    F = _covariance(prob, d, J, R[1:, 1:])
     s2 = V / (prob.n_d - n_par)
     return OutputFit(b, F, s2, d, V, prob.n_d, n_par, it, selection, "prediction_error")
 

@@ -42,6 +42,7 @@ is not.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -166,6 +167,20 @@ def _tail(q: np.ndarray, C: np.ndarray) -> tuple[float, float, int]:
 
 def _material(v: float, sd: float, peak: float, sigmas: float) -> bool:
     return abs(v) > sigmas * sd and abs(v) > SETTLED_BAND * peak
+
+
+def tail_lags(n: int) -> np.ndarray:
+    """The lags of a pair's step covariance :func:`tail_moving` reads, for ``n`` lags:
+    the last and the one ``ceil(TAIL_FRACTION n)`` before it, each with its predecessor
+    (an integrating output's slope).
+
+    Parameters
+    ----------
+    n : int
+        Lags of the pair's step response.
+    """
+    m = max(1, math.ceil(TAIL_FRACTION * n))
+    return np.array(sorted({min(max(v, 0), n - 1) for v in (n - 1, n - 2, n - 1 - m, n - 2 - m)}))
 
 
 def tail_moving(q: np.ndarray, C: np.ndarray) -> bool:

@@ -246,7 +246,7 @@ class PairArrays:
 
 def fill_output(arr: PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: float,
                  inp_of: np.ndarray, lag_of: np.ndarray, n_p_row: np.ndarray, form: str,
-                 dt: float) -> None:
+                 dt: float, cov_lags=None) -> None:
     """Map one output's unknowns to step responses, their stds and per-pair covariance.
 
     ``b`` (m,) unknowns with covariance ``sigma2 * F' F``; unknown ``u`` belongs to input
@@ -278,31 +278,84 @@ def fill_output(arr: PairArrays, i: int, b: np.ndarray, F: np.ndarray, sigma2: f
         last two also fill ``delta_g``, ``rate`` and ``rate_std``.
     dt : float
         Sample period (s), turning the rate into output units per input unit per second.
+    cov_lags : callable, optional
+        ``cov_lags(n)`` -> the 0-based lags whose rows and columns of ``step_cov`` are
+        filled for a pair of ``n`` lags (the rest stay zero); default every lag.  The
+        order search's candidate fits read only a few lags of the covariance (their
+        tail), and the full ``n x n`` block per pair would cost more than the fit.  For
+        the ``direct`` form only lags from the smallest of them on are filled at all
+        (standard deviations and covariance; the increments and step everywhere).
     """
     sd = np.sqrt(sigma2)
-    for j in range(arr.n_x):
+    n_x, P = arr.n_x, int(np.max(n_p_row))
+    # every pair at once: (k, n_x, P) factor of the placed unknowns (zero past a pair's
+    # own n_p and at known delays), one cumsum and one einsum for all pairs
+    theta = np.zeros((n_x, P))
+    theta[inp_of, lag_of] = b
+    if b.size == n_x * P and np.array_equal(lag_of * n_x + inp_of, np.arange(b.size)):
+        Ft = F.reshape(F.shape[0], P, n_x).transpose(0, 2, 1)  # every unknown, lag-major
+    else:
+        Ft = np.zeros((F.shape[0], n_x, P))
+        Ft[:, inp_of, lag_of] = F
+    if cov_lags is not None and form == "direct":
+        _fill_tail(arr, i, theta, Ft, sigma2, n_p_row, cov_lags)
+        return
+    if form == "differenced":
+        dh, Fdh = np.cumsum(theta, axis=1), np.cumsum(Ft, axis=2)
+    else:
+        dh, Fdh = theta, Ft
+    Fs = np.cumsum(Fdh, axis=2)
+    step = np.cumsum(dh, axis=1)
+    dh_std = sd * np.sqrt(np.einsum("kja,kja->ja", Fdh, Fdh))
+    step_std = sd * np.sqrt(np.einsum("kja,kja->ja", Fs, Fs))
+    for j in range(n_x):
         n = int(n_p_row[j])
-        sel = np.flatnonzero(inp_of == j)
-        sel = sel[np.argsort(lag_of[sel])]
-        theta = np.zeros(n)
-        theta[lag_of[sel]] = b[sel]
-        Ft = np.zeros((F.shape[0], n))
-        Ft[:, lag_of[sel]] = F[:, sel]  # factor of the placed unknowns
-        if form == "differenced":
-            dh, Fdh = np.cumsum(theta), np.cumsum(Ft, axis=1)
+        arr.delta_h[i, j, :n] = dh[j, :n]
+        arr.step[i, j, :n] = step[j, :n]
+        arr.dh_std[i, j, :n] = dh_std[j, :n]
+        arr.step_std[i, j, :n] = step_std[j, :n]
+        Fj = Fs[:, j, :n]
+        if cov_lags is None:
+            arr.step_cov[i, j, :n, :n] = sigma2 * (Fj.T @ Fj)
         else:
-            dh, Fdh = theta, Ft
-        Fs = np.cumsum(Fdh, axis=1)
-        arr.delta_h[i, j, :n] = dh
-        arr.step[i, j, :n] = np.cumsum(dh)
-        arr.dh_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fdh, Fdh))
-        arr.step_std[i, j, :n] = sd * np.sqrt(np.einsum("ka,ka->a", Fs, Fs))
-        arr.step_cov[i, j, :n, :n] = sigma2 * (Fs.T @ Fs)
+            lags = np.asarray(cov_lags(n), dtype=int)
+            rows = sigma2 * (Fj[:, lags].T @ Fj)
+            C = arr.step_cov[i, j]  # a view
+            C[:n, lags] = rows.T
+            C[lags, :n] = rows
         if form in ("differenced", "level"):
             arr.delta_g[i, j, :] = 0.0
-            arr.delta_g[i, j, :n] = theta if form == "differenced" else np.diff(dh, prepend=0.0)
-            arr.rate[i, j] = dh[-1] / dt
+            arr.delta_g[i, j, :n] = theta[j, :n] if form == "differenced" else \
+                np.diff(dh[j, :n], prepend=0.0)
+            arr.rate[i, j] = dh[j, n - 1] / dt
             arr.rate_std[i, j] = arr.dh_std[i, j, n - 1] / dt
+
+
+def _fill_tail(arr: PairArrays, i: int, theta: np.ndarray, Ft: np.ndarray, sigma2: float,
+               n_p_row: np.ndarray, cov_lags) -> None:
+    """:func:`fill_output` of a direct-form output when only the lags from the smallest
+    of ``cov_lags`` on are read: their standard deviations and covariance rows from one
+    sum over the earlier lags and a cumulative sum over the tail (the order search's
+    candidates, whose cost is otherwise the full cumulative sum per order)."""
+    sd = np.sqrt(sigma2)
+    lo = min(int(np.min(cov_lags(int(n)))) for n in n_p_row)
+    Fs = np.cumsum(Ft[:, :, lo:], axis=2)
+    Fs += Ft[:, :, :lo].sum(axis=2)[:, :, None]
+    step = np.cumsum(theta, axis=1)
+    dh_std = sd * np.sqrt(np.einsum("kja,kja->ja", Ft[:, :, lo:], Ft[:, :, lo:]))
+    step_std = sd * np.sqrt(np.einsum("kja,kja->ja", Fs, Fs))
+    for j in range(arr.n_x):
+        n = int(n_p_row[j])
+        arr.delta_h[i, j, :n] = theta[j, :n]
+        arr.step[i, j, :n] = step[j, :n]
+        arr.dh_std[i, j, lo:n] = dh_std[j, : n - lo]
+        arr.step_std[i, j, lo:n] = step_std[j, : n - lo]
+        lags = np.asarray(cov_lags(n), dtype=int)
+        Fj = Fs[:, j, : n - lo]
+        rows = sigma2 * (Fj[:, lags - lo].T @ Fj)
+        C = arr.step_cov[i, j]  # a view
+        C[lo:n, lags] = rows.T
+        C[lags, lo:n] = rows
 
 
 def n_k_matrix(n_k, n_p: np.ndarray) -> np.ndarray:
