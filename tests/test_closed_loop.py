@@ -8,8 +8,11 @@ reacts to the same sample's measurement, setpoint steps, AR(1) output noise of s
 least squares is 5 % (white noise), 24 % (φ = 0.9) and 39 % (φ = 0.97) low in gain while
 claiming a σ of well under 1 % — the test below measures that as well.
 
-Tolerances: 80 records each.  Coverage: the pass mark 85 % is the must-show; the
-nominal 95.4 % sits 4 standard errors above it.  Detection/false-alarm rates are
+Tolerances: 40 records each (80 until the suite's time budget of issue 35; the
+benchmark ``bench_oracle``'s PI case runs 30 more through the job path).  Coverage: the
+pass mark 85 % is the must-show; the nominal 95.4 % sits 3 standard errors above it.
+Detection: measured 100 % on 80 records; at a true rate of 99 %, fewer than 38 of 40 is
+a 0.8 % event.  Detection/false-alarm rates are
 binomial: the false-alarm rate is nominally 1 % (the test's α), so more than 5 % of 200
 open-loop records would be a 1e-4 event.
 """
@@ -28,7 +31,7 @@ from tests.plants import (LEVEL_NOISES, open_level_record, open_loop_record,
                           pi_controlled_record, pi_loop_record, pi_loop_truth)
 
 N = 20_000
-RECORDS = 80
+RECORDS = 40  # module notes
 N_P = 60  # 0.9^59 < 0.2 %: the plant has settled
 TRUTH = pi_loop_truth(N_P)
 

@@ -15,13 +15,19 @@ smooth by construction; the largest error of a 60-lag FIR is the random walk of 
 lags, 1.0-1.25x the ARX's at these noise levels — printed, not asserted), medians over
 the records.
 
-Tolerances: with 80 records the coverage over lags (~60 correlated lags per record, so
-roughly 80 independent draws) has a standard error of about 2.5 %, so the 90–98 % band
-holds a calibrated ±2σ band (95.4 %) with margin; the false-fail rate is at most 5 % by
-construction (1 % lag-wise Wald test + 4 % on the windows' gains, Bonferroni; issue 32
-added the gain part) — binomial at 5 %: P(more than 11 of 80) < 0.1 %; the gain-change detection needs 90 % and the
-agreement test is built for 90 % power at the chosen N_d (measured 100 % on 80 records; the
-suite runs 40 per noise pole — at a power of 0.99, P(fewer than 36 of 40) < 0.1 %).
+Tolerances.  The full Monte Carlo (80 records per noise pole, 40 with a gain change) is
+``tests/benchmarks/bench_coloured_noise.py``, which holds the must-show's 90–98 % band; the
+suite runs a CI sample of 40 records per pole (20 with a gain change) so that it stays in
+its time budget.  With 40 records the coverage over lags (~60 correlated lags per record,
+so roughly 40 independent draws) has a standard error of about 3.5 %, so the CI sample
+checks the side users are hurt by — bands too narrow — at 88 %: a calibrated ±2σ band
+(95.4 %) fails it with probability 2 % per pole, a band at 85 % fails it with probability
+~80 %; the upper side (bands too wide, 98 %) is the benchmark's, whose 80 records resolve it.
+The false-fail rate is at most 5 % by construction (1 % lag-wise Wald test + 4 % on the
+windows' gains, Bonferroni; issue 32 added the gain part) — binomial at 5 %: P(more than
+7 of 40) < 0.3 %.  The gain-change detection needs 90 % and the agreement test is built
+for 90 % power at the chosen N_d (measured 100 % on 80 records; at a power of 0.99,
+P(fewer than 18 of 20) < 0.2 %).
 """
 
 from __future__ import annotations
@@ -34,8 +40,10 @@ from pipeline.search import search
 from tests.plants import arx_bic_step, open_loop_record, open_loop_truth
 
 N = 10_000
-RECORDS = 80
-CHANGE_RECORDS = 40  # detection is measured at 100 %: P(< 90 % of 40 | power 0.99) < 0.1 %
+RECORDS = 40  # the CI sample; the benchmark runs 80 (module notes)
+CHANGE_RECORDS = 20  # detection is measured at 100 %: P(< 90 % of 20 | power 0.99) < 0.2 %
+MIN_COVERAGE = 0.88  # the CI sample's lower bound below 95.4 % (module notes)
+MAX_FALSE_FAILS = 7  # of RECORDS at the 5 % rate: P(more) < 0.3 % (module notes)
 HORIZON = 90  # lags compared: twice the 98 % settling time
 ARX_MAX_ORDER = 40
 TRUTH = open_loop_truth(400)
@@ -50,10 +58,10 @@ def _errors(step: np.ndarray) -> tuple[float, float]:
     return float(np.max(np.abs(e))), float(np.sqrt(np.mean(e**2)))
 
 
-def _run(phi: float, seed0: int) -> dict:
+def _run(phi: float, seed0: int, records: int = RECORDS) -> dict:
     cover, fails, insufficient, err_auto, err_white, err_arx = [], 0, 0, [], [], []
     rms_auto, rms_arx = [], []
-    for k in range(RECORDS):
+    for k in range(records):
         u, y = open_loop_record(N, phi, seed0 + k)
         sr = search(u, y, dt=1.0, noise="auto")
         est = estimate_step_responses(u, y, n_p=sr.n_p, dt=1.0, noise="auto")
@@ -72,8 +80,8 @@ def _run(phi: float, seed0: int) -> dict:
         a_max, a_rms = _errors(arx_bic_step(u, y, ARX_MAX_ORDER, HORIZON)[1])
         err_arx.append(a_max)
         rms_arx.append(a_rms)
-    return {"coverage": float(np.mean(cover)), "false_fail": fails / RECORDS,
-            "insufficient": insufficient / RECORDS,
+    return {"coverage": float(np.mean(cover)), "false_fail": fails / records,
+            "insufficient": insufficient / records,
             "ratio_white": float(np.median(np.array(err_auto) / np.array(err_white))),
             "ratio_arx_max": float(np.median(err_auto) / np.median(err_arx)),
             "ratio_arx": float(np.median(rms_auto) / np.median(rms_arx)),
@@ -86,8 +94,8 @@ def _run(phi: float, seed0: int) -> dict:
 def test_auto_bands_cover_the_truth_and_windows_agree(phi, seed0):
     r = _run(phi, seed0)
     print(f"phi={phi}: {r}")
-    assert 0.90 <= r["coverage"] <= 0.98
-    assert r["false_fail"] <= 11 / RECORDS
+    assert r["coverage"] >= MIN_COVERAGE
+    assert r["false_fail"] <= MAX_FALSE_FAILS / RECORDS
     # never less accurate than the thesis' white least squares (largest error), and as
     # accurate as the peer ARX over the whole response (RMS error; the largest error of
     # a long FIR is the random walk of its late lags, ~1.0-1.25x the ARX's, printed)
@@ -98,13 +106,20 @@ def test_auto_bands_cover_the_truth_and_windows_agree(phi, seed0):
 @pytest.mark.slow
 @pytest.mark.parametrize("phi,seed0", [(0.5, 2_400_000), (0.9, 2_500_000), (0.97, 2_600_000)])
 def test_a_30_percent_gain_change_fails_the_window_agreement(phi, seed0):
+    rate = change_detection(phi, seed0)
+    assert rate >= 0.90
+
+
+def change_detection(phi: float, seed0: int, records: int = CHANGE_RECORDS) -> float:
+    """Share of ``records`` records with a 30 % gain change between their windows whose
+    window agreement fails."""
     verdicts = []
-    for k in range(CHANGE_RECORDS):
+    for k in range(records):
         u, y = open_loop_record(N, phi, seed0 + k, gain_change=1.3)
         verdicts.append(search(u, y, dt=1.0, noise="auto").agreement[0][0].verdict)
     rate = np.mean([v == "fail" for v in verdicts])
-    print(f"phi={phi}: 30 % gain change fails in {rate:.0%} of {CHANGE_RECORDS} records")
-    assert rate >= 0.90
+    print(f"phi={phi}: 30 % gain change fails in {rate:.0%} of {records} records")
+    return float(rate)
 
 
 def test_white_noise_bands_are_what_the_thesis_promised_and_coloured_ones_are_not():
