@@ -127,13 +127,14 @@ def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | Non
 def zoo_jobs(trials: int, nulls: int, *, families: tuple[str, ...] = tuple(FAMILIES),
              effects: tuple[str, ...] = ZOO_EFFECTS, seed0: int = ZOO_SEED0,
              hours: float | None = None) -> list[tuple]:
-    """``(family, effect, seed, hours)`` for every trial of the suite."""
-    jobs = []
-    for family in families:
-        jobs += [(family, e, zoo_seed(e, k, seed0), hours) for e in effects
-                 for k in range(trials)]
-        jobs += [(family, None, zoo_seed(None, k, seed0), hours) for k in range(nulls)]
-    return jobs
+    """``(family, effect, seed, hours)`` for every trial of the suite, interleaved
+    (trial k of every effect and family before trial k + 1; the families alternate), so
+    a run stopped early still covers every family and effect evenly."""
+    rows = [(k, i, family, e) for family in families
+            for i, e in enumerate((*effects, None))
+            for k in range(trials if e is not None else nulls)]
+    return [(family, e, zoo_seed(e, k, seed0), hours)
+            for k, _, family, e in sorted(rows, key=lambda r: (r[0], r[1]))]
 
 
 def summarise_zoo(results: list[dict[str, Any]]) -> str:

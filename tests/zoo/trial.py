@@ -179,7 +179,7 @@ def draw_effect(family: Family, name: str, rng: np.random.Generator, *,
 
 
 def make_trial(family: Family, effect: str | None, seed: int, *,
-               hours: float | None = None) -> ZooTrial:
+               hours: float | None = None, rel_noise: float | None = None) -> ZooTrial:
     """Simulate one trial of `family` with `effect` (None: a null trial).
 
     Parameters
@@ -190,6 +190,10 @@ def make_trial(family: Family, effect: str | None, seed: int, *,
     seed : int
     hours : float, optional
         Record length (default ``family.hours``).
+    rel_noise : float, optional
+        Sensor and input noise as a fraction of each signal's scale (default: drawn
+        from U(0.01, 0.03); the draw is made either way, so the rest of the trial is
+        the same).
 
     Returns
     -------
@@ -203,7 +207,8 @@ def make_trial(family: Family, effect: str | None, seed: int, *,
     exo = family.exogenous(rng, n_fine)
     extra = exo[family.extra[0]]
     extra_std = float(np.std(extra[warm:]))
-    rel_noise = float(rng.uniform(0.01, 0.03))
+    drawn = float(rng.uniform(0.01, 0.03))
+    rel_noise = drawn if rel_noise is None else float(rel_noise)
     p = family.calibrate(family.params, [
         float(np.mean(exo[k][warm:])) if k in exo else 0.0 for k in family.exo_names])
     sim_seed = int(rng.integers(2**32))
