@@ -283,8 +283,13 @@ def _run_zoo(args: tuple) -> dict[str, Any]:
     return run_zoo_trial(*args)
 
 
-def run_zoo(jobs: list[tuple], *, workers: int = 2) -> list[dict[str, Any]]:
-    """Run zoo trials on a process pool, one printed line per trial."""
+def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None
+            ) -> list[dict[str, Any]]:
+    """Run zoo trials on a process pool, one printed line per trial (and one JSON line
+    per trial appended to `jsonl`, which ``python -m tests.benchmarks.zoo_suite`` tabulates
+    again, several files together)."""
+    import json
+
     results = []
     with ProcessPoolExecutor(max_workers=workers) as pool, \
             progress_bar("zoo suite", "trials") as tick:
@@ -292,6 +297,9 @@ def run_zoo(jobs: list[tuple], *, workers: int = 2) -> list[dict[str, Any]]:
         for res in pool.map(_run_zoo, jobs, chunksize=1):
             results.append(res)
             tick(len(results), len(jobs))
+            if jsonl:
+                with open(jsonl, "a", encoding="utf-8") as fh:
+                    fh.write(json.dumps(res) + "\n")
             mark = "ok " if res["correct"] else "BAD"
             print(f"{mark} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
                   f"{res['label']:>20} {res.get('time_s', float('nan')):5.0f}s | truth "
@@ -314,7 +322,7 @@ def main_zoo(args: argparse.Namespace) -> None:
     jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours)
     if args.keep:
         jobs = [(*j, args.keep) for j in jobs]
-    results = run_zoo(jobs, workers=args.workers)
+    results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl)
     print(f"\n## Zoo suite: {trials} trials per (family, effect) + {nulls} nulls per family, "
           f"seeds from {ZOO_SEED0}, {time.perf_counter() - start:.0f} s wall on "
           f"{args.workers} workers\n")
@@ -476,6 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hours", type=float, default=None,
                         help="zoo: record length (default per family)")
     parser.add_argument("--keep", default=None, help="zoo: keep every trial's folder here")
+    parser.add_argument("--jsonl", default=None, help="zoo: append each trial's row here")
     args = parser.parse_args(argv)
     defaults = {"clean": (50, 50), "nuisance": (50, 100), "pairs": (100, 0)}
     for suite in ([] if args.timing_only else SUITES if args.suite == "all" else [args.suite]):

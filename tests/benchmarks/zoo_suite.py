@@ -26,6 +26,7 @@ import io
 import json
 import math
 import shutil
+import sys
 import tempfile
 import time
 from collections import Counter
@@ -169,3 +170,15 @@ def summarise_zoo(results: list[dict[str, Any]]) -> str:
                   + f"; median time per run {np.median([r.get('time_s', np.nan) for r in sub]):.0f} s",
                   ""]
     return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Tabulate the JSON lines of one or more ``--jsonl`` files together."""
+    rows = [json.loads(line) for path in (sys.argv[1:] if argv is None else argv)
+            for line in Path(path).read_text().splitlines() if line.strip()]
+    print(summarise_zoo(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
