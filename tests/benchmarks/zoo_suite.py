@@ -173,10 +173,15 @@ def summarise_zoo(results: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Tabulate the JSON lines of one or more ``--jsonl`` files together."""
-    rows = [json.loads(line) for path in (sys.argv[1:] if argv is None else argv)
-            for line in Path(path).read_text().splitlines() if line.strip()]
-    print(summarise_zoo(rows))
+    """Tabulate the JSON lines of one or more ``--jsonl`` files together (a trial that
+    appears twice -- same family, effect and seed -- counts once)."""
+    rows = {}
+    for path in (sys.argv[1:] if argv is None else argv):
+        for line in Path(path).read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows.setdefault((r["family"], r["effect"], r["seed"]), r)
+    print(summarise_zoo(list(rows.values())))
     return 0
 
 
