@@ -206,7 +206,7 @@ def test_injected_actuator_effects_act_at_the_valve():
     n = round(delay.effect.parameters["delay_s"] / hx.dt_s)
     op, steam = delay.record.truth["controller"], delay.record.truth["steam"]
     assert np.allclose(steam[n:], c_v * op[:-n], atol=1e-12)
-    sat = make_trial(hx, "saturation", seed=22, hours=2.0)
+    sat = make_trial(hx, "saturation", seed=22, hours=1.0)
     lim = sat.effect.parameters
     sign = 1.0 if math.isfinite(lim["high"]) else -1.0  # mirror a low limit
     bound = lim["high"] if sign > 0 else -lim["low"]
