@@ -7,6 +7,7 @@ Run::
     .venv/bin/python -m tests.benchmarks.bench_discrepancy --trials 10        # smaller
     .venv/bin/python -m tests.benchmarks.bench_discrepancy --tune             # tuning seeds
     .venv/bin/python -m tests.benchmarks.bench_discrepancy --timing-only
+    nice .venv/bin/python -m tests.benchmarks.bench_discrepancy --suite zoo --trials 3 --nulls 5
 
 Suites (each trial: a shipped model -- ``boiler_pressure`` for even seeds, ``drum_level``
 for odd -- with hidden effects of random size and location, white or AR(1) (phi
@@ -22,6 +23,13 @@ sees only the data and the nominal model):
    disturbance, input noise).
 3. ``pairs``: two simultaneous hidden effects at different locations, a random pair of
    catalogue effects per trial (clean simulation).
+4. ``zoo``: the plant zoo (:mod:`tests.zoo`: a heat-exchanger loop with its OP measured,
+   two tanks with an integrating level loop, an interacting 2 x 2 blend, a cooler with an
+   equal-percentage valve), each simulated by its own continuous-time physics, written
+   as a historian export with its model and job YAML and run through
+   ``plantdyn discrepancy --no-prefect`` (:mod:`tests.benchmarks.zoo_suite`); per-family
+   confusion tables, null verdicts, parameter errors, times.  ``--families``,
+   ``--hours`` and ``--keep DIR`` (keep every trial's folder) apply to it.
 
 Printed: the confusion matrices (markdown), correct name and location per effect, the
 null false-positive rate, the median parameter error, the noise-free error removed,
@@ -56,7 +64,7 @@ from pipeline.errors import ConfigError
 from pipeline.model import Model, model_from_dict
 
 MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"
-SUITES = ("clean", "nuisance", "pairs")
+SUITES = ("clean", "nuisance", "pairs", "zoo")
 #: Seeds the thresholds were tuned on (never used for the published numbers or CI).
 TUNE_SEED0 = {"clean": 1000, "nuisance": 700_000, "pairs": 800_000}
 #: The published suites.  Nuisance seeds from 300 000 gave the first published run (IR
@@ -269,6 +277,58 @@ def suite_jobs(suite: str, trials: int, nulls: int, seed0: int,
     return jobs + [(None, trial_seed(seed0, None, k), n, suite) for k in range(nulls)]
 
 
+def _run_zoo(args: tuple) -> dict[str, Any]:
+    from tests.benchmarks.zoo_suite import run_zoo_trial
+
+    return run_zoo_trial(*args)
+
+
+def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None
+            ) -> list[dict[str, Any]]:
+    """Run zoo trials on a process pool, one printed line per trial (and one JSON line
+    per trial appended to `jsonl`, which ``python -m tests.benchmarks.zoo_suite`` tabulates
+    again, several files together)."""
+    import json
+
+    results = []
+    with ProcessPoolExecutor(max_workers=workers) as pool, \
+            progress_bar("zoo suite", "trials") as tick:
+        tick(0, len(jobs))
+        for res in pool.map(_run_zoo, jobs, chunksize=1):
+            results.append(res)
+            tick(len(results), len(jobs))
+            if jsonl:
+                with open(jsonl, "a", encoding="utf-8") as fh:
+                    fh.write(json.dumps(res) + "\n")
+            mark = "ok " if res["correct"] else "BAD"
+            print(f"{mark} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
+                  f"{res['label']:>20} {res.get('time_s', float('nan')):5.0f}s | truth "
+                  f"{res['truth']} | found {res['found']} | chain {res.get('chain')} | "
+                  f"noise {res['noise']:.3f}", flush=True)
+    return results
+
+
+def main_zoo(args: argparse.Namespace) -> None:
+    """The zoo suite (module docstring, suite 4)."""
+    from tests.benchmarks.zoo_suite import ZOO_SEED0, summarise_zoo, zoo_jobs
+    from tests.zoo import FAMILIES, ZOO_EFFECTS
+
+    trials = 20 if args.trials is None else args.trials
+    nulls = 30 if args.nulls is None else args.nulls
+    families = tuple(args.families or FAMILIES)
+    effects = tuple(e for e in args.effects if e in ZOO_EFFECTS) \
+        if args.effects != list(EFFECT_NAMES) else ZOO_EFFECTS
+    start = time.perf_counter()
+    jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours)
+    if args.keep:
+        jobs = [(*j, args.keep) for j in jobs]
+    results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl)
+    print(f"\n## Zoo suite: {trials} trials per (family, effect) + {nulls} nulls per family, "
+          f"seeds from {ZOO_SEED0}, {time.perf_counter() - start:.0f} s wall on "
+          f"{args.workers} workers\n")
+    print(summarise_zoo(results))
+
+
 def run_jobs(jobs: list[tuple], *, workers: int = 2, verbose: bool = True,
              label: str = "hidden-effect suite") -> list[dict[str, Any]]:
     """Run trials on a process pool (terminal: a progress bar with rate and ETA)."""
@@ -420,9 +480,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--effects", nargs="*", default=list(EFFECT_NAMES))
     parser.add_argument("--timing-only", action="store_true")
+    parser.add_argument("--families", nargs="*", default=None, help="zoo: families to run")
+    parser.add_argument("--hours", type=float, default=None,
+                        help="zoo: record length (default per family)")
+    parser.add_argument("--keep", default=None, help="zoo: keep every trial's folder here")
+    parser.add_argument("--jsonl", default=None, help="zoo: append each trial's row here")
     args = parser.parse_args(argv)
     defaults = {"clean": (50, 50), "nuisance": (50, 100), "pairs": (100, 0)}
     for suite in ([] if args.timing_only else SUITES if args.suite == "all" else [args.suite]):
+        if suite == "zoo":
+            main_zoo(args)
+            continue
         trials, nulls = defaults[suite]
         trials = trials if args.trials is None else args.trials
         nulls = nulls if args.nulls is None else args.nulls
@@ -435,8 +503,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n## Hidden-effect suite `{suite}`: {what}, seeds from {seed0}, "
               f"{time.perf_counter() - start:.0f} s wall on {args.workers} workers\n")
         print(summarise_pairs(results) if suite == "pairs" else summarise(results))
-    print("\n## Timing\n")
-    print(timing_1e5())
+    if args.suite != "zoo":
+        print("\n## Timing\n")
+        print(timing_1e5())
     return 0
 
 

@@ -1,0 +1,189 @@
+"""The ``zoo`` suite of :mod:`tests.benchmarks.bench_discrepancy`: the plant zoo as a user runs it.
+
+Each trial (:mod:`tests.zoo.trial`): a family, an injected effect or nothing, a seed;
+the historian export, the nominal model YAML and the discrepancy job YAML are written
+to a scratch folder and the job is run exactly as a user would,
+``plantdyn discrepancy job.yaml --no-prefect`` (in-process ``flows.cli.main``); the
+result is read back from the run directory's ``discrepancy.json``.
+
+Tabulated per family: the confusion table (true effect × named effect, ``none`` =
+``no_significant_effect``), the nulls' verdicts (``no_significant_effect`` /
+``inconclusive`` / ``effect_found``), correct name and location per effect (the found
+location or one of its ``equivalent_locations``), the median parameter error of the
+correct trials (largest relative error over the truth's non-zero numeric parameters;
+a saturation's infinite limit is not scored) and the median wall time per run.
+
+Seeds: trial ``k`` of effect ``e`` uses ``ZOO_SEED0 + 1000 * index(e) + k`` (nulls: the
+index after the last effect); each family draws from ``default_rng([seed,
+crc32(family)])``, so the families' trials differ for one seed.  Nothing was tuned on
+any zoo seed: the first run (this build) is the baseline.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tests.zoo import FAMILIES, ZOO_EFFECTS
+from tests.zoo.trial import make_trial, write_trial
+
+#: The published zoo seeds (fresh: never read before the baseline run of build 1).
+ZOO_SEED0 = 3_000_000
+#: Row/column label of "nothing named" / "nothing injected".
+NONE = "none"
+#: Catalogue names the workflow can report (columns of the confusion tables).
+NAMED = ("gain", "dead_time", "extra_lag", "inverse_response", "sensor_bias_drift",
+         "operating_point_gain", "deadband", "saturation", "unmodelled_input", "backlash",
+         "stiction")
+
+
+def zoo_seed(effect: str | None, k: int, seed0: int = ZOO_SEED0) -> int:
+    """Seed of trial `k` of `effect` (None: a null trial)."""
+    index = len(ZOO_EFFECTS) if effect is None else ZOO_EFFECTS.index(effect)
+    return seed0 + 1000 * index + k
+
+
+def _finite(value: Any) -> float | None:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def parameter_error(truth: dict[str, Any], found: dict[str, Any]) -> float:
+    """Largest relative error over the truth's finite non-zero numeric parameters."""
+    errors = []
+    for key, value in truth["parameters"].items():
+        t = _finite(value)
+        if t is None or t == 0.0:
+            continue
+        f = _finite(found["parameters"].get(key))
+        errors.append(1.0 if f is None else abs(f - t) / abs(t))
+    return max(errors) if errors else float("nan")
+
+
+def _correct(truth: dict[str, Any] | None, found: dict[str, Any] | None) -> bool:
+    if truth is None or found is None:
+        return truth is None and found is None
+    places = {found["location"], *found.get("equivalent_locations", [])}
+    return truth["name"] == found["name"] and truth["location"] in places
+
+
+def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | None = None,
+                  keep: str | None = None) -> dict[str, Any]:
+    """One zoo trial through ``plantdyn discrepancy``; the row the suite tabulates."""
+    from flows.cli import main
+
+    trial = make_trial(FAMILIES[family], effect, seed, hours=hours)
+    truth = None if trial.effect is None else trial.effect.to_dict()
+    root = Path(tempfile.mkdtemp(prefix=f"zoo_{family}_"))
+    row: dict[str, Any] = {"family": family, "effect": effect or NONE, "seed": seed,
+                           "truth": trial.effect.describe() if trial.effect else None,
+                           "noise": trial.rel_noise}
+    try:
+        job = write_trial(trial, root)
+        out = io.StringIO()
+        start = time.perf_counter()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+            rc = main(["discrepancy", "--no-prefect", "--progress", "never", str(job)])
+        row["time_s"] = time.perf_counter() - start
+        lines = out.getvalue().strip().splitlines()
+        if rc != 0 or not lines:
+            return {**row, "label": "error", "verdict": f"error: exit {rc}", "found": None,
+                    "correct": False, "param_error": float("nan")}
+        d = json.loads((Path(lines[-1]) / "discrepancy.json").read_text())
+    finally:
+        if keep:
+            shutil.copytree(root, Path(keep) / f"{family}_{effect or NONE}_{seed}",
+                            dirs_exist_ok=True)
+        shutil.rmtree(root, ignore_errors=True)
+    found = d.get("effect")
+    verdict = d["verdict"]
+    label = {"no_significant_effect": NONE, "inconclusive": "inconclusive"}.get(
+        verdict, found["name"] if found else NONE)
+    correct = _correct(truth, found) if verdict == "effect_found" or truth is None else False
+    return {**row, "label": label, "verdict": verdict, "correct": correct,
+            "found": None if not found else (
+                f"{found['name']} at {found['location']}: " + ", ".join(
+                    f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                    for k, v in found["parameters"].items())),
+            "chain": [f"{e['name']}@{e['location']}" for e in d.get("effects", [])],
+            "lookalikes": [f"{e['name']}@{e['location']}" for e in d.get("lookalikes", [])
+                           if isinstance(e, dict) and "name" in e],
+            "param_error": parameter_error(truth, found) if correct and truth else float("nan")}
+
+
+def zoo_jobs(trials: int, nulls: int, *, families: tuple[str, ...] = tuple(FAMILIES),
+             effects: tuple[str, ...] = ZOO_EFFECTS, seed0: int = ZOO_SEED0,
+             hours: float | None = None) -> list[tuple]:
+    """``(family, effect, seed, hours)`` for every trial of the suite, interleaved
+    (trial k of every effect and family before trial k + 1; the families alternate), so
+    a run stopped early still covers every family and effect evenly."""
+    rows = [(k, i, family, e) for family in families
+            for i, e in enumerate((*effects, None))
+            for k in range(trials if e is not None else nulls)]
+    return [(family, e, zoo_seed(e, k, seed0), hours)
+            for k, _, family, e in sorted(rows, key=lambda r: (r[0], r[1]))]
+
+
+def summarise_zoo(results: list[dict[str, Any]]) -> str:
+    """Per-family confusion tables, null verdicts, per-effect rates, errors and times."""
+    lines = []
+    for family in dict.fromkeys(r["family"] for r in results):
+        sub = [r for r in results if r["family"] == family]
+        cols = [c for c in (*NAMED, "inconclusive", NONE, "error")
+                if c in ("inconclusive", NONE) or any(r["label"] == c for r in sub)]
+        counts = Counter((r["effect"], r["label"]) for r in sub)
+        lines += [f"### {family}", "",
+                  "| true \\ named | " + " | ".join(cols) + " | correct | median param err "
+                  "| median time s |", "|---" * (len(cols) + 4) + "|"]
+        for row in (*ZOO_EFFECTS, NONE):
+            rs = [r for r in sub if r["effect"] == row]
+            if not rs:
+                continue
+            pe = [r["param_error"] for r in rs if math.isfinite(r["param_error"])]
+            lines.append(
+                f"| {row} | " + " | ".join(str(counts[(row, c)]) for c in cols)
+                + f" | {sum(r['correct'] for r in rs)}/{len(rs)} | "
+                + (f"{np.median(pe):.3f}" if pe else "-")
+                + f" | {np.median([r.get('time_s', float('nan')) for r in rs]):.0f} |")
+        nulls = [r for r in sub if r["effect"] == NONE]
+        eff = [r for r in sub if r["effect"] != NONE]
+        v = Counter(r["verdict"] for r in nulls)
+        pe = [r["param_error"] for r in eff if math.isfinite(r["param_error"])]
+        lines += ["", "nulls: " + ", ".join(f"{k} {n}" for k, n in sorted(v.items()))
+                  + f" (of {len(nulls)}); effects named with location: "
+                  f"{sum(r['correct'] for r in eff)}/{len(eff)}; median parameter error "
+                  + (f"{np.median(pe):.3f}" if pe else "-")
+                  + f"; median time per run {np.median([r.get('time_s', np.nan) for r in sub]):.0f} s",
+                  ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Tabulate the JSON lines of one or more ``--jsonl`` files together (a trial that
+    appears twice -- same family, effect and seed -- counts once)."""
+    rows = {}
+    for path in (sys.argv[1:] if argv is None else argv):
+        for line in Path(path).read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                rows.setdefault((r["family"], r["effect"], r["seed"]), r)
+    print(summarise_zoo(list(rows.values())))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
