@@ -152,3 +152,25 @@ def test_divergence_through_a_nonlinear_loop_names_the_loop():
     with pytest.raises(DivergenceError, match=r"diverged: .* look at the loop\(s\) "
                                               r"\['f', 'g', 'y'\]"):
         simulate(model, {"u": np.ones(5000)}, dt_s=1.0)
+
+
+def test_a_candidate_that_diverges_is_named_with_the_scale_hint():
+    """The OP-as-fraction case: the search fits ``gain`` with a factor near 100 in the
+    boiler's pressure loop (PI kp -0.554 x 100 through 8 s of dead time): the augmented
+    model overflows, and the message names the effect and the likely unit mismatch."""
+    from pipeline.demo import boiler_model
+    from pipeline.discrepancy.chain import build, simulate_with
+    from pipeline.effects import Effect
+
+    model = boiler_model()
+    check_simulable(model, dt_s=1.0, n_samples=20_000)  # the nominal model is stable
+    effect = Effect(name="gain", location="controller", parameters={"factor": 100.0})
+    augmented = build(model, [effect], 1.0)
+    steam = np.sin(np.arange(20_000) / 300.0)
+    with pytest.raises(DivergenceError, match=r"the discrepancy search's model with gain at "
+                                              r"controller: factor=100 diverges: model "
+                                              r"'boiler_pressure' diverged: .* loop .* a gain "
+                                              r"factor of 100 at 'controller' usually means a "
+                                              r"signal's scale differs from the model's \(an OP "
+                                              r"exported as a fraction 0-1"):
+        simulate_with(augmented, [effect], {"steam_flow": steam}, dt_s=1.0)
