@@ -98,12 +98,29 @@ def check_catalog(root: str | os.PathLike[str], *, readonly: bool = False) -> No
 
 def _utc_times(texts: Sequence[str | None], root: Path, what: str) -> list[dt.datetime | None]:
     """Catalog times as instants; a text that is not one is a storage fault (exit 2)."""
-    try:
+    with catalog_values(root, what):
         return [None if t is None else parse_iso_utc(t) for t in texts]
-    except ValueError as exc:
-        raise StorageError(f"storage {root / CATALOG_NAME}: {what}: {exc}; run `plantdyn "
-                           f"reindex {root}` to rebuild the catalog from the run folders"
-                           ) from None
+
+
+@contextlib.contextmanager
+def catalog_values(root: Path, what: str) -> Iterator[None]:
+    """Values read from the catalog that do not fit its columns (an edited or damaged
+    catalog: a text where a number belongs, a JSON column that is not JSON) are a storage
+    fault naming the fix (exit 2), not an internal error.
+
+    Parameters
+    ----------
+    root : Path
+        The storage root.
+    what : str
+        What was being read, for the message.
+    """
+    try:
+        yield
+    except (ValueError, TypeError, AttributeError, pl.exceptions.PolarsError) as exc:
+        raise StorageError(f"storage {root / CATALOG_NAME}: {what}: {str(exc)[:200]}; run "
+                           f"`plantdyn reindex {root}` to rebuild the catalog from the run "
+                           "folders") from None
 
 
 class ResultStore:
@@ -208,7 +225,8 @@ class ResultStore:
             con.close()
 
     def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
-        with storage_faults(self.catalog_path, "reading the catalog"):
+        with storage_faults(self.catalog_path, "reading the catalog"), \
+                catalog_values(self.root, "reading the catalog"):  # e.g. a text not UTF-8
             con = self._connect()
             try:
                 return con.execute(sql, params).fetchall()
@@ -522,6 +540,10 @@ class ResultStore:
             "WHERE job = ? ORDER BY created_utc, run_id",
             (job,),
         )
+        with catalog_values(self.root, f"runs of job {job!r}"):
+            return self._runs_frame(job, rows)
+
+    def _runs_frame(self, job: str, rows: list) -> pl.DataFrame:
         return pl.DataFrame(
             {
                 "job": [r[0] for r in rows],
@@ -591,7 +613,8 @@ class ResultStore:
         columns["created_utc"] = _utc_times(columns["created_utc"], self.root,
                                             f"runs of job {job!r}, created_utc")
         schema = dict.fromkeys(names, pl.String) | {"created_utc": TIME_UTC, "value": pl.Float64}
-        return pl.DataFrame(columns, schema=schema)
+        with catalog_values(self.root, f"metrics of job {job!r}"):
+            return pl.DataFrame(columns, schema=schema)
 
     def read_run(self, job: str, run_id: str, *, verify: bool = True) -> StoredRun:
         """Parse the files of a stored run.
