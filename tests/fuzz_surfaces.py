@@ -226,8 +226,11 @@ def corrupt_store(site: Path, rng: random.Random, decoy: Path) -> list[str]:
         else:
             junk = rng.choice([storage / "fuzz" / ".tmp-zz", storage / "other" / "r1",
                                storage / "fuzz" / "x" / "y", storage / "fuzz" / "trend.png"])
-            make_special(junk, rng.choice(SPECIALS + ("empty",)), decoy) \
-                if rng.random() < 0.5 else junk.mkdir(parents=True, exist_ok=True)
+            if rng.random() < 0.5:
+                make_special(junk, rng.choice(SPECIALS + ("empty",)), decoy)
+            else:
+                remove(junk)
+                junk.mkdir(parents=True)
             done.append(f"junk:{junk.relative_to(storage)}")
     return done
 

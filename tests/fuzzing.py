@@ -592,7 +592,13 @@ def campaign(cases: int, seed: int, *, time_limit: float = TIME_LIMIT_S,
         for k in range(cases):
             folder = base / f"case{seed + k}"
             folder.mkdir()
-            done = make_case(folder, seed + k, template, surface_share)
+            try:
+                done = make_case(folder, seed + k, template, surface_share)
+            except Exception as exc:  # noqa: BLE001 - the generator's own fault: say, go on
+                print(f"seed {seed + k}: case generator failed ({exc!r}); skipped",
+                      file=sys.stderr)
+                shutil.rmtree(folder, ignore_errors=True)
+                continue
             before = listing(folder)
             res, killed = worker.run(folder, time_limit, mem_limit)
             if res is None:
