@@ -11,13 +11,16 @@ one message with the fix (exit 2):
 
 from __future__ import annotations
 
+import json
 import sqlite3
+
+import pytest
 
 from tests.conftest import write_job
 from tests.test_safe_writes import base, cli, listing, refused, site  # noqa: F401 - fixtures
 
 
-def test_catalog_value_that_is_not_json(site):
+def test_catalog_value_that_is_not_json(site):  # noqa: F811 - the imported fixture
     storage = site / "storage"
     con = sqlite3.connect(storage / "catalog.sqlite")
     con.execute("UPDATE runs SET input_sha256s = ''")
@@ -33,7 +36,7 @@ def test_catalog_value_that_is_not_json(site):
     assert rc == 0 and "catalog rebuilt from 2 run folder(s)" in out, err[-2000:]
 
 
-def test_catalog_with_a_name_that_is_not_utf8(site):
+def test_catalog_with_a_name_that_is_not_utf8(site):  # noqa: F811 - the imported fixture
     storage = site / "storage"
     catalog = storage / "catalog.sqlite"
     con = sqlite3.connect(catalog)
@@ -56,3 +59,18 @@ def test_catalog_with_a_name_that_is_not_utf8(site):
     rc, out, err = cli("reindex", storage)
     assert rc == 0 and "moved aside to" in out and "catalog rebuilt from 2 run folder(s)" in out, \
         err[-2000:]
+
+
+@pytest.mark.parametrize("key, value", [("files", 1e308), ("files", [1]), ("files", None),
+                                        ("files", [{"name": 5}]), ("config", "x")])
+def test_export_of_a_manifest_whose_files_are_not_a_list(site, tmp_path, key, value):  # noqa: F811
+    """Seeds 6355 and 6375 (export surface): ``"files": 1e308`` made export raise
+    ``TypeError`` before any --out check."""
+    run = min(p for p in (site / "storage" / "plant").iterdir() if p.is_dir())
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest[key] = value
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    before = listing(tmp_path)
+    refused(*cli("export", run, "--format", "csv", "--out", tmp_path / "m.csv"),
+            "is not what plantdyn writes", "re-run the job")
+    assert listing(tmp_path) == before
