@@ -211,7 +211,10 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
     model : Model
         The job's model; its outputs select the measured signals.
     """
+    from pipeline.stability import check_delays, check_simulable
+
     section = cfg.discrepancy
+    check_delays(model, record_s=rec.values.shape[0] * rec.dt_s)
     factor = configured_decimation(cfg, rec.dt_s) or 1
     vals, good = rec.values, rec.good
     if factor > 1:
@@ -229,6 +232,7 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
             f"{dt_s:g} s (of {n_grid}); the discrepancy workflow needs at least {MIN_SAMPLES}. "
             f"Bad samples per signal: {bad} — drop a signal with many bad samples from the "
             "job, or supply a cleaner export")
+    check_simulable(model, dt_s=dt_s, n_samples=b - a)
     seg = vals[a:b]
     op_mode = section.operating_point if section is not None else "mean"
     op: dict[str, float] = {}
@@ -385,7 +389,7 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
     """
     from pipeline.effects import predict_outputs
 
-    model = model_from_dict({"model": doc["model"]})
+    model = model_from_dict({"model": doc["model"]}, max_blocks=None)
     sim = predict_outputs(model, None, data.inputs, dt_s=data.dt_s,
                           outputs=list(data.measured), initial=result.config.initial)
     n = next(iter(data.measured.values())).size

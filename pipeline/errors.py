@@ -60,3 +60,8 @@ class StorageError(UserInputError, OSError):
 
 class ModelError(ConfigError):
     """A block-diagram model is invalid (unknown block, algebraic loop, bad parameter)."""
+
+
+class DivergenceError(ModelError):
+    """A simulation from finite inputs produced non-finite signals: the model is unstable
+    (the message names the block or loop and its pole)."""

@@ -52,7 +52,7 @@ from typing import Any, Literal
 import numpy as np
 import scipy.signal
 
-from pipeline.errors import ConfigError, DataQualityError, ModelError
+from pipeline.errors import ConfigError, DataQualityError, DivergenceError, ModelError
 from pipeline.blocks import Block, Deadband, OperatingPointGain, Saturation
 from pipeline.model import Model
 
@@ -60,6 +60,7 @@ __all__ = [
     "DiscreteStateSpace",
     "SimulationResult",
     "discrete_state_space",
+    "loop_state_matrix",
     "simulate",
     "state_names",
 ]
@@ -70,6 +71,12 @@ DELAY_INTEGER_TOL = 1e-9
 #: dense lifted matrices cost more than the per-sample path, which keeps delays in
 #: ring buffers; ``method="auto"`` then uses the per-sample path.
 MAX_LIFTED_STATES = 1500
+#: A dead time longer than both the simulated record and this many samples is refused
+#: (its register holds one float per sample: ``delay_s: 1e12`` at 1 s asked for 7 TiB).
+MAX_DELAY_SAMPLES = 10**6
+#: Largest system :func:`discrete_state_space` assembles as dense matrices (8 n_x² bytes
+#: each: 20 000 states are 3.2 GB).
+MAX_DENSE_STATES = 20_000
 #: Samples per lifted step: the boundary recursion runs N/chunk Python iterations and
 #: the Toeplitz product costs ~chunk·n_signals·n_inputs·N flops; 64 balances both.
 _CHUNK = 64
@@ -213,6 +220,16 @@ def _discretise_block(block: Block, dt_s: float, n_delay: int) -> _DiscreteBlock
     )
 
 
+def _check_delay_length(model: Model, dt_s: float, n_samples: int) -> None:
+    """Refuse a dead time longer than the record and than :data:`MAX_DELAY_SAMPLES`."""
+    from pipeline.stability import check_delays
+
+    limit_s = max(n_samples, MAX_DELAY_SAMPLES) * dt_s
+    if any(b.dead_time_s > limit_s for b in model.blocks):
+        check_delays(model, record_s=n_samples * dt_s,
+                     where=f"the record ({n_samples} samples at dt_s={dt_s:g})")
+
+
 def _discretise(model: Model, dt_s: float) -> list[_DiscreteBlock]:
     delays = _delay_samples(model, dt_s)
     return [_discretise_block(b, dt_s, delays[b.name]) for b in model.blocks]
@@ -310,7 +327,55 @@ def discrete_state_space(model: Model, *, dt_s: float) -> DiscreteStateSpace:
     """
     dt_s = _check_dt(dt_s)
     _require_linear(model, "discrete_state_space")
+    n_x = sum(len(b.transfer_function()[1]) - 1 + round(b.dead_time_s / dt_s)
+              for b in model.blocks)
+    if n_x > MAX_DENSE_STATES:
+        raise ModelError(
+            f"model {model.name!r}: {n_x} states at dt_s={dt_s:g} (dead times count one state "
+            f"per sample); at most {MAX_DENSE_STATES} fit dense matrices -- shorten the "
+            "delay_s values or use a longer dt_s")
     return _assemble(model, _discretise(model, dt_s), dt_s)
+
+
+def loop_state_matrix(model: Model, names: Sequence[str], *, dt_s: float,
+                      max_states: int) -> np.ndarray | None:
+    """State matrix of the linear blocks ``names`` alone (signals from outside them held
+    at zero; dead times as shift registers): its eigenvalues are the loop's poles.
+
+    Parameters
+    ----------
+    model : Model
+    names : sequence of str
+        Linear blocks of ``model``.
+    dt_s : float
+        Sample period, s.
+    max_states : int
+        None is returned above this many states (dense eigenvalues cost n_x³).
+    """
+    dt_s = _check_dt(dt_s)
+    delays = _delay_samples(model, dt_s)
+    blocks = [model.block(n) for n in names]
+    sizes = [len(b.transfer_function()[1]) - 1 + delays[b.name] for b in blocks]
+    if not 0 < sum(sizes) <= max_states:
+        return None
+    sub = [_discretise_block(b, dt_s, delays[b.name]) for b in blocks]
+    local = {name: j for j, name in enumerate(names)}
+    m = np.zeros((len(blocks), len(blocks)))
+    for j, block in enumerate(blocks):
+        for term in block.inputs:
+            if term.signal in local:
+                m[j, local[term.signal]] += term.k
+    parts = [_augmented(db) for db in sub]
+    n_x, n_b = sum(len(p[1]) for p in parts), len(parts)
+    a_blk, b_blk = np.zeros((n_x, n_x)), np.zeros((n_x, n_b))
+    c_blk, d_blk = np.zeros((n_b, n_x)), np.zeros(n_b)
+    offset = 0
+    for j, (a, b, c, d) in enumerate(parts):
+        sl = slice(offset, offset + len(b))
+        a_blk[sl, sl], b_blk[sl, j], c_blk[j, sl], d_blk[j] = a, b, c, d
+        offset += len(b)
+    c_sys = np.linalg.solve(np.eye(n_b) - d_blk[:, None] * m, c_blk)
+    return a_blk + b_blk @ m @ c_sys
 
 
 def _assemble(model: Model, blocks: Sequence[_DiscreteBlock], dt_s: float) -> DiscreteStateSpace:
@@ -641,17 +706,22 @@ def simulate(
     Raises
     ------
     ModelError
-        A delay not a whole number of samples; ``"linear"``/``"steady"`` on a nonlinear
-        model; no unique steady state; a wrongly sized initial state.
+        A delay not a whole number of samples, or longer than both the record and
+        :data:`MAX_DELAY_SAMPLES`; ``"linear"``/``"steady"`` on a nonlinear model; no
+        unique steady state; a wrongly sized initial state.
     ConfigError
         Bad `dt_s`, `method`, `initial` or input names/shapes.
     DataQualityError
         Non-finite input values.
+    DivergenceError
+        A signal overflowed although every input is finite: the model (or a loop of it)
+        is unstable; the message names the part and its pole.
     """
     dt_s = _check_dt(dt_s)
     if method not in ("auto", "linear", "per_sample"):
         raise ConfigError(f"method={method!r}; allowed: 'auto', 'linear', 'per_sample'")
     u = _input_matrix(model, inputs)
+    _check_delay_length(model, dt_s, u.shape[0])
     blocks = _discretise(model, dt_s)
     n_x = sum(len(db.b) + db.n_delay for db in blocks)
 
@@ -664,30 +734,18 @@ def simulate(
         method = "linear" if model.is_linear and n_x <= MAX_LIFTED_STATES else "per_sample"
     system = _assemble(model, blocks, dt_s) if method == "linear" or steady else None
 
-    if isinstance(initial, str):
-        if initial == "rest":
-            x0 = np.zeros(n_x)
-        elif initial == "steady":
-            assert system is not None
-            x0 = _steady_state(model, system, u[0])
-        else:
-            raise ConfigError(
-                f"initial={initial!r}; allowed: 'rest', 'steady' or a state vector"
-            )
-    else:
-        x0 = np.asarray(initial, dtype=float)
-        if x0.shape != (n_x,) or not np.all(np.isfinite(x0)):
-            raise ModelError(
-                f"model {model.name!r}: initial state has shape {x0.shape} (finite: "
-                f"{bool(np.all(np.isfinite(x0)))}); expected {n_x} finite values in the "
-                "layout of state_names(model, dt_s=...)"
-            )
+    x0 = _initial_state(model, initial, system, u, n_x)
 
-    if method == "linear":
-        assert system is not None
-        y = _lifted_response(system.a, system.b, system.c, system.d, u, x0)
-    else:
-        y = _per_sample_response(model, blocks, u, x0)
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is reported below
+        if method == "linear":
+            assert system is not None
+            y = _lifted_response(system.a, system.b, system.c, system.d, u, x0)
+        else:
+            y = _per_sample_response(model, blocks, u, x0)
+    if not np.isfinite(y).all():  # the inputs are finite (checked above): the model grew
+        from pipeline.stability import divergence_message
+
+        raise DivergenceError(divergence_message(model, y, dt_s=dt_s))
 
     names = model.block_names
     signals = {name: np.ascontiguousarray(y[:, i]) for i, name in enumerate(names)}
@@ -700,6 +758,26 @@ def simulate(
         dt_s=dt_s,
         method=method,
     )
+
+
+def _initial_state(model: Model, initial: Any, system: DiscreteStateSpace | None,
+                   u: np.ndarray, n_x: int) -> np.ndarray:
+    """The state at sample 0 for :func:`simulate`'s ``initial``."""
+    if isinstance(initial, str):
+        if initial == "rest":
+            return np.zeros(n_x)
+        if initial == "steady":
+            assert system is not None
+            return _steady_state(model, system, u[0])
+        raise ConfigError(f"initial={initial!r}; allowed: 'rest', 'steady' or a state vector")
+    x0 = np.asarray(initial, dtype=float)
+    if x0.shape != (n_x,) or not np.all(np.isfinite(x0)):
+        raise ModelError(
+            f"model {model.name!r}: initial state has shape {x0.shape} (finite: "
+            f"{bool(np.all(np.isfinite(x0)))}); expected {n_x} finite values in the "
+            "layout of state_names(model, dt_s=...)"
+        )
+    return x0
 
 
 def _steady_state(model: Model, system: DiscreteStateSpace, u0: np.ndarray) -> np.ndarray:

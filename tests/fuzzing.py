@@ -1,5 +1,7 @@
 """Seeded mutation fuzzing of what users feed plantdyn: historian CSV (long and wide),
-JSON MCAP and job YAML (issue 10).
+JSON MCAP and job YAML (issue 10); and, every other seed, the commands around a results
+store -- export, runs (--plot), reindex, monitor baselines, discrepancy models, corrupt
+catalogs and manifests, special files (issue 33, :mod:`tests.fuzz_surfaces`).
 
 Every case is a folder with a job YAML and its export, built from a valid case by one
 to three seeded mutations (bytes, lines, fields, timestamps, numbers, encodings, YAML
@@ -9,7 +11,9 @@ values, aliases, nesting, ...).  A case passes when ``plantdyn run --no-prefect 
   the memory limit;
 * prints no traceback, and on exit 2 exactly one ``plantdyn: error:`` line;
 * leaves no half-written result: no ``.tmp-*`` folder under the storage root, and every
-  run directory has its manifest and every file the manifest lists.
+  run directory has its manifest and every file the manifest lists;
+* writes nothing outside what its command may change (a surface case: the case folder is
+  listed before and after; a run case: its storage root).
 
 Cases run in-process in a worker subprocess (an import costs 2 s; a case 0.1–0.5 s); the
 parent watches each case's wall time and the worker's resident memory and kills the
@@ -367,8 +371,15 @@ YAML_MUTATIONS = [y_value, y_value, y_value, y_delete, y_alias_bomb, y_deep,
 
 
 # --------------------------------------------------------------------------- cases
-def make_case(folder: Path, seed: int) -> dict:
-    """Write case ``seed`` into ``folder``; return what was done (for the report)."""
+def make_case(folder: Path, seed: int, template: Path | None = None,
+              surface_share: float = 0.5) -> dict:
+    """Write case ``seed`` into ``folder``; return what was done (for the report).  With a
+    template store, a share ``surface_share`` of the seeds (drawn per seed) are store
+    surfaces (:mod:`tests.fuzz_surfaces`)."""
+    if template is not None and random.Random(seed ^ 0x5EED).random() < surface_share:
+        from tests.fuzz_surfaces import make_surface_case
+
+        return make_surface_case(folder, seed, template)
     rng = random.Random(seed)
     kind = rng.choice(list(BASES))
     path, job = BASES[kind](folder, rng)
@@ -392,19 +403,20 @@ def make_case(folder: Path, seed: int) -> dict:
     return done
 
 
-def leftovers(folder: Path) -> list[str]:
-    """Half-written results under the case's storage root (the pass criteria)."""
+def leftovers(folder: Path, before: set[str] = frozenset()) -> list[str]:
+    """Half-written results under the case's storage root (the pass criteria); run
+    folders in ``before`` (a surface case's own corrupt store) are not judged."""
     bad = []
-    storage = folder / "storage"
-    if not storage.exists():
+    storage = folder / "site" / "storage" if (folder / "site").is_dir() else folder / "storage"
+    if not storage.is_dir() or storage.is_symlink():
         return bad
     for p in storage.rglob("*"):
-        if p.is_dir() and p.name.startswith(".tmp"):
+        if p.is_dir() and p.name.startswith(".tmp") and str(p) not in before:
             bad.append(f"temp folder {p.relative_to(folder)}")
     job_root = storage / "fuzz"
-    if job_root.is_dir():
+    if job_root.is_dir() and not job_root.is_symlink():
         for run in job_root.iterdir():
-            if not run.is_dir() or run.name.startswith("."):
+            if not run.is_dir() or run.name.startswith(".") or str(run) in before:
                 continue
             man = run / "manifest.json"
             if not man.is_file():
@@ -412,7 +424,7 @@ def leftovers(folder: Path) -> list[str]:
                 continue
             try:
                 files = json.loads(man.read_text()).get("files", [])
-            except ValueError:
+            except (ValueError, OSError):
                 bad.append(f"run {run.name}: unreadable manifest")
                 continue
             for entry in files:
@@ -422,17 +434,21 @@ def leftovers(folder: Path) -> list[str]:
 
 
 def run_in_process(folder: Path) -> dict:
-    """``plantdyn run --no-prefect job.yaml`` in this process, output captured."""
+    """``plantdyn run --no-prefect job.yaml`` (or a surface case's ``argv.json``) in this
+    process, output captured."""
     from flows.cli import main
 
     out, err = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()
     cwd = os.getcwd()
+    spec = {"argv": ["run", "--no-prefect", str(folder / "job.yaml")], "cwd": str(folder)}
+    if (folder / "argv.json").is_file():
+        spec = json.loads((folder / "argv.json").read_text())
     try:
-        os.chdir(folder)
+        os.chdir(spec["cwd"])
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
-                rc = main(["run", "--no-prefect", str(folder / "job.yaml")])
+                rc = main(spec["argv"])
             except SystemExit as exc:  # argparse
                 rc = exc.code if isinstance(exc.code, int) else 2
     finally:
@@ -451,7 +467,22 @@ class Outcome:
     stderr_tail: str
 
 
-def judge(done: dict, res: dict | None, folder: Path, killed: str = "") -> Outcome:
+def storage_of(folder: Path) -> Path:
+    """The storage root a run case's (possibly mutated) job names: where it may write."""
+    try:
+        doc = yaml.safe_load((folder / "job.yaml").read_text(encoding="utf-8"))
+        value = doc.get("storage", "storage") if isinstance(doc, dict) else "storage"
+        return (folder / str(value)).resolve() if isinstance(value, str) and value \
+            and "\0" not in value else folder / "storage"
+    except Exception:  # noqa: BLE001 - any unreadable job: its default
+        return folder / "storage"
+
+
+def judge(done: dict, res: dict | None, folder: Path, killed: str = "",
+          before: dict | None = None) -> Outcome:
+    """The outcome of one case (``before``: the case folder's listing before it ran)."""
+    from tests.fuzz_surfaces import listing, writes_outside
+
     if res is None:
         return Outcome(done["seed"], done["base"], done["mutations"], None, 0.0, killed, "")
     err = res["stderr"]
@@ -462,9 +493,16 @@ def judge(done: dict, res: dict | None, folder: Path, killed: str = "") -> Outco
         problem = "traceback"
     elif res["rc"] == 2 and err.count("plantdyn: error: ") != 1:
         problem = "exit 2 without exactly one error line"
-    left = leftovers(folder)
+    left = leftovers(folder, set(before or ()))
     if left:
         problem = (problem + "; " if problem else "") + "half-written: " + ", ".join(left[:3])
+    if before is not None:
+        spec = json.loads((folder / "argv.json").read_text()) \
+            if (folder / "argv.json").is_file() else {"may_change": [str(storage_of(folder))]}
+        outside = writes_outside(before, listing(folder), spec["may_change"])
+        if outside:
+            problem = (problem + "; " if problem else "") + "wrote outside: " + \
+                ", ".join(outside[:3])
     tail = err[-600:] if problem else err.strip().splitlines()[-1][:300] if err.strip() else ""
     return Outcome(done["seed"], done["base"], done["mutations"], res["rc"], res["seconds"],
                    problem, tail)
@@ -540,20 +578,37 @@ class _Worker:
 
 def campaign(cases: int, seed: int, *, time_limit: float = TIME_LIMIT_S,
              mem_limit: float = MEMORY_LIMIT_MB, keep: Path | None = None,
-             progress=None) -> list[Outcome]:
-    """Run ``cases`` cases (seeds ``seed .. seed + cases - 1``) and judge each."""
+             progress=None, surface_share: float = 0.5) -> list[Outcome]:
+    """Run ``cases`` cases (seeds ``seed .. seed + cases - 1``) and judge each; a share
+    ``surface_share`` of them are store-surface cases on a template store made first."""
+    from tests.fuzz_surfaces import build_template, listing
+
     outcomes = []
-    worker = _Worker()
     base = Path(tempfile.mkdtemp(prefix="plantdyn-fuzz-"))
+    template = build_template(base / "template") if surface_share > 0 else None
+    outside = listing(base)
+    worker = _Worker()
     try:
         for k in range(cases):
             folder = base / f"case{seed + k}"
             folder.mkdir()
-            done = make_case(folder, seed + k)
+            try:
+                done = make_case(folder, seed + k, template, surface_share)
+            except Exception as exc:  # noqa: BLE001 - the generator's own fault: say, go on
+                print(f"seed {seed + k}: case generator failed ({exc!r}); skipped",
+                      file=sys.stderr)
+                shutil.rmtree(folder, ignore_errors=True)
+                continue
+            before = listing(folder)
             res, killed = worker.run(folder, time_limit, mem_limit)
             if res is None:
                 worker = _Worker()
-            out = judge(done, res, folder, killed)
+            out = judge(done, res, folder, killed, before)
+            now = {p: v for p, v in listing(base).items() if not p.startswith(str(folder))}
+            if now != outside and storage_of(folder).is_relative_to(folder):
+                out.problem += "; wrote outside the case folder: " + ", ".join(
+                    sorted(set(now) ^ set(outside))[:3])
+            outside = now
             outcomes.append(out)
             if out.problem and keep is not None:
                 shutil.copytree(folder, keep / folder.name, dirs_exist_ok=True)
@@ -573,7 +628,14 @@ def summary(outcomes: list[Outcome]) -> dict:
     bad = [o for o in outcomes if o.problem]
     return {"cases": len(outcomes), "exit_codes": rcs, "problems": len(bad),
             "median_s": float(np.median([o.seconds for o in outcomes])) if outcomes else 0.0,
-            "by_base": {b: sum(o.base == b for o in outcomes) for b in BASES}}
+            "by_base": {b: sum(o.base == b for o in outcomes)
+                        for b in sorted({o.base for o in outcomes})},
+            "by_base_exit": {b: {str(rc): sum(o.base == b and o.rc == rc for o in outcomes)
+                                 for rc in sorted({o.rc for o in outcomes if o.base == b},
+                                                  key=str)}
+                             for b in sorted({o.base for o in outcomes})},
+            "problems_by_base": {b: sum(o.base == b and bool(o.problem) for o in outcomes)
+                                 for b in sorted({o.base for o in outcomes})}}
 
 
 def main(argv=None) -> int:
@@ -582,6 +644,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None, help="JSON report of every case")
     ap.add_argument("--keep", type=Path, default=None, help="copy failing cases here")
+    ap.add_argument("--surface-share", type=float, default=0.5,
+                    help="share of cases on store surfaces (export, runs, reindex, ...)")
+    ap.add_argument("--time-limit", type=float, default=TIME_LIMIT_S,
+                    help="seconds a case may take before it counts as a hang")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -589,7 +655,12 @@ def main(argv=None) -> int:
         return 0
     t0 = time.perf_counter()
 
+    lines = args.out.with_suffix(".jsonl").open("w") if args.out else None
+
     def show(k, n, out):
+        if lines is not None:  # every outcome as it comes (a stopped campaign keeps them)
+            lines.write(json.dumps(asdict(out)) + "\n")
+            lines.flush()
         if out.problem:
             print(f"[{k}/{n}] seed {out.seed} {out.base} {out.mutations}: {out.problem}\n"
                   f"    {out.stderr_tail[-300:]}", file=sys.stderr)
@@ -600,7 +671,8 @@ def main(argv=None) -> int:
 
     if args.keep:
         args.keep.mkdir(parents=True, exist_ok=True)
-    outs = campaign(args.cases, args.seed, keep=args.keep, progress=show)
+    outs = campaign(args.cases, args.seed, keep=args.keep, progress=show,
+                    surface_share=args.surface_share, time_limit=args.time_limit)
     s = summary(outs)
     s["seconds"] = time.perf_counter() - t0
     print(json.dumps(s, indent=1))

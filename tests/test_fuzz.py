@@ -1,4 +1,5 @@
-"""CI sample of the seeded fuzz campaign (issue 10; the full campaign is scripts/fuzz.sh).
+"""CI samples of the seeded fuzz campaign (issues 10 and 33; the full campaign is
+scripts/fuzz.sh).
 
 Each case is a valid job + export mutated one to three times (``tests/fuzzing.py``); the
 case passes when ``plantdyn run --no-prefect`` ends with exit 0 or 2, prints no traceback
@@ -18,7 +19,7 @@ CI_SEED = 10_001
 
 
 def test_fuzz_sample_has_no_internal_errors_hangs_or_leftovers():
-    outcomes = fuzzing.campaign(CI_CASES, CI_SEED)
+    outcomes = fuzzing.campaign(CI_CASES, CI_SEED, surface_share=0.0)
     s = fuzzing.summary(outcomes)
     bad = [o for o in outcomes if o.problem]
     detail = "\n".join(f"seed {o.seed} {o.base} {o.mutations}: {o.problem}\n  {o.stderr_tail[-400:]}"
@@ -29,3 +30,25 @@ def test_fuzz_sample_has_no_internal_errors_hangs_or_leftovers():
     assert all(n > 0 for n in s["by_base"].values()), s["by_base"]
     assert s["exit_codes"].get("2", 0) >= CI_CASES // 5, s["exit_codes"]
     assert s["exit_codes"].get("0", 0) >= 1, s["exit_codes"]
+
+
+#: Store-surface cases (export, runs --plot, reindex, monitor baselines, discrepancy models,
+#: corrupt catalogs and manifests, FIFOs and sockets): about 0.1 s each after the template
+#: store (two runs of a 20-minute plant, about 10 s); a valid discrepancy model runs the
+#: whole analysis (3-5 s, far longer on a loaded machine: the hang limit is 120 s).
+SURFACE_CASES = 40
+SURFACE_SEED = 20_001
+
+
+def test_fuzz_surfaces_sample_writes_only_where_it_may():
+    outcomes = fuzzing.campaign(SURFACE_CASES, SURFACE_SEED, surface_share=1.0, time_limit=120.0)
+    s = fuzzing.summary(outcomes)
+    bad = [o for o in outcomes if o.problem]
+    detail = "\n".join(f"seed {o.seed} {o.base} {o.mutations}: {o.problem}\n  "
+                       f"{o.stderr_tail[-400:]}" for o in bad)
+    assert not bad, f"{len(bad)} of {len(outcomes)} surface cases failed:\n{detail}"
+    # every surface is exercised, and hostile enough that most cases are refused (exit 2)
+    from tests.fuzz_surfaces import SURFACES
+
+    assert set(s["by_base"]) == set(SURFACES), s["by_base"]
+    assert s["exit_codes"].get("2", 0) >= SURFACE_CASES // 3, s["exit_codes"]

@@ -258,6 +258,13 @@ def _manifest(path: Path) -> dict:
     if not isinstance(manifest, dict) or not {"job", "run_id", "files"} <= set(manifest):
         raise DataQualityError(f"{mpath} is not a plantdyn manifest (no job/run_id/files); "
                                f"{_FIXES}")
+    files, config = manifest["files"], manifest.get("config")
+    if not isinstance(files, list) or not all(
+            isinstance(f, dict) and isinstance(f.get("name"), str) for f in files) or \
+            not isinstance(config, (dict, type(None))):
+        raise DataQualityError(f"{mpath}: its files list (or config) is not what plantdyn "
+                               "writes (a list of {name, sha256, bytes}); the run directory "
+                               "is damaged — re-run the job")
     return manifest
 
 

@@ -110,6 +110,11 @@ def _check_tree(root, where: str) -> None:
         if done:
             total = 1 + sum(sizes[id(c)] for c in children)
             sizes[id(node)] = total
+            if total > MAX_YAML_VALUES and len(sizes) >= MAX_YAML_VALUES:
+                raise ConfigError(  # written out, not repeated by aliases
+                    f"{where}: the YAML at line {node.start_mark.line + 1} holds more than "
+                    f"{MAX_YAML_VALUES:,} values; a job or model YAML needs far fewer (a model "
+                    "has at most 100 blocks) — check that this is the file you meant")
             if total > MAX_YAML_VALUES:
                 raise ConfigError(
                     f"{where}: the YAML at line {node.start_mark.line + 1} expands to more "

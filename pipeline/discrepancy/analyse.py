@@ -32,6 +32,7 @@ from pipeline.model import Model
 from pipeline.noise_model import fit_ar
 from pipeline.progress import quiet
 from pipeline.simulate import simulate
+from pipeline.stability import check_simulable
 
 
 def analyse_discrepancy(
@@ -86,7 +87,8 @@ def analyse_discrepancy(
     DataQualityError, InsufficientDataError
         Non-finite or unequal-length signals, too short a record.
     ModelError
-        A model delay that is not a whole number of samples at `dt_s`.
+        A model delay that is not a whole number of samples at `dt_s` or not shorter
+        than the record; an unstable block or loop (:func:`pipeline.stability.check_simulable`).
     """
     # thousands of small vector operations: BLAS single-threaded (pipeline._threads)
     return single_threaded_blas(_analyse)(model, inputs=inputs, measured=measured,
@@ -349,6 +351,7 @@ def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any
     ins, outputs, y = validate_signals(model, inputs, measured, dt_s)
     n = y.shape[0]
     dt_s = float(dt_s)
+    check_simulable(model, dt_s=dt_s, n_samples=n)
     say("simulate", f"nominal model {model.name!r} over {n} samples")
     drive = {k: ins[k] for k in model.inputs}
     nominal = simulate(model, drive, dt_s=dt_s, initial=config.initial)

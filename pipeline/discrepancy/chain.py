@@ -37,6 +37,7 @@ from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
 from pipeline.discrepancy.select import holdout_gap, same_class
 from pipeline.effects import Effect, apply_effect, original_location, output_offsets
+from pipeline.errors import DivergenceError
 from pipeline.model import Model
 from pipeline.simulate import simulate
 
@@ -137,6 +138,45 @@ def _lookalikes(link: Link, dt_s: float) -> tuple[Candidate, ...]:
         for name, (params, n_par) in starts.items() if name != e.name)
 
 
+#: A fitted gain factor this far from 1 (or its inverse) is more likely a unit or scale
+#: mismatch between the export and the model than a plant change.
+SCALE_FACTOR_HINT = 30.0
+
+
+def simulate_with(augmented: Model, effects: Sequence[Effect], inputs: Mapping[str, Any],
+                  **kwargs: Any):
+    """:func:`~pipeline.simulate.simulate` of a model augmented with ``effects``; a
+    divergence names the effects that caused it (the nominal model was checked stable)
+    and, for a gain factor beyond :data:`SCALE_FACTOR_HINT`, the likely unit mismatch.
+
+    Parameters
+    ----------
+    augmented : Model
+        The nominal model with ``effects`` applied.
+    effects : sequence of Effect
+        The effects applied.
+    inputs : mapping of str -> array
+        The model inputs.
+    **kwargs
+        Passed to :func:`~pipeline.simulate.simulate` (``dt_s``, ``initial``).
+    """
+    try:
+        return simulate(augmented, inputs, **kwargs)
+    except DivergenceError as exc:
+        scaled = [e for e in effects if e.name == "gain" and isinstance(
+            e.parameters.get("factor"), float) and e.parameters["factor"] != 0.0 and max(
+            abs(e.parameters["factor"]), 1.0 / abs(e.parameters["factor"])) >= SCALE_FACTOR_HINT]
+        hint = "" if not scaled else (
+            f"; a gain factor of {scaled[0].parameters['factor']:.3g} at "
+            f"{scaled[0].location!r} usually means a signal's scale differs from the model's "
+            "(an OP exported as a fraction 0-1 where the model expects %, or another unit): "
+            "check the units of the job's signals against the model's")
+        raise DivergenceError(
+            f"the discrepancy search's model with "
+            f"{'; '.join(e.describe() for e in effects) or 'no effect'} diverges: {exc}{hint}"
+        ) from None
+
+
 def build(model: Model, effects: Sequence[Effect], dt_s: float) -> Model:
     """`model` with `effects` added in order.
 
@@ -234,8 +274,8 @@ class Chain:
             the reported result does when the chain holds two or more effects).
         """
         augmented = build(self.model, effects, self.dt_s)
-        sim = simulate(augmented, {k: self.inputs[k] for k in augmented.inputs},
-                       dt_s=self.dt_s, initial=self.config.initial)
+        sim = simulate_with(augmented, effects, {k: self.inputs[k] for k in augmented.inputs},
+                            dt_s=self.dt_s, initial=self.config.initial)
         pred = {o: np.array(sim.signals[o], dtype=float) for o in self.outputs}
         for effect in effects:
             offsets = output_offsets(effect, n=self.n, dt_s=self.dt_s, outputs=self.outputs)
@@ -305,8 +345,9 @@ class Chain:
         adjusted = dict(self.measured)
         if effects:
             pred, _ = self.prediction(effects)
-            sim = simulate(augmented, {k: self.inputs[k] for k in augmented.inputs},
-                           dt_s=self.dt_s, initial=self.config.initial)
+            sim = simulate_with(augmented, effects,
+                                {k: self.inputs[k] for k in augmented.inputs},
+                                dt_s=self.dt_s, initial=self.config.initial)
             # what the prediction adds to the simulation is taken off the measurement
             adjusted = {o: self.measured[o] - (pred[o] - sim.signals[o]) for o in self.outputs}
         result = self.step(tuple(effects), augmented, adjusted, tuple(also))

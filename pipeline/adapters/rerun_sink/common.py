@@ -273,12 +273,43 @@ def write_recording(out: Path, ident: str, blueprint: rrb.Blueprint,
         if not tmp.is_file():
             raise RuntimeError(f"Rerun wrote no file at {tmp}; is logging disabled (RERUN=off)?")
         os.replace(tmp, out)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(Exception):
             rec.disconnect()
+        failed = _writer_failure(exc, tmp)  # before the unlink frees the partial file
         tmp.unlink(missing_ok=True)
+        if failed is not None:
+            raise failed from None
         raise
     return out
+
+
+#: Below this many free bytes beside a recording whose writer stopped, the disk was full.
+_FULL_BELOW_BYTES = 4 << 20
+
+
+def _writer_failure(exc: BaseException, tmp: Path) -> OSError | None:
+    """What a failed Rerun write means for the store: its file writer stops with a bare
+    ``RuntimeError("File-writer thread shut down prematurely")`` (the OS error goes to its
+    log only), so a nearly empty disk beside the file is read as ``ENOSPC`` and any other
+    stop as an ``EIO`` :class:`~pipeline.errors.StorageError`; other errors are not
+    changed (None)."""
+    import errno
+
+    from pipeline.errors import StorageError
+
+    if not isinstance(exc, RuntimeError) or "writer" not in str(exc).lower():
+        return None
+    try:
+        st = os.statvfs(tmp.parent)
+        free = st.f_bavail * st.f_frsize
+    except OSError:
+        free = None
+    if free is not None and free < _FULL_BELOW_BYTES:
+        return OSError(errno.ENOSPC, "No space left on device", str(tmp.parent))
+    return StorageError(f"storage {tmp.parent}: the Rerun writer stopped ({exc}) while writing "
+                        "the recording; check the disk, or set rerun: {enabled: false} in the "
+                        "job — nothing was written")
 
 
 def make_blueprint(root: Any, timeline: str, *, time_selection: Any = None) -> rrb.Blueprint:

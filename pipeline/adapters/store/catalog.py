@@ -40,7 +40,8 @@ from pipeline.adapters.store.recovery import (
     read_manifest,
     store_evidence,
 )
-from pipeline.adapters.store.claims import ProcessedFiles, utc_times as _utc_times
+from pipeline.adapters.store.claims import ProcessedFiles, catalog_values, \
+    utc_times as _utc_times
 from pipeline.adapters.store.run_writer import RunWriter, normalise_inputs
 from pipeline.adapters.store.schemas import (
     MANIFEST_KEYS,
@@ -197,7 +198,8 @@ class ResultStore(ProcessedFiles):
             con.close()
 
     def _query(self, sql: str, params: Sequence[Any] = ()) -> list[tuple[Any, ...]]:
-        with storage_faults(self.catalog_path, "reading the catalog"):
+        with storage_faults(self.catalog_path, "reading the catalog"), \
+                catalog_values(self.root, "reading the catalog"):  # e.g. a text not UTF-8
             con = self._connect()
             try:
                 return con.execute(sql, params).fetchall()
@@ -511,6 +513,10 @@ class ResultStore(ProcessedFiles):
             "WHERE job = ? ORDER BY created_utc, run_id",
             (job,),
         )
+        with catalog_values(self.root, f"runs of job {job!r}"):
+            return self._runs_frame(job, rows)
+
+    def _runs_frame(self, job: str, rows: list) -> pl.DataFrame:
         return pl.DataFrame(
             {
                 "job": [r[0] for r in rows],
@@ -580,7 +586,8 @@ class ResultStore(ProcessedFiles):
         columns["created_utc"] = _utc_times(columns["created_utc"], self.root,
                                             f"runs of job {job!r}, created_utc")
         schema = dict.fromkeys(names, pl.String) | {"created_utc": TIME_UTC, "value": pl.Float64}
-        return pl.DataFrame(columns, schema=schema)
+        with catalog_values(self.root, f"metrics of job {job!r}"):
+            return pl.DataFrame(columns, schema=schema)
 
     def read_run(self, job: str, run_id: str, *, verify: bool = True) -> StoredRun:
         """Parse the files of a stored run.

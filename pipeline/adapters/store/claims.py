@@ -25,7 +25,7 @@ from pipeline.adapters.store.files import iso_utc, parse_iso_utc, storage_faults
 from pipeline.adapters.store.schemas import CATALOG_NAME, STATUS_RE, TIME_UTC
 from pipeline.errors import ConfigError, StorageError
 
-__all__ = ["ProcessedFiles", "utc_times"]
+__all__ = ["ProcessedFiles", "catalog_values", "utc_times"]
 
 
 def utc_times(texts: Sequence[str | None], root: Path, what: str) -> list[dt.datetime | None]:
@@ -40,12 +40,29 @@ def utc_times(texts: Sequence[str | None], root: Path, what: str) -> list[dt.dat
     what : str
         Which column of what (for the message).
     """
-    try:
+    with catalog_values(root, what):
         return [None if t is None else parse_iso_utc(t) for t in texts]
-    except ValueError as exc:
-        raise StorageError(f"storage {root / CATALOG_NAME}: {what}: {exc}; run `plantdyn "
-                           f"reindex {root}` to rebuild the catalog from the run folders"
-                           ) from None
+
+
+@contextlib.contextmanager
+def catalog_values(root: Path, what: str) -> Iterator[None]:
+    """Values read from the catalog that do not fit its columns (an edited or damaged
+    catalog: a text where a number belongs, a JSON column that is not JSON) are a storage
+    fault naming the fix (exit 2), not an internal error.
+
+    Parameters
+    ----------
+    root : Path
+        The storage root.
+    what : str
+        What was being read, for the message.
+    """
+    try:
+        yield
+    except (ValueError, TypeError, AttributeError, pl.exceptions.PolarsError) as exc:
+        raise StorageError(f"storage {root / CATALOG_NAME}: {what}: {str(exc)[:200]}; run "
+                           f"`plantdyn reindex {root}` to rebuild the catalog from the run "
+                           "folders") from None
 
 
 class ProcessedFiles:

@@ -98,6 +98,8 @@ def _tables(path: Path, deep: bool, readonly: bool) -> dict[str, frozenset[str]]
             return None  # locked or busy: not a verdict (the caller's own open will say)
         except sqlite3.DatabaseError as exc:
             return f"is not an SQLite database ({exc})"
+        except UnicodeDecodeError:
+            return "is a damaged SQLite database (its schema holds text that is not UTF-8)"
         finally:
             con.close()
     return None
