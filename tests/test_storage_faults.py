@@ -40,14 +40,15 @@ def _nothing_half_written(storage: Path) -> None:
 
 
 def test_disk_full_while_writing_the_run(job, monkeypatch):
-    real = store_mod.RunWriter.write_parquet
+    # signals.parquet is written a chunk at a time (RunWriter.write_parquet_chunks)
+    real = store_mod.RunWriter.write_parquet_chunks
 
-    def full(self, name, df):
+    def full(self, name, chunks):
         if name == "signals.parquet":
             raise OSError(errno.ENOSPC, "No space left on device", str(self.path / name))
-        return real(self, name, df)
+        return real(self, name, chunks)
 
-    monkeypatch.setattr(store_mod.RunWriter, "write_parquet", full)
+    monkeypatch.setattr(store_mod.RunWriter, "write_parquet_chunks", full)
     rc, _, err = cli("run", "--no-prefect", str(job))
     assert rc == 2 and "Traceback" not in err, err[-2000:]
     assert "signals.parquet: the disk is full" in err and "nothing was written" in err
@@ -151,7 +152,8 @@ def test_nightly_prints_each_file_and_a_summary(tmp_path, prefect_harness):
         r.stderr[-3000:]
     assert "Traceback" not in r.stderr
     assert r.stderr.count("plantdyn: error: ") == 1
-    assert "1 of 3 file(s) failed with bad data (not retried until they change): c.csv" in r.stderr
+    assert ("1 of 3 file(s) failed with bad data (not retried until they or the job change, "
+            "or --retry-failed): c.csv") in r.stderr
     assert "[nightly] plant: 3 file(s)" in r.stderr
     assert r.stderr.count("[nightly] ok: ") == 2 and "[nightly] failed: " in r.stderr
     assert "nightly: 3 file(s): 1 failed, 2 ok" in r.stderr
