@@ -310,21 +310,8 @@ def assemble_gram(r_xx: np.ndarray, x: np.ndarray, k0: int, n: int, P: int) -> n
         Number of lags.
     """
     n_x = x.shape[1]
-    A4 = np.empty((P, P, n_x, n_x))
-    A4[0] = r_xx  # A[0, p] = sum_k x(k) x(k-p)'
-    if P > 1:
-        back = np.arange(P - 1)
-        head = x[k0 - 1 - back]  # x(k0-1-q), q = 0..P-2 (exists: k0 >= P-1)
-        tail = x[n - 1 - back]  # x(N-1-q)
-        for q in range(P - 1):
-            A4[q + 1, 1:] = (
-                A4[q, :-1]
-                + head[q][None, :, None] * head[:, None, :]
-                - tail[q][None, :, None] * tail[:, None, :]
-            )
-            A4[q + 1, 0] = r_xx[q + 1].T
-    A = A4.transpose(0, 2, 1, 3).reshape(P * n_x, P * n_x)
-    return 0.5 * (A + A.T)  # exact symmetry (the recursion is symmetric up to round-off)
+    # one diagonal recursion for both layouts: the 4-D lag Gram, flattened lag-major
+    return assemble_lag_gram(r_xx, x, k0, n, P).reshape(P * n_x, P * n_x)
 
 
 
@@ -337,9 +324,9 @@ def assemble_lag_gram(r: np.ndarray, w: np.ndarray, k0: int, n: int, L: int) -> 
     cumulative sum of the head and tail products, so each diagonal is one vectorised
     pass; the lower diagonals are the upper ones transposed (exactly symmetric, no
     averaging pass), written in place in the 4-D layout the estimators read.  Same
-    numbers as :func:`assemble_gram` to rounding, about 5x faster on the full Gram of
-    inputs and outputs (no lag-major transpose copy, no symmetrisation over the whole
-    matrix).
+    numbers as the block-row recursion it replaced to rounding, about 5x faster on the
+    full Gram of inputs and outputs (no lag-major transpose copy, no symmetrisation over
+    the whole matrix); :func:`assemble_gram` is this Gram flattened.
 
     Parameters
     ----------
