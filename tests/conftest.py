@@ -6,6 +6,10 @@
 * ``prefect_harness`` (session, requested by the flow tests): enters
   ``prefect_test_harness()`` once per session — i.e. once per xdist worker, each with its
   own temporary database and server port — because starting it costs seconds.
+* ``demo_cli_run`` / ``discrepancy_demo_run`` (session, shared by every xdist worker):
+  one ``plantdyn demo [--discrepancy] --no-prefect`` run in a subprocess, as a user
+  starts it, for the tests that only read its results (CLI lines, exports, the HTML
+  page) — a demo costs 20–40 s a run.
 * ``write_plant_csv`` / ``write_job`` (and the ``make_job`` fixture): a first-order plant
   driven by AR(1) noise, written as a historian long CSV, plus a job YAML whose storage
   lies inside the test's temporary folder.
@@ -14,9 +18,13 @@
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import json
 import os
+import subprocess
 import sys
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +37,7 @@ PLANT_GAIN = 2.0
 PLANT_TAU_S = 20.0
 INPUT_TAG, OUTPUT_TAG = "U.PV", "Y.PV"
 _START = np.datetime64("2026-03-02T00:00:00", "us")
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -77,6 +86,67 @@ def prefect_harness(_prefect_env: Path) -> Iterator[str]:
     # generous: on 2 cores the other worker competes while the fresh database migrates
     with prefect_test_harness(server_startup_timeout=120):
         yield str(PREFECT_API_URL.value())
+
+
+@dataclass(frozen=True)
+class DemoRun:
+    """What ``plantdyn demo --no-prefect --dir <dir>`` printed, and where it wrote."""
+
+    dir: Path
+    returncode: int
+    stdout: str
+    stderr: str
+
+    @property
+    def lines(self) -> dict[str, str]:
+        """The ``label: value`` lines of stdout."""
+        return {k.strip(): v.strip() for k, v in
+                (ln.split(":", 1) for ln in self.stdout.splitlines() if ": " in ln)}
+
+    @property
+    def results(self) -> Path:
+        """The run directory the demo names on its ``results:`` line."""
+        return Path(self.lines["results"])
+
+
+def _shared_cli_run(factory: pytest.TempPathFactory, name: str, *args: str) -> DemoRun:
+    """``plantdyn <args> --dir <shared>/<name>/demo`` run once for the whole session;
+    every xdist worker reads the same run.
+
+    The first worker to take the lock runs the command and writes what it printed next
+    to it; the others wait on the lock and read that (the pattern pytest-xdist documents
+    for session data).  Tests must only read the run; a test that changes it copies it.
+    """
+    base = factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the folder all workers' temporary folders share
+    root = base / f"shared_{name}"
+    root.mkdir(exist_ok=True)
+    done = root / "printed.json"
+    with open(root / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            r = subprocess.run(
+                [sys.executable, "-m", "flows.cli", *args, "--dir", str(root / "demo")],
+                cwd=ROOT, capture_output=True, text=True, timeout=900)
+            done.write_text(json.dumps({"returncode": r.returncode, "stdout": r.stdout,
+                                        "stderr": r.stderr}))
+        printed = json.loads(done.read_text())
+    return DemoRun(dir=root / "demo", **printed)
+
+
+@pytest.fixture(scope="session")
+def demo_cli_run(tmp_path_factory: pytest.TempPathFactory, _prefect_env: Path) -> DemoRun:
+    """The session's ``plantdyn demo --no-prefect`` run (read only)."""
+    return _shared_cli_run(tmp_path_factory, "demo", "demo", "--no-prefect")
+
+
+@pytest.fixture(scope="session")
+def discrepancy_demo_run(tmp_path_factory: pytest.TempPathFactory,
+                         _prefect_env: Path) -> DemoRun:
+    """The session's ``plantdyn demo --discrepancy --no-prefect`` run (read only)."""
+    return _shared_cli_run(tmp_path_factory, "discrepancy", "demo", "--discrepancy",
+                           "--no-prefect")
 
 
 def plant_signals(*, seed: int, hours: float = 2.0, phi: float = 0.9,

@@ -17,9 +17,8 @@ def cli(*args: str, cwd: Path = ROOT, timeout: float = 300) -> subprocess.Comple
                           capture_output=True, text=True, timeout=timeout)
 
 
-def test_demo_writes_export_runs_job_and_says_where_results_are(tmp_path):
-    demo = tmp_path / "demo"
-    r = cli("demo", "--dir", str(demo), "--no-prefect")
+def test_demo_writes_export_runs_job_and_says_where_results_are(demo_cli_run):
+    demo, r = demo_cli_run.dir, demo_cli_run  # `plantdyn demo --dir D --no-prefect`, once
     assert r.returncode == 0, r.stderr
     export = demo / "exports" / "boiler_export.csv"
     head = export.read_text().splitlines()[:2]

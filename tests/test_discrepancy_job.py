@@ -142,12 +142,10 @@ def test_external_simulator_outputs_get_output_effects(tmp_path, capsys):
     assert d["effect"]["parameters"]["factor"] == pytest.approx(1.3, rel=0.03)
 
 
-def test_bundled_demo_names_controller_gain(tmp_path, capsys):
+def test_bundled_demo_names_controller_gain(discrepancy_demo_run):
     """`plantdyn demo --discrepancy` (issue 4, "It must show" 2): gain at controller ≈ 1.2."""
-    assert main(["demo", "--discrepancy", "--no-prefect", "--dir", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
-    run_dir = Path(next(line.split(None, 1)[1] for line in out.splitlines()
-                        if line.startswith("results:")))
+    assert discrepancy_demo_run.returncode == 0, discrepancy_demo_run.stderr
+    run_dir = discrepancy_demo_run.results
     d = _read(run_dir)
     assert d["verdict"] == "effect_found"
     assert (d["effect"]["name"], d["effect"]["location"]) == ("gain", "controller")

@@ -56,13 +56,11 @@ def _export(run_dir: Path, fmt: str, out: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory) -> tuple[Path, dict]:
-    """The demo run directory and its four exports."""
+def demo(tmp_path_factory, demo_cli_run) -> tuple[Path, dict]:
+    """The demo run directory (the session's shared demo run) and its four exports."""
+    assert demo_cli_run.returncode == 0, demo_cli_run.stderr
+    run_dir = demo_cli_run.results
     root = tmp_path_factory.mktemp("export_demo")
-    code, stdout, stderr = _quiet_main(["demo", "--no-prefect", "--dir", str(root / "demo")])
-    assert code == 0, stderr
-    run_dir = Path(next(line.split(":", 1)[1].strip() for line in stdout.splitlines()
-                        if line.startswith("results:")))
     out = root / "out"
     out.mkdir()
     return run_dir, {f: _export(run_dir, f, out / f"demo.{f}") for f in FORMATS}

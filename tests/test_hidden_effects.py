@@ -1,17 +1,21 @@
 """Hidden-effect suites, CI samples: the workflow finds effects it was not told about.
 
-Three samples (``tests/benchmarks/bench_discrepancy.py`` has the suites, its docstring
+Two samples (``tests/benchmarks/bench_discrepancy.py`` has the suites, its docstring
 the trial design; 1e4 samples at 2 s; ``boiler_pressure`` for even seeds, ``drum_level``
 for odd; seeds from ``CI_SEED0``, apart from the tuning seeds ``TUNE_SEED0`` and the
 published suites' ``SUITE_SEED0``):
 
 * ``clean``: one hidden effect (or none) simulated by ``pipeline.simulate`` with the
   model's own structure -- ``N_CLEAN`` per effect, ``N_CLEAN_NULL`` nulls;
-* ``nuisance``: the plant is not the model (``tests/nuisance_trials.py``: continuous-time
-  plant, DCS controllers acting on the previous scan, quantised actuators, a slow
-  unmeasured disturbance, input noise) -- ``N_NUISANCE`` per effect, ``N_NUISANCE_NULL``
-  nulls;
 * ``pairs``: two hidden effects at different locations -- ``N_PAIRS`` trials.
+
+The third suite, ``nuisance`` (the plant is not the model: ``tests/nuisance_trials.py``),
+is the benchmark's only (``bench_discrepancy --suite nuisance``).  Its CI sample (one
+trial per effect and five nulls, ~190 CPU-s, an eighth of the suite's budget) checked the
+same things as ``tests/test_discrepancy_nuisance.py`` -- nulls quiet on a plant that is not
+its model, missing effects named with their parameters -- which does so on known cases
+at a third of the cost; the plant-zoo tests (``tests/test_zoo.py``) add nulls on
+plants the workflow was never tuned on.
 
 The issue's targets, and how the CI samples loosen them ONLY by their sampling error
 (one-sided, alpha = 1 % per check, binomial): a rate target r over n trials requires
@@ -53,7 +57,6 @@ from tests.benchmarks.bench_discrepancy import (
 )
 
 N_CLEAN, N_CLEAN_NULL = 1, 4
-N_NUISANCE, N_NUISANCE_NULL = 1, 5
 N_PAIRS = 3
 ALPHA = 0.01
 
@@ -68,14 +71,6 @@ def _pool_run(jobs):
 def ci_results():
     results = _pool_run(suite_jobs("clean", N_CLEAN, N_CLEAN_NULL, CI_SEED0["clean"]))
     print("\n" + summarise(results))  # visible with -s; the full suite publishes it
-    return results
-
-
-@pytest.fixture(scope="module")
-def nuisance_results():
-    results = _pool_run(suite_jobs("nuisance", N_NUISANCE, N_NUISANCE_NULL,
-                                   CI_SEED0["nuisance"]))
-    print("\n" + summarise(results))
     return results
 
 
@@ -156,15 +151,6 @@ def test_augmented_model_removes_noise_free_error(ci_results):
 @pytest.mark.slow
 def test_single_effect_trials_grow_no_spurious_second_effect(ci_results):
     _check_no_spurious_second(ci_results)
-
-
-@pytest.mark.slow
-def test_under_nuisance_mismatch_effects_are_named_and_nulls_stay_quiet(nuisance_results):
-    """The key case of issue 12: plants that are not their model."""
-    _check_names(nuisance_results)
-    _check_nulls(nuisance_results)
-    _check_parameters(nuisance_results)
-    _check_no_spurious_second(nuisance_results)
 
 
 @pytest.mark.slow

@@ -57,18 +57,18 @@ def _cli(*args: str) -> dict[str, str]:
 
 
 @pytest.fixture(scope="module")
-def demo_run(tmp_path_factory) -> Path:
-    where = _cli("demo", "--no-prefect", "--dir", str(tmp_path_factory.mktemp("demo") / "demo"))
+def demo_run(demo_cli_run) -> Path:
+    assert demo_cli_run.returncode == 0, demo_cli_run.stderr
+    where = demo_cli_run.lines  # the session's shared `plantdyn demo --no-prefect` run
     html = Path(where["html"])  # the demo says where the page is
     assert html.name == "report.html" and html.parent == Path(where["results"])
     return html.parent
 
 
 @pytest.fixture(scope="module")
-def discrepancy_run(tmp_path_factory) -> Path:
-    where = _cli("demo", "--discrepancy", "--no-prefect", "--dir",
-                 str(tmp_path_factory.mktemp("disc") / "demo"))
-    return Path(where["results"])
+def discrepancy_run(discrepancy_demo_run) -> Path:
+    assert discrepancy_demo_run.returncode == 0, discrepancy_demo_run.stderr
+    return discrepancy_demo_run.results  # the session's `plantdyn demo --discrepancy` run
 
 
 @pytest.fixture(scope="module")
