@@ -10,29 +10,11 @@ import argparse
 import contextlib
 import os
 import sys
-import time
 import traceback
 from pathlib import Path
 
-from flows.common import say
+from flows.common import StageLines
 from pipeline.errors import UserInputError
-
-
-class _Progress:
-    """Stage progress on stderr: long work is never silent."""
-
-    def __init__(self) -> None:
-        self.t0 = time.perf_counter()
-
-    def __call__(self, stage: str, message: str) -> None:
-        say(self.t0, stage, message)  # the same stage line as the flows print
-
-    def bar(self, stage: str, unit: str, scale: float = 1.0):
-        """A progress bar for long work inside ``stage`` (rate and ETA; terminal only
-        unless ``--progress always``)."""
-        from pipeline.adapters.progress import bar
-
-        return bar(stage, unit, scale)
 
 
 def _check_job(path: str, *, files: bool = True):
@@ -75,7 +57,7 @@ def _run_workflow(args, direct, flow_name: str, run_flow, check=None) -> int:
     if check is not None:
         check(cfg)
     if args.no_prefect:
-        report = direct(cfg, run_id=args.run_id, progress=_Progress())
+        report = direct(cfg, run_id=args.run_id, progress=StageLines())
     else:
         from flows.common import starting
         from flows.server import project_prefect
@@ -114,7 +96,7 @@ def _cmd_nightly(args) -> int:
                 starting(f"the Prefect flow 'nightly' (server {api})"):
             from flows.nightly import run_nightly
 
-            rows = run_nightly(args.job, retry_failed=args.retry_failed)
+            rows = run_nightly(args.job, retry_failed=args.retry_failed, cfg=cfg)
     for r in rows:  # one line per file: status, run dir or message
         where = r.get("run_dir") or r.get("run_id") or ""
         print(f"{r['status']:>10}  {Path(r['path']).name}  {where}  {r.get('error') or ''}"
@@ -185,10 +167,10 @@ def _cmd_demo(args) -> int:
         from flows.demo import run_discrepancy_demo
 
         return run_discrepancy_demo(Path(args.dir), no_prefect=args.no_prefect,
-                                    progress=_Progress(), two_effects=args.two_effects)
+                                    progress=StageLines(), two_effects=args.two_effects)
     from flows.demo import run_demo
 
-    return run_demo(Path(args.dir), no_prefect=args.no_prefect, progress=_Progress())
+    return run_demo(Path(args.dir), no_prefect=args.no_prefect, progress=StageLines())
 
 
 def _cmd_serve(args) -> int:
@@ -252,7 +234,7 @@ def _cmd_export(args) -> int:
     from pipeline.adapters.export import export_run
 
     res = export_run(args.run_dir, fmt=args.format, out=args.out, force=args.force,
-                     progress=_Progress())
+                     progress=StageLines())
     for note in res.notes:
         print(note, file=sys.stderr)
     print(res.path)

@@ -11,6 +11,7 @@ import threading
 import time
 
 from pipeline.errors import UserInputError
+from pipeline.stages import StageRunner
 
 #: Longest wait for Prefect's embedded (ephemeral) server, s, when a flow is called from
 #: Python with no API configured (the CLI uses the project server, :mod:`flows.server`).
@@ -58,6 +59,44 @@ def say(t_start: float, stage: str, message: str) -> None:
     """
     sys.stderr.write(f"[{time.perf_counter() - t_start:7.1f} s] {stage}: {message}\n")
     sys.stderr.flush()
+
+
+class StageLines:
+    """Stage progress on stderr (:func:`say` lines, seconds since this object was made),
+    with a progress bar for long work inside a stage: what the CLI and the flows tell the
+    stage runner, so both paths print the same lines."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __call__(self, stage: str, message: str) -> None:
+        """Print one stage line.
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        message : str
+            What to say.
+        """
+        say(self.t0, stage, message)
+
+    def bar(self, stage: str, unit: str, scale: float = 1.0):
+        """A progress bar for long work inside ``stage`` (rate and ETA; terminal only
+        unless ``--progress always``).
+
+        Parameters
+        ----------
+        stage : str
+            Stage name.
+        unit : str
+            Unit of the counted work.
+        scale : float
+            Multiplier from counted work to ``unit``.
+        """
+        from pipeline.adapters.progress import bar
+
+        return bar(stage, unit, scale)
 
 
 _STARTED = threading.Event()
@@ -171,3 +210,77 @@ def console_without_user_error_tracebacks() -> None:
         if isinstance(handler, PrefectConsoleHandler) and \
                 not isinstance(handler.formatter, _OneLineUserErrors):
             handler.setFormatter(_OneLineUserErrors(handler.formatter or logging.Formatter()))
+
+
+
+#: Extra task options of the stages that read or write files: transient I/O is retried.
+IO_RETRIES = {"retries": 2, "retry_delay_seconds": 1, "retry_condition_fn": retry_transient_io}
+
+
+class TaskStages(StageRunner):
+    """A workflow's stage list run as Prefect tasks.  The flows hand this to the same
+    composition function the ``--no-prefect`` path calls (:func:`pipeline.jobs.run_job`,
+    :func:`pipeline.discrepancy_job.run_discrepancy`), so the stage order lives in one
+    place: each stage function becomes ``task(fn, name=stage)``, a mapped stage
+    ``task(fn).map(...)`` on the flow's task runner (threads, or a Dask cluster).
+
+    Parameters
+    ----------
+    progress : callable (stage, message)
+        As :class:`~pipeline.stages.StageRunner`'s.
+    options : dict of str to dict, optional
+        Task options per stage name (e.g. :data:`IO_RETRIES` for ``ingest`` and ``store``).
+    on_done : callable (stage), optional
+        Called as each stage ends (the flow updates its progress artifact).
+    """
+
+    def __init__(self, progress, options: dict | None = None, on_done=None) -> None:
+        super().__init__(progress)
+        self.options = options or {}
+        self.on_done = on_done or (lambda _stage: None)
+
+    def _task(self, name: str, fn):
+        from prefect import task
+        from prefect.cache_policies import NO_CACHE
+
+        # big arrays flow between tasks: hashing them for a cache key would cost more
+        # than the work, and results are not persisted
+        return task(fn, name=name, cache_policy=NO_CACHE, persist_result=False,
+                    **self.options.get(name, {}))
+
+    def call(self, name, fn, args, kwargs):
+        """Stage ``name`` as a Prefect task.
+
+        Parameters
+        ----------
+        name : str
+            The stage's name (the task's name).
+        fn : callable
+            The stage function the task wraps.
+        args, kwargs : tuple, dict
+            Its arguments.
+        """
+        return self._task(name, fn)(*args, **kwargs)
+
+    def call_map(self, name, fn, args, over):
+        """Stage ``name`` as ``task.map`` over ``args[over]`` (results in order).
+
+        Parameters
+        ----------
+        name : str
+            The stage's name (the task's name).
+        fn : callable
+            The function the task wraps.
+        args : sequence
+            Its positional arguments; ``args[over]`` is the sequence mapped over.
+        over : int
+            Which argument is mapped over.
+        """
+        from prefect import unmapped
+
+        mapped = [a if k == over else unmapped(a) for k, a in enumerate(args)]
+        return self._task(name, fn).map(*mapped).result()
+
+    def _done(self, name, t0):
+        super()._done(name, t0)
+        self.on_done(name)

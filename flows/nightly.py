@@ -39,7 +39,8 @@ def _first_done(futures: set) -> set:
 
 
 @flow(name="nightly", log_prints=True)
-def nightly_flow(job_path: str, retry_failed: bool = False) -> list[dict]:
+def nightly_flow(job_path: str, retry_failed: bool = False,
+                 cfg: object | None = None) -> list[dict]:
     """Plan the night (complete files in data-time order, the concurrency bound) and
     process each file once, printing one line per file as it finishes.
 
@@ -49,9 +50,11 @@ def nightly_flow(job_path: str, retry_failed: bool = False) -> list[dict]:
         The job YAML file.
     retry_failed : bool
         Try files that failed before with this job configuration again.
+    cfg : JobConfig, optional
+        ``job_path`` already loaded and validated (the CLI's): the YAML is parsed once.
     """
     flow_started()
-    cfg = load_job(job_path)
+    cfg = cfg if cfg is not None else load_job(job_path)
     plan = plan_task(cfg, retry_failed=retry_failed)
     _say(plan_header(cfg, plan))
     with progress_bar("nightly", "files") as tick:  # a bar on a terminal only
@@ -71,7 +74,7 @@ def nightly_flow(job_path: str, retry_failed: bool = False) -> list[dict]:
     return rows
 
 
-def run_nightly(job_path: str, *, retry_failed: bool = False):
+def run_nightly(job_path: str, *, retry_failed: bool = False, cfg=None):
     """Run the nightly flow: tasks in a pool of ``max_parallel`` threads, or on a Dask
     cluster when ``dask.address`` is configured (submitted ``max_parallel`` at a time).
 
@@ -81,12 +84,14 @@ def run_nightly(job_path: str, *, retry_failed: bool = False):
         The job YAML file (validated before the flow starts).
     retry_failed : bool
         Try files that failed before with this job configuration again.
+    cfg : JobConfig, optional
+        ``job_path`` already loaded (the CLI checked it): not parsed again here.
     """
     from prefect.task_runners import ThreadPoolTaskRunner
 
-    cfg = load_job(job_path)
+    cfg = cfg if cfg is not None else load_job(job_path)
     console_without_user_error_tracebacks()
     runner = task_runner_for(cfg.dask.address) or ThreadPoolTaskRunner(
         max_workers=cfg.nightly.max_parallel or None)
     return nightly_flow.with_options(task_runner=runner)(str(job_path),
-                                                         retry_failed=retry_failed)
+                                                         retry_failed=retry_failed, cfg=cfg)

@@ -482,7 +482,7 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
 def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
                        result: DiscrepancyResult, timings: dict, *,
                        run_id: str | None = None) -> DiscrepancyReport:
-    """Write the results and build the :class:`DiscrepancyReport`.
+    """Write the results and build the :class:`DiscrepancyReport` (the ``store`` stage).
 
     Parameters
     ----------
@@ -497,14 +497,12 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
     result : DiscrepancyResult
         The core's outcome.
     timings : dict of str to float
-        Seconds per stage, recorded with the run; ``store`` is added.
+        Seconds per stage so far, recorded with the run (the report's timings).
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
     """
-    t0 = time.perf_counter()
     rid, run_dir, rrd, doc = write_discrepancy_run(cfg, model, source, data, result,
                                                    timings=timings, run_id=run_id)
-    timings["store"] = time.perf_counter() - t0
     return DiscrepancyReport(cfg.job, rid, run_dir, result.verdict, result.verdict,
                              None if result.effect is None else result.effect.to_dict(),
                              result.gap, data.dt_s, int(result.series.t_s.size), data.files,
@@ -512,8 +510,9 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
 
 
 def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
-                    progress: Progress = quiet) -> DiscrepancyReport:
-    """Run a discrepancy job end to end (no Prefect): the stages the flow runs.
+                    progress: Progress = quiet,
+                    stage: StageRunner | None = None) -> DiscrepancyReport:
+    """Run a discrepancy job end to end: the one stage list of the discrepancy workflow.
 
     Parameters
     ----------
@@ -524,13 +523,21 @@ def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None 
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
     progress : callable (stage, message)
-        Told when each stage starts and ends, and passed to the core.
+        Told when each stage starts and ends; the core's own stages as
+        ``analyse/<stage>``.
+    stage : StageRunner, optional
+        Runs each stage: in this process (default, ``--no-prefect``) or as Prefect tasks
+        (``flows.common.TaskStages``, the ``discrepancy`` flow).
     """
-    stage = StageRunner(progress)
+    stage = stage if stage is not None else StageRunner(progress)
     rec = stage("ingest", load_recording, cfg, files)
     model, source = stage("model", load_discrepancy_model, cfg)
     data = stage("prepare", prepare_discrepancy, cfg, rec, model)
-    result = stage("analyse", analyse, cfg, model, data, progress=progress)
-    progress("store", "writing run directory and Rerun recording")
-    return finish_discrepancy(cfg, model, source, data, result, stage.timings, run_id=run_id)
-
+    progress("prepare", f"{data.summary['analysed_samples']} samples analysed")
+    result = stage("analyse", analyse, cfg, model, data,
+                   progress=lambda name, message: progress(f"analyse/{name}", message))
+    progress("analyse", f"verdict {result.verdict}")
+    report = stage("store", finish_discrepancy, cfg, model, source, data, result,
+                   dict(stage.timings), run_id=run_id)
+    report.timings_s.update(stage.timings)  # the store stage's own time
+    return report

@@ -41,6 +41,7 @@ from pipeline.errors import (
 from pipeline.estimate import estimate_step_responses
 from pipeline.job_summary import summarise
 from pipeline.job_types import Prepared, Recording, RunReport, Summary, WindowFailure
+from pipeline.monitor import monitor_banner
 from pipeline.monitor_job import monitor_run
 from pipeline.progress import Progress, Tick, quiet, silent
 from pipeline.recording import configured_decimation, load_recording, longest_common_good
@@ -395,8 +396,8 @@ def _write_recording(cfg, store, run, resolved: dict) -> None:
 
 
 def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
-            progress: Progress = quiet) -> RunReport:
-    """Run an estimation job end to end (no Prefect): the same stages the flow runs.
+            progress: Progress = quiet, stage: StageRunner | None = None) -> RunReport:
+    """Run an estimation job end to end: the one stage list of the estimation workflow.
 
     Parameters
     ----------
@@ -407,26 +408,38 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
     progress : callable (stage, message)
-        Told when each stage starts and ends; its ``bar`` (if any) shows ingest and search.
+        Told when each stage starts and ends and what it found; its ``bar`` (if any)
+        shows ingest and search.
+    stage : StageRunner, optional
+        Runs each stage: in this process (default, ``--no-prefect``) or as Prefect tasks
+        (``flows.common.TaskStages``, the ``estimate`` flow).
     """
-    stage = StageRunner(progress)
+    stage = stage if stage is not None else StageRunner(progress)
     rec = stage("ingest", load_recording, cfg, files, bar=("MB", 1e-6))
+    progress("ingest", f"{rec.values.shape[0]} grid samples at {rec.dt_s:g} s, "
+             f"{sum(q['masked'] for q in rec.quality.values())} masked")
     prep = stage("prepare", prepare, cfg, rec)
+    progress("prepare", f"T = {prep.dt_s:g} s (decimation {prep.decimation}), "
+             f"conditioning {prep.conditioning['method']}")
     sr = stage("search", search_orders, cfg, prep, bar=("steps", 1.0))
-    choice = estimate_settings(cfg, sr, prep.x.shape[0])
-    all_est = stage("estimate_all", estimate_window, prep, None, *choice)
-    wins = []
-    for k, w in enumerate(sr.windows):
-        wins.append(stage(f"estimate_w{k}", estimate_window, prep, tuple(w), *choice))
-    summary = stage("summarise", summarise, cfg, prep, sr, all_est, wins)
+    progress("search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
+             f"{len(sr.windows)} windows")
+    windows = [None, *(tuple(w) for w in sr.windows)]  # all data first
+    ests = stage.map("estimate", estimate_window, prep, windows,
+                     *estimate_settings(cfg, sr, prep.x.shape[0]), over=1)
+    summary = stage("summarise", summarise, cfg, prep, sr, ests[0], ests[1:])
     if cfg.monitor is not None:  # the baseline is read before the new run is written
         summary, run_id = stage("monitor", monitor_run, cfg, summary, run_id)
-    return finish_run(cfg, summary, prep, sr, stage.timings, run_id=run_id, progress=progress)
+        progress("monitor", monitor_banner(summary.checks["monitor"]))
+    report = stage("store", finish_run, cfg, summary, prep, sr, dict(stage.timings),
+                   run_id=run_id, progress=progress)
+    report.timings_s.update(stage.timings)  # the store stage's own time
+    return report
 
 
 def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings: dict,
                *, run_id: str | None = None, progress: Progress = quiet) -> RunReport:
-    """Write the results and build the :class:`RunReport`.
+    """Write the results and build the :class:`RunReport` (the ``store`` stage).
 
     Parameters
     ----------
@@ -439,18 +452,15 @@ def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings:
     sr : SearchResult
         The order search's outcome (``n_p``, ``n_d``).
     timings : dict
-        Seconds per stage; the ``store`` stage is added to it.
+        Seconds per stage so far; the store's parts are added to it (the report's
+        timings).
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
     progress : callable (stage, message)
-        Told when the store stage (``"store"``) and its parts start and end.
+        Told when the parts of the store stage (``"store/…"``) start and end.
     """
-    progress("store", "writing run directory, report and recording")
-    t0 = time.perf_counter()
     rid, run_dir, rrd = write_run(cfg, summary, files=list(prep.recording.files),
                                   timings=timings, run_id=run_id, progress=progress)
-    timings["store"] = time.perf_counter() - t0
-    progress("store", f"done in {timings['store']:.2f} s")
     ins, outs = prep.inputs, prep.outputs
     n_p = {f"{o}<-{u}": int(sr.n_p[i, j]) for i, o in enumerate(outs) for j, u in enumerate(ins)}
     verdicts = {f"{p['output']}<-{p['input']}": p["agreement"]["verdict"]

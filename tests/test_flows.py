@@ -91,6 +91,27 @@ def test_estimate_flow_equals_direct_run_job(prefect_harness, make_job):
     # same code on the same data in one process: bit-for-bit equal, not just close
     assert_frame_equal(a, b, check_exact=True)
     assert (via_flow.n_p, via_flow.n_d, via_flow.dt_s) == (direct.n_p, direct.n_d, direct.dt_s)
+    # one stage list: the flow ran exactly the stages (and store parts) the direct path ran
+    assert list(via_flow.timings_s) == list(direct.timings_s)
+    assert list(direct.timings_s)[:6] == ["ingest", "prepare", "search", "estimate",
+                                          "summarise", "store/hash_inputs"]
+
+
+def test_flows_parse_the_job_once_when_given_it(prefect_harness, make_job, monkeypatch):
+    """The CLI validates the YAML and hands the parsed job to the flow: no second parse
+    (a deployment, which has only the path, parses it in the flow)."""
+    import flows.estimate
+    from flows.estimate import run_estimate
+
+    job = make_job(1)
+    cfg = load_job(job)
+
+    def parse_again(_path):
+        raise AssertionError("the job YAML was parsed a second time")
+
+    monkeypatch.setattr(flows.estimate, "load_job", parse_again)
+    report = run_estimate(job, run_id="once", cfg=cfg)
+    assert report.run_dir == job.parent / "storage" / JOB / "once"
 
 
 def test_estimate_on_dask_cluster_equals_default_runner(prefect_harness, tmp_path):
