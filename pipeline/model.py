@@ -141,6 +141,20 @@ class Model:
         self._validate()
 
     def _validate(self) -> None:
+        self._validate_inputs()
+        index = self._validate_block_names()
+        self._validate_references(index)
+        self._validate_outputs(index)
+        cycle = _algebraic_loop(self.blocks)
+        if cycle:
+            path = " -> ".join(repr(name) for name in cycle)
+            raise ModelError(
+                f"model.blocks: algebraic loop through blocks {path}: every block in it "
+                "passes its input to its output within the same sample; put a delay_s > 0 "
+                "or a lag/integrator in the loop"
+            )
+
+    def _validate_inputs(self) -> None:
         for i, name in enumerate(self.inputs):
             try:
                 check_signal_name(name, where=f"model.inputs[{i}]", key="input")
@@ -152,6 +166,9 @@ class Model:
                 raise ModelError(
                     f"model.inputs[{i}]: duplicate input name {name!r}; list each input once"
                 )
+
+    def _validate_block_names(self) -> dict[str, int]:
+        """Block name -> index, after checking that the names are unique and not inputs."""
         if not self.blocks:
             raise ModelError("model.blocks: the model has no blocks; add at least one block")
         index: dict[str, int] = {}
@@ -169,6 +186,9 @@ class Model:
                     "signal name must be either an input or a block"
                 )
             index[block.name] = i
+        return index
+
+    def _validate_references(self, index: dict[str, int]) -> None:
         signals = (*self.inputs, *index)
         for i, block in enumerate(self.blocks):
             if not block.inputs:
@@ -189,6 +209,8 @@ class Model:
                     f"{block.name!r}{_suggest(block.signal, signals)}; it names a model "
                     f"input {list(self.inputs)} or a block {list(index)}"
                 )
+
+    def _validate_outputs(self, index: dict[str, int]) -> None:
         if not self.outputs:
             raise ModelError("model.outputs: empty; name at least one block as an output")
         for i, name in enumerate(self.outputs):
@@ -199,14 +221,6 @@ class Model:
                 )
             if name in self.outputs[:i]:
                 raise ModelError(f"model.outputs[{i}]: duplicate output {name!r}")
-        cycle = _algebraic_loop(self.blocks)
-        if cycle:
-            path = " -> ".join(repr(name) for name in cycle)
-            raise ModelError(
-                f"model.blocks: algebraic loop through blocks {path}: every block in it "
-                "passes its input to its output within the same sample; put a delay_s > 0 "
-                "or a lag/integrator in the loop"
-            )
 
     # -- lookups and modification -------------------------------------------------
     @property

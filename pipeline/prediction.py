@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-import scipy.fft
-import scipy.linalg
-import scipy.optimize
 
 from pipeline.normal_equations import as_2d, good_segments
 from pipeline.step_result import StepResponseEstimate

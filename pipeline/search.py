@@ -75,7 +75,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.special
 
-from pipeline.checks import AgreementResult, window_agreement
+from pipeline.checks import window_agreement
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
 from pipeline.estimate import estimate_from_normal_equations, estimate_step_responses
 from pipeline.gram_estimate import (

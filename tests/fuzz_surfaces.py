@@ -29,6 +29,7 @@ import socket
 import sqlite3
 import stat
 from pathlib import Path
+from types import SimpleNamespace
 
 import yaml
 
@@ -309,6 +310,101 @@ def random_model(rng: random.Random) -> dict:
 
 
 # ------------------------------------------------------------------------ cases
+def _case_export(c) -> tuple[list[str], list[str]]:
+    run = c.rng.choice(c.runs)
+    fmt = c.rng.choice(["csv", "json", "mat", "control"])
+    if c.rng.random() < 0.6:
+        c.done["mutations"].append(corrupt_file(run / c.rng.choice(
+            ["manifest.json", "manifest.json", "step_responses.parquet", "checks.json"]),
+            c.rng, c.decoy))
+    argv = ["export", str(run), "--format", fmt]
+    if c.rng.random() < 0.8:
+        text, what = out_target(c.folder, c.rng, c.site, c.decoy, "." + fmt)
+        argv += ["--out", text]
+        c.done["mutations"].append(f"out:{what}")
+        may_change = [str(c.folder / "out"), text]  # the file the user named
+    else:
+        c.done["mutations"].append("out:default")
+        may_change = [str(c.folder / "out")]
+    if c.rng.random() < 0.5:
+        argv.append("--force")
+    return argv, may_change
+
+
+def _case_runs(c) -> tuple[list[str], list[str]]:
+    may_change = [str(c.storage)]
+    if c.rng.random() < 0.7:
+        c.done["mutations"] += corrupt_store(c.site, c.rng, c.decoy)
+    argv = ["runs", c.rng.choice(["fuzz", "fuzz", "nosuch", "../x", str(c.site / "job.yaml")]),
+            "--storage", str(c.storage)]
+    plot = c.rng.random()
+    if plot < 0.5:
+        text, what = out_target(c.folder, c.rng, c.site, c.decoy, ".png")
+        argv += ["--plot", text]
+        c.done["mutations"].append(f"plot:{what}")
+        may_change += [str(c.folder / "out"), text]
+    elif plot < 0.7:
+        argv.append("--no-plot")
+    if c.rng.random() < 0.5:
+        argv.append("--force")
+    return argv, may_change
+
+
+def _case_reindex(c) -> tuple[list[str], list[str]]:
+    target = c.storage
+    choice = c.rng.random()
+    if choice < 0.6:
+        c.done["mutations"] += corrupt_store(c.site, c.rng, c.decoy)
+    elif choice < 0.8:
+        target = c.folder / "etc"
+        (target / "ssh").mkdir(parents=True)
+        (target / "hosts").write_text("127.0.0.1 localhost\n")
+        c.done["mutations"].append("not_a_store")
+    else:
+        target = c.folder / "out" / "thing"
+        make_special(target, c.rng.choice(SPECIALS + ("empty",)), c.decoy)
+        c.done["mutations"].append("special_root")
+    argv = ["reindex", str(target)] + (["--force"] if c.rng.random() < 0.3 else [])
+    return argv, [str(target)]
+
+
+def _case_monitor(c) -> tuple[list[str], list[str]]:
+    job = yaml.safe_load((c.site / "job.yaml").read_text())
+    job["monitor"] = {"baseline": c.rng.choice(["first", "first", c.runs[0].name, "nosuch",
+                                                "../x", 5, None, ""])}
+    (c.site / "job.yaml").write_text(yaml.safe_dump(job, sort_keys=False))
+    c.done["mutations"].append(f"baseline:{job['monitor']['baseline']!r}")
+    if c.rng.random() < 0.8:
+        c.done["mutations"].append(corrupt_file(c.runs[0] / c.rng.choice(
+            ["manifest.json", "checks.json", "step_responses.parquet"]), c.rng, c.decoy))
+    if c.rng.random() < 0.3:
+        c.done["mutations"] += corrupt_store(c.site, c.rng, c.decoy)
+    return ["run", "--no-prefect", str(c.site / "job.yaml")], [str(c.storage)]
+
+
+def _case_model(c) -> tuple[list[str], list[str]]:
+    job = yaml.safe_load((c.site / "job.yaml").read_text())
+    model = random_model(c.rng)
+    if c.rng.random() < 0.2:
+        (c.site / "model.yaml").write_text(yaml.safe_dump({"model": model}))
+        job["model"] = "model.yaml"
+        if c.rng.random() < 0.3:
+            make_special(c.site / "model.yaml", c.rng.choice(SPECIALS), c.decoy)
+            c.done["mutations"].append("model_file:special")
+    else:
+        job["model"] = model
+    job["discrepancy"] = {"max_effects": 1}
+    (c.site / "job.yaml").write_text(yaml.safe_dump(job, sort_keys=False))
+    blocks = model.get("blocks")
+    c.done["mutations"].append(f"blocks:{len(blocks) if isinstance(blocks, list) else '?'}")
+    return ["discrepancy", "--no-prefect", str(c.site / "job.yaml")], [str(c.storage)]
+
+
+#: How each surface's case is made (every other surface is a discrepancy model).
+_CASES = {"export": _case_export, "runs": _case_runs, "reindex": _case_reindex,
+          "monitor": _case_monitor}
+
+
 def make_surface_case(folder: Path, seed: int, template: Path) -> dict:
     """Write case ``seed`` of a surface into ``folder`` (``argv.json`` + a private copy
     of the template); returns what was done."""
@@ -320,86 +416,10 @@ def make_surface_case(folder: Path, seed: int, template: Path) -> dict:
     decoy = folder / "decoy.txt"
     decoy.write_text("the user's own file\n")
     done: dict = {"seed": seed, "base": surface, "mutations": []}
-    storage, runs = site / "storage", _runs(site)
-    may_change = [str(storage)]
-    cwd = folder / "out"
-    if surface == "export":
-        run = rng.choice(runs)
-        fmt = rng.choice(["csv", "json", "mat", "control"])
-        if rng.random() < 0.6:
-            done["mutations"].append(corrupt_file(run / rng.choice(
-                ["manifest.json", "manifest.json", "step_responses.parquet", "checks.json"]),
-                rng, decoy))
-        argv = ["export", str(run), "--format", fmt]
-        if rng.random() < 0.8:
-            text, what = out_target(folder, rng, site, decoy, "." + fmt)
-            argv += ["--out", text]
-            done["mutations"].append(f"out:{what}")
-            may_change = [str(folder / "out"), text]  # the file the user named
-        else:
-            done["mutations"].append("out:default")
-            may_change = [str(folder / "out")]
-        if rng.random() < 0.5:
-            argv.append("--force")
-    elif surface == "runs":
-        if rng.random() < 0.7:
-            done["mutations"] += corrupt_store(site, rng, decoy)
-        argv = ["runs", rng.choice(["fuzz", "fuzz", "nosuch", "../x", str(site / "job.yaml")]),
-                "--storage", str(storage)]
-        plot = rng.random()
-        if plot < 0.5:
-            text, what = out_target(folder, rng, site, decoy, ".png")
-            argv += ["--plot", text]
-            done["mutations"].append(f"plot:{what}")
-            may_change += [str(folder / "out"), text]
-        elif plot < 0.7:
-            argv.append("--no-plot")
-        if rng.random() < 0.5:
-            argv.append("--force")
-    elif surface == "reindex":
-        target = storage
-        choice = rng.random()
-        if choice < 0.6:
-            done["mutations"] += corrupt_store(site, rng, decoy)
-        elif choice < 0.8:
-            target = folder / "etc"
-            (target / "ssh").mkdir(parents=True)
-            (target / "hosts").write_text("127.0.0.1 localhost\n")
-            done["mutations"].append("not_a_store")
-        else:
-            target = folder / "out" / "thing"
-            make_special(target, rng.choice(SPECIALS + ("empty",)), decoy)
-            done["mutations"].append("special_root")
-        argv = ["reindex", str(target)] + (["--force"] if rng.random() < 0.3 else [])
-        may_change = [str(target)]
-    elif surface == "monitor":
-        job = yaml.safe_load((site / "job.yaml").read_text())
-        job["monitor"] = {"baseline": rng.choice(["first", "first", runs[0].name, "nosuch",
-                                                  "../x", 5, None, ""])}
-        (site / "job.yaml").write_text(yaml.safe_dump(job, sort_keys=False))
-        done["mutations"].append(f"baseline:{job['monitor']['baseline']!r}")
-        if rng.random() < 0.8:
-            done["mutations"].append(corrupt_file(runs[0] / rng.choice(
-                ["manifest.json", "checks.json", "step_responses.parquet"]), rng, decoy))
-        if rng.random() < 0.3:
-            done["mutations"] += corrupt_store(site, rng, decoy)
-        argv = ["run", "--no-prefect", str(site / "job.yaml")]
-    else:
-        job = yaml.safe_load((site / "job.yaml").read_text())
-        model = random_model(rng)
-        if rng.random() < 0.2:
-            (site / "model.yaml").write_text(yaml.safe_dump({"model": model}))
-            job["model"] = "model.yaml"
-            if rng.random() < 0.3:
-                make_special(site / "model.yaml", rng.choice(SPECIALS), decoy)
-                done["mutations"].append("model_file:special")
-        else:
-            job["model"] = model
-        job["discrepancy"] = {"max_effects": 1}
-        (site / "job.yaml").write_text(yaml.safe_dump(job, sort_keys=False))
-        done["mutations"].append(f"blocks:{len(model['blocks']) if isinstance(model.get('blocks'), list) else '?'}")
-        argv = ["discrepancy", "--no-prefect", str(site / "job.yaml")]
-    (folder / "argv.json").write_text(json.dumps({"argv": argv, "cwd": str(cwd),
+    ctx = SimpleNamespace(rng=rng, folder=folder, site=site, decoy=decoy, done=done,
+                          storage=site / "storage", runs=_runs(site))
+    argv, may_change = _CASES.get(surface, _case_model)(ctx)
+    (folder / "argv.json").write_text(json.dumps({"argv": argv, "cwd": str(folder / "out"),
                                                   "may_change": may_change}))
     return done
 

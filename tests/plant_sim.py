@@ -370,7 +370,7 @@ class _Generator:
         head += [f"x{n.i}_{j} = 0.0" for n in self.stateful for j in range(n.n)]
         head += [f"{v}{n.i} = 0.0" for n in self.dcs for v in ("H", "E", "I", "DF", "EP")]
         head += ["_round = round"]
-        loop = [f"for k in range(n_samples - 1):", f"    base = k * {self.substeps}",
+        loop = ["for k in range(n_samples - 1):", f"    base = k * {self.substeps}",
                 f"    for s in range({self.substeps}):", "        g = base + s"]
         if self.dcs:
             loop.append(f"        scan = s % {self.scan_steps} == 0")

@@ -381,3 +381,83 @@ def test_a_chain_of_static_effects_is_not_swept_again():
     chain.run()
     assert all(also == () for _, also in log)
     assert len(log) == 4  # first, given the saturation, the backfit, given both
+
+
+# ------------------------------------------------------ time budget, no alternating searches
+DT = Effect("dead_time", "controller", {"delay_s": 19.0})
+IR_C = Effect("inverse_response", "controller", {"tau_s": 9.5, "magnitude": 1.0})
+
+
+def _two_effect_script(prior, also):
+    """Accepts the gain first, the lag given the gain, nothing given both."""
+    names = tuple(e.name for e in prior)
+    if names == ():
+        return _result("effect_found", [_cand(GAIN, passed=True, delta_bic=900.0)], GAIN)
+    if names == ("gain",):  # the lag given the gain (also its look-alike re-search)
+        return _result("effect_found", [_cand(LAG, passed=True, delta_bic=300.0)], LAG)
+    if names == ("extra_lag",):  # backfit of the gain given the lag: the gain again
+        return _result("effect_found", [_cand(GAIN, passed=True, delta_bic=850.0)], GAIN)
+    return _result("no_significant_effect")
+
+
+@pytest.mark.parametrize("budget_s, chain_names, searches", [
+    (1000.0, ["gain", "extra_lag"], 5),  # enough: the whole chain
+    (150.0, ["gain"], 1),                # a second search of 100 s would end at 200 s
+    (250.0, ["gain", "extra_lag"], 2),   # the backfit would end at 300 s: the chain so far
+])
+def test_no_search_starts_that_would_end_after_the_time_budget(budget_s, chain_names,
+                                                               searches):
+    """A clock that advances 100 s per search: a search starts only when elapsed time
+    plus the longest search so far stays within ``max_time_s``; the chain so far is the
+    result, with a note naming the key."""
+    now = [0.0]
+    model = boiler_model()
+    rng = np.random.default_rng(0)
+    inputs = {k: rng.standard_normal(N) for k in model.inputs}
+    measured = {o: rng.standard_normal(N) for o in model.outputs}
+    log = []
+
+    def step(prior, _model, _measured, also):
+        now[0] += 100.0
+        log.append(tuple(e.name for e in prior))
+        return _two_effect_script(prior, also)
+
+    chain = Chain(model, inputs, measured, 1.0, DiscrepancyConfig(max_time_s=budget_s), (),
+                  step, lambda *_: None, clock=lambda: now[0])
+    links, minor = chain.run()
+    assert [lk.effect.name for lk in links] == chain_names
+    assert len(log) == searches
+    if searches < 5:
+        [note] = chain.notes
+        assert f"max_time_s is {budget_s:g} s" in note and f"{searches} search(es)" in note
+        assert minor == ()
+    else:
+        assert chain.notes == []
+
+
+def test_a_backfit_that_would_return_to_a_chain_held_before_stops():
+    """Dead time accepted, then a gain; the backfit swaps the dead time for its look-alike
+    inverse response; the final look-alike re-search would swap it back -- a chain held
+    before -- so it stops there with a note instead of alternating."""
+    def script(prior, also):
+        names, forced = tuple(e.name for e in prior), {c.effect.name for c in also}
+        if names == ():
+            return _result("effect_found", [_cand(DT, passed=True, delta_bic=500.0)], DT)
+        if names == ("dead_time",):
+            return _result("effect_found", [_cand(GAIN, passed=True, delta_bic=400.0)], GAIN)
+        if names == ("gain",) and "inverse_response" in forced:  # re-search of the delay
+            return _result("effect_found", [_cand(IR_C, passed=True, delta_bic=520.0)], IR_C)
+        if names == ("gain",) and "dead_time" in forced:  # re-search of the inverse response
+            return _result("effect_found", [_cand(DT, passed=True, delta_bic=510.0)], DT)
+        return _result("no_significant_effect")
+
+    chain, log = _chain(script)
+    links, _ = chain.run()
+    assert [(lk.effect.name, lk.effect.location) for lk in links] == [
+        ("inverse_response", "controller"), ("gain", "drum")]
+    [note] = chain.notes
+    assert "returned to dead_time at controller, gain at drum" in note
+    # first, gain given the delay, delay re-searched, a third effect, the inverse
+    # response re-searched once -- and no more
+    assert [p for p, _ in log] == [(), ("dead_time",), ("gain",),
+                                   ("inverse_response", "gain"), ("gain",)]

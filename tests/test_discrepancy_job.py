@@ -299,12 +299,13 @@ def test_masked_pair_is_named_through_the_cli(tmp_path, capsys):
     assert d["effects"][-1]["gap_after"] < 0.5 * d["effects"][0]["gap_before"]
 
 
-def _drum_export_run(tmp_path: Path, capsys, inputs: dict, measured: dict, dt_s: float
-                     ) -> tuple[dict, Path]:
+def _drum_export_run(tmp_path: Path, capsys, inputs: dict, measured: dict, dt_s: float,
+                     **settings) -> tuple[dict, Path]:
     """Write the drum-level loop's signals as a historian export (long CSV, tag names),
     a job YAML on the shipped drum-level model with ``operating_point: none`` (the
     outputs are deviations from the model's operating point), run ``plantdyn
-    discrepancy`` and return discrepancy.json and the run directory."""
+    discrepancy`` and return discrepancy.json and the run directory.  ``settings`` are
+    added to the job's ``discrepancy:`` section."""
     from pipeline.adapters.historian_writer import write_long_csv
 
     n = measured["drum_level"].size
@@ -320,7 +321,7 @@ def _drum_export_run(tmp_path: Path, capsys, inputs: dict, measured: dict, dt_s:
                        "outputs": {k: {"tag": tags[k]} for k in measured}},
            "storage": "storage", "rerun": {"enabled": False},
            "model": "drum_level.yaml",
-           "discrepancy": {"operating_point": "none"}}
+           "discrepancy": {"operating_point": "none", **settings}}
     shipped = Path(__file__).parents[1] / "configs" / "models" / "drum_level.yaml"
     (tmp_path / "drum_level.yaml").write_text(shipped.read_text())
     (tmp_path / "job.yaml").write_text(yaml.safe_dump(job))
@@ -357,3 +358,36 @@ def test_a_sensor_bias_and_an_effect_behind_it_through_the_cli(tmp_path, capsys)
     [opg] = [b for b in augmented["model"]["blocks"] if b["type"] == "operating_point_gain"]
     assert (opg["name"], opg["signal"]) == ("feedwater_demand", "steam_flow")
     assert opg["slope"] == pytest.approx(gain["slope"])
+
+
+def test_time_budget_reports_the_chain_so_far_with_a_note(tmp_path, capsys):
+    """``discrepancy: {max_time_s: 0.5}`` on the two-effect drum record above: the first
+    search always runs (it takes seconds, so the budget is spent), no later search starts,
+    and the result is the chain so far -- the sensor bias the first search accepts --
+    with a note in discrepancy.json, report.md and the CLI summary that names the key
+    to raise."""
+    from tests.test_discrepancy_screen import sensor_bias_record
+
+    _, inputs, measured, dt_s = sensor_bias_record()
+    d, run_dir = _drum_export_run(tmp_path, capsys, inputs, measured, dt_s, max_time_s=0.5)
+    assert d["config"]["max_time_s"] == 0.5
+    assert [(e["name"], e["location"]) for e in d["effects"]] == [
+        ("sensor_bias_drift", "drum_level")]
+    [note] = d["notes"]
+    assert "max_time_s is 0.5 s" in note and "1 search(es)" in note
+    assert "raise max_time_s" in note
+    assert d["minor_effects"] == []  # not established when the chain was cut short
+    assert "**Note:** time budget" in (run_dir / "report.md").read_text()
+    html = (run_dir / "report.html").read_text()
+    assert "time budget: discrepancy.max_time_s is 0.5 s" in html
+
+
+def test_the_default_time_budget_and_a_bad_one():
+    from pipeline.discrepancy.config import MAX_TIME_S
+    from pipeline.errors import ConfigError
+
+    assert DiscrepancyConfig().max_time_s == MAX_TIME_S == 600.0
+    assert DiscrepancyConfig(max_time_s=None).max_time_s is None  # YAML null: no budget
+    for bad in (0.0, -1.0, math.inf, math.nan):
+        with pytest.raises(ConfigError, match="discrepancy.max_time_s=.* null .no budget. or"):
+            DiscrepancyConfig(max_time_s=bad)

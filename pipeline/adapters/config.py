@@ -330,6 +330,8 @@ class DiscrepancySection(_Strict):
     max_effects: int | None = None
     min_gap_reduction: float | None = None
     lookalike_gap: float | None = None
+    max_time_s: float | None = None
+    """Time budget of the search chain, s (default 600); ``null`` for none."""
 
     WORKFLOW_KEYS: ClassVar[tuple[str, ...]] = ("simulator_outputs", "operating_point", "seed")
 
@@ -338,7 +340,8 @@ class DiscrepancySection(_Strict):
         out = {}
         for key in self.model_fields_set - set(self.WORKFLOW_KEYS):
             value = getattr(self, key)
-            if value is not None or key in ("warmup_s", "max_delay_s", "load_signal"):
+            if value is not None or key in ("warmup_s", "max_delay_s", "load_signal",
+                                            "max_time_s"):
                 out[key] = tuple(value) if key == "effects" else value
         return out
 

@@ -545,6 +545,56 @@ def median_spacing_s(table: pl.DataFrame) -> float | None:
     return float(np.median(d)) / 1e6 if d.size else None
 
 
+def _covered_spans(times: Mapping[str, Any], start_us: int, end_us: int,
+                   brk: float) -> list[list[int]]:
+    """The union of every signal's covered stretches in ``start..end`` (µs), samples
+    closer than ``brk`` joined; sorted."""
+    spans = []  # (first µs, last µs) covered stretches of every signal
+    for get in times.values():
+        t = get()
+        t = t[(t >= start_us) & (t <= end_us)]
+        if not t.size:
+            continue
+        cut = np.flatnonzero(np.diff(t) > brk)
+        firsts = np.concatenate([[t[0]], t[cut + 1]])
+        lasts = np.concatenate([t[cut], [t[-1]]])
+        spans.extend(zip(firsts.tolist(), lasts.tolist()))
+    spans.sort()
+    merged: list[list[int]] = []
+    for a, b in spans:
+        if merged and a - merged[-1][1] <= brk:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    return merged
+
+
+def _strays(times: Mapping[str, Any], merged: list[list[int]], stray_fraction: float
+            ) -> tuple[list[bool], list[dict]]:
+    """Which stretches are strays (few samples, a small share of all) and the samples
+    each signal loses with them."""
+    counts = np.zeros(len(merged), dtype=np.int64)
+    lo_edges = np.array([m[0] for m in merged])
+    for get in times.values():
+        idx = np.searchsorted(lo_edges, get(), side="right") - 1
+        counts += np.bincount(idx[idx >= 0], minlength=len(merged))
+    total = int(counts.sum())
+    stray = [bool(counts[k] <= STRAY_MAX_SAMPLES and counts[k] < stray_fraction * total)
+             for k in range(len(merged))]
+    if all(stray):
+        return [False] * len(merged), []
+    dropped = []
+    for (a, b) in (m for m, s in zip(merged, stray, strict=True) if s):
+        for name, get in times.items():
+            t = get()
+            m = int(((t >= a) & (t <= b)).sum())
+            if m:
+                dropped.append({"signal": name, "samples": m,
+                                "first": str(np.datetime64(a, "us")) + "Z",
+                                "last": str(np.datetime64(b, "us")) + "Z"})
+    return stray, dropped
+
+
 def _islands(times: Mapping[str, Any], start_us: int, end_us: int, dt_us: int,
              break_gap_s: float | None, stray_fraction: float):
     """Grid-index ranges ``(k0, k1)`` to build, and the stray samples left out.
@@ -557,52 +607,12 @@ def _islands(times: Mapping[str, Any], start_us: int, end_us: int, dt_us: int,
     k_end = (end_us - start_us) // dt_us
     if break_gap_s is None or not math.isfinite(break_gap_s):
         return [(0, int(k_end))], []
-    brk = break_gap_s * 1e6
-    spans = []  # (first µs, last µs) covered stretches of every signal
-    for get in times.values():
-        t = get()
-        t = t[(t >= start_us) & (t <= end_us)]
-        if not t.size:
-            continue
-        cut = np.flatnonzero(np.diff(t) > brk)
-        firsts = np.concatenate([[t[0]], t[cut + 1]])
-        lasts = np.concatenate([t[cut], [t[-1]]])
-        spans.extend(zip(firsts.tolist(), lasts.tolist()))
-    if not spans:
+    merged = _covered_spans(times, start_us, end_us, break_gap_s * 1e6)
+    if not merged:
         return [(0, int(k_end))], []
-    spans.sort()
-    merged = [list(spans[0])]
-    for a, b in spans[1:]:
-        if a - merged[-1][1] <= brk:
-            merged[-1][1] = max(merged[-1][1], b)
-        else:
-            merged.append([a, b])
-    # samples per island (all signals) -> strays
-    counts = np.zeros(len(merged), dtype=np.int64)
-    lo_edges = np.array([m[0] for m in merged])
-    for get in times.values():
-        idx = np.searchsorted(lo_edges, get(), side="right") - 1
-        counts += np.bincount(idx[idx >= 0], minlength=len(merged))
-    total = int(counts.sum())
-    stray = [(counts[k] <= STRAY_MAX_SAMPLES and counts[k] < stray_fraction * total)
-             for k in range(len(merged))]
-    if all(stray):
-        stray = [False] * len(merged)
-    dropped = []
-    for k, (a, b) in enumerate(merged):
-        if not stray[k]:
-            continue
-        for name, get in times.items():
-            t = get()
-            m = int(((t >= a) & (t <= b)).sum())
-            if m:
-                dropped.append({"signal": name, "samples": m,
-                                "first": str(np.datetime64(a, "us")) + "Z",
-                                "last": str(np.datetime64(b, "us")) + "Z"})
-    islands = []
-    for k, (a, b) in enumerate(merged):
-        if stray[k]:
-            continue
+    stray, dropped = _strays(times, merged, stray_fraction)
+    islands: list[tuple[int, int]] = []
+    for (a, b) in (m for m, s in zip(merged, stray, strict=True) if not s):
         k0 = max(0, -(-(a - start_us) // dt_us))  # first grid point at or after a
         k1 = min(int(k_end), (b - start_us) // dt_us + 1)  # up to the point after b
         if k1 < k0:

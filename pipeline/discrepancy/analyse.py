@@ -112,9 +112,10 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
                      _gap_reference(chain.steps, prior), also)
 
-    chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say)
+    chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say,
+                  clock=clock)
     links, minor = chain.run()
-    return _chain_result(chain, links, minor)
+    return dataclasses.replace(_chain_result(chain, links, minor), notes=tuple(chain.notes))
 
 
 def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:

@@ -103,6 +103,15 @@ N_REPLACED = 2
 _DYNAMIC = ("dead_time", "extra_lag", "inverse_response")
 
 
+class OutOfTime(Exception):
+    """The next search would end after ``discrepancy.max_time_s``: the chain stops."""
+
+
+def _signature(links: Sequence[Link]) -> tuple:
+    """The chain as a set of (effect class, location): what a repeat is judged by."""
+    return tuple(sorted((lk.effect.name, lk.effect.location) for lk in links))
+
+
 @dataclasses.dataclass(frozen=True)
 class Link:
     """One accepted effect of the chain: the effect (nominal-model location) and its
@@ -244,12 +253,23 @@ class Chain:
         One search.
     say : callable (stage, message)
         Progress.
+    clock : callable () -> float, optional
+        A monotonic clock in seconds: with it, no search starts that would end after
+        ``config.max_time_s`` (judged by the longest search so far); the chain so far is
+        then the result and :attr:`notes` says so.  None: no time budget.
     """
 
     def __init__(self, model: Model, inputs: Mapping[str, np.ndarray],
                  measured: Mapping[str, np.ndarray], dt_s: float, config: DiscrepancyConfig,
                  free_offsets: tuple[str, ...], step: StepFn,
-                 say: Callable[[str, str], None]) -> None:
+                 say: Callable[[str, str], None],
+                 clock: Callable[[], float] | None = None) -> None:
+        self.clock = clock
+        self.t0 = clock() if clock is not None else 0.0
+        self.longest_s = 0.0  # the longest search so far, s
+        self.so_far: list[Link] = []  # the chain as last consistently fitted
+        self.notes: list[str] = []  # what the result must say (time budget, repeats)
+        self._seen: set[tuple] = set()  # chains held so far (no alternating re-searches)
         self.model, self.inputs, self.dt_s, self.config = model, inputs, dt_s, config
         self.measured = {o: np.asarray(v, dtype=float) for o, v in measured.items()}
         self.outputs = list(self.measured)
@@ -341,6 +361,9 @@ class Chain:
             Effects (nominal locations) the search fits and tests among its own
             candidates whatever its screening ranks (refitted jointly with `effects`).
         """
+        if self.steps:
+            self._check_time()
+        t_start = self.clock() if self.clock is not None else 0.0
         augmented = build(self.model, effects, self.dt_s)
         adjusted = dict(self.measured)
         if effects:
@@ -354,11 +377,60 @@ class Chain:
         if not self.steps:
             self.fit = slice(result.series.fit_start, result.series.holdout_start)
         self.steps.append(result)
+        if self.clock is not None:
+            self.longest_s = max(self.longest_s, self.clock() - t_start)
         return result
+
+    def _check_time(self) -> None:
+        """Raise :class:`OutOfTime` when the next search, as long as the longest so far,
+        would end after ``max_time_s`` (the first search always runs)."""
+        limit = self.config.max_time_s
+        if limit is None or self.clock is None:
+            return
+        elapsed = self.clock() - self.t0
+        if elapsed + self.longest_s > limit:
+            raise OutOfTime(
+                f"time budget: discrepancy.max_time_s is {limit:g} s and {elapsed:.0f} s "
+                f"have gone on {len(self.steps)} search(es); the next one (up to "
+                f"{self.longest_s:.0f} s, the longest so far) would end after it, so the "
+                "chain found so far is reported; raise max_time_s in the job's "
+                "discrepancy: section to search further")
+
+    def _keep(self, links: list[Link]) -> list[Link]:
+        """Record `links` as the chain so far (what a stop on time reports) and as a chain
+        held (:meth:`_returns_to`)."""
+        self.so_far = list(links)
+        self._seen.add(_signature(links))
+        return links
+
+    def _returns_to(self, links: Sequence[Link]) -> bool:
+        """Whether `links` is a chain held before: a backfit that swaps an effect for a
+        look-alike and back would only alternate (a 19 s dead time in the zoo's blend
+        went dead time -> inverse response -> dead time until the run was killed); a
+        note says so."""
+        sig = _signature(links)
+        if sig not in self._seen:
+            return False
+        note = (f"the chain returned to {', '.join(f'{n} at {loc}' for n, loc in sig)}, "
+                "which it had held before: re-searching would only alternate, so the "
+                "backfit stops there")
+        self.notes.append(note)
+        self.say("chain", note)
+        return True
 
     def run(self) -> tuple[list[Link], tuple[Candidate, ...]]:
         """Search, accept, backfit, search again: the accepted chain and the minor
-        effects of the search that ended it."""
+        effects of the search that ended it.  Out of time (:meth:`_check_time`): the
+        chain as last consistently fitted, no minor effects, and a note."""
+        try:
+            return self._run()
+        except OutOfTime as exc:
+            self.notes.append(str(exc))
+            self.say("chain", str(exc))
+            return list(self.so_far), ()
+
+    def _run(self) -> tuple[list[Link], tuple[Candidate, ...]]:
+        """:meth:`run` without the time budget's stop."""
         first = self.search([])
         links: list[Link] = []
         dropped: list[Effect] = []
@@ -368,11 +440,13 @@ class Chain:
             links.append(link)
         elif self.config.max_effects >= 2:
             links, last, budget = self._masked(first, budget)
+        self._keep(links)
         links, last, budget = self._grow(links, dropped, last, budget)
         if len(links) == 1 and self.config.max_effects >= 2:
             pair = self._replaced(links[0], last, budget)
             if pair is not None:
                 links, last, budget = pair
+                self._keep(links)
                 links, last, budget = self._grow(links, dropped, last, budget)
         if len(links) >= 2 and any(lk.effect.name in _DYNAMIC for lk in links):
             # the newest effect was never re-searched with its look-alikes
@@ -401,7 +475,7 @@ class Chain:
             if link is None or any(same_class(link.effect, e)
                                    for e in [*(lk.effect for lk in links), *dropped]):
                 break
-            links = _revise(links, last.revised_prior) + [link]
+            links = self._keep(_revise(links, last.revised_prior) + [link])
             links, budget = self._backfit(links, dropped, budget)
         return links, last, budget
 
@@ -505,7 +579,7 @@ class Chain:
             if alt.verdict == "no_significant_effect":
                 if not self.needed(links, j)[0]:
                     dropped.append(links[j].effect)  # the others explain it now
-                    links = others
+                    links = self._keep(others)
                     continue
                 # the others do not: its refit failed (a saturation's upper limit, met
                 # mostly in the held-out third, went to inf given a deadband; pairs
@@ -513,7 +587,10 @@ class Chain:
             if alt.verdict == "effect_found" and (link := _accepted(alt, self.model)) and \
                     not any(same_class(link.effect, lk.effect) for lk in others):
                 others = _revise(others, alt.revised_prior)
-                links = others[:j] + [link] + others[j:]
+                swapped = others[:j] + [link] + others[j:]
+                if link.effect.name != links[j].effect.name and self._returns_to(swapped):
+                    break  # back to a chain held before: the re-searches would alternate
+                links = self._keep(swapped)
             j += 1
         return links, budget
 

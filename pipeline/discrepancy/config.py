@@ -9,6 +9,14 @@ from pipeline.effects import EFFECT_NAMES, MIN_GAP_REDUCTION
 from pipeline.errors import ConfigError
 
 
+#: Default time budget of a discrepancy search chain, s.  Ten minutes: four times the
+#: longest zoo run measured before the budget existed (the interacting blend, 210-260 s on
+#: 1e4 samples at 2 s on this project's 2-core machines), and at the boiler's 8 h record
+#: a chain of three effects takes 30-60 s; a run that would go on longer is a run that
+#: alternates or fits an unidentifiable effect, and a nightly job must end.
+MAX_TIME_S = 600.0
+
+
 @dataclass(frozen=True)
 class DiscrepancyConfig:
     """Settings of :func:`analyse_discrepancy` (the job YAML's ``discrepancy:``).
@@ -83,6 +91,12 @@ class DiscrepancyConfig:
         delay's Padé approximant; under nuisance mismatch it left 29.1 % of the gap, the
         exact 10 s dead time 30.4 %, 4.5 % more).  Relative to what remains, so a plant
         that is its model (remaining gap ~ the noise) keeps the better candidate.
+    max_time_s : float or None
+        Time budget of the search chain, s: no search starts that would end after it
+        (judged by the longest search so far; the first search always runs), and the
+        chain found so far is the result, with a note.  Enforced with the clock the
+        caller passes (:func:`analyse_discrepancy`'s ``clock``; a job always passes one).
+        None: no budget.  Default :data:`MAX_TIME_S`.
     """
 
     effects: tuple[str, ...] = EFFECT_NAMES
@@ -103,6 +117,7 @@ class DiscrepancyConfig:
     max_effects: int = 3
     min_gap_reduction: float = MIN_GAP_REDUCTION
     lookalike_gap: float = 0.10
+    max_time_s: float | None = MAX_TIME_S
 
     def __post_init__(self) -> None:
         effects = tuple(self.effects)
@@ -130,6 +145,9 @@ class DiscrepancyConfig:
             ("initial", self.initial in ("rest", "steady"), "'rest' or 'steady'"),
             ("warmup_s", self.warmup_s is None or self.warmup_s >= 0, "None or >= 0"),
             ("max_delay_s", self.max_delay_s is None or self.max_delay_s > 0, "None or > 0"),
+            ("max_time_s", self.max_time_s is None or (
+                math.isfinite(self.max_time_s) and self.max_time_s > 0),
+             "null (no budget) or a number of seconds > 0"),
         ]
         for key, ok, allowed in checks:
             if not ok:

@@ -453,7 +453,7 @@ class _SaturationSearch:
     def evaluate(self, lows: Sequence[float], highs: Sequence[float]) -> np.ndarray:
         """Exact whitened sums of squares of the limit pairs (lows[j], highs[j])."""
         f = self.fitter
-        P, stop, v, path = f.P, f.stop, self.v, self.path
+        P, v, path = f.P, self.v, self.path
         lo, hi = np.asarray(lows, dtype=float), np.asarray(highs, dtype=float)
         if lo.size == 0:
             return np.zeros(0)

@@ -159,8 +159,10 @@ class StaticMapPath:
 # be vectorised over time; as a NumPy loop it cost ~50 us per sample (3-4 s per location
 # for 1e5 samples, 12 locations per two-search analysis).  No library routine simulates
 # a Lur'e system over many parameter columns.
+# C901: a compiled kernel, one loop nest that numba compiles and inlines as a unit;
+# split into functions it would pass arrays across calls per sample.
 @numba.njit(cache=True, nogil=True)
-def _clip_pass(rows, cols, vals, n_rows, bd, s_nom, lows, highs, first, stop, n_y,
+def _clip_pass(rows, cols, vals, n_rows, bd, s_nom, lows, highs, first, stop, n_y,  # noqa: C901
                r, ar, inv_var, first_w, keep):  # pragma: no cover - compiled
     k = lows.size
     n_x = n_rows - 1 - n_y

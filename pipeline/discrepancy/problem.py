@@ -8,8 +8,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.fft
-import scipy.optimize
 
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError

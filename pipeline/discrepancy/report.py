@@ -132,6 +132,9 @@ def _header(doc: Mapping[str, Any]) -> list[str]:
                      "the gap to matter (see *Minor effects*); the nominal model stays.")
     else:
         lines.append("**No effect accepted**: the nominal model stays.")
+    notes = [n for n in doc.get("notes") or [] if isinstance(n, str)]
+    if notes:
+        lines += [""] + [f"> **Note:** {md_cell(n)}" for n in notes]
     looks = [c for c in doc.get("lookalikes") or [] if isinstance(c, Mapping)]
     if looks:
         if isinstance(effect, Mapping):

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.effects import Effect, output_offsets
+from pipeline.effects import Effect
 from pipeline.model import Model
 
 
@@ -196,6 +196,9 @@ class DiscrepancyResult:
         With two or more effects: the constant by which each free output's operating
         point moved for the final augmented model (``free_offsets``); :attr:`series`
         ``.augmented`` includes it.  Empty otherwise.
+    notes : tuple of str
+        How the search ended when not by its own rules: the time budget
+        (``max_time_s``) ran out, or the chain returned to one it had held.
     revised_prior : tuple of Effect
         Internal to the chain: for a search on a model that already holds effects, those
         effects as refitted jointly with this search's :attr:`effect` (unchanged when it
@@ -221,6 +224,7 @@ class DiscrepancyResult:
     minor_effects: tuple[Candidate, ...] = ()
     operating_point_shift: dict[str, float] = field(default_factory=dict)
     revised_prior: tuple[Effect, ...] = ()
+    notes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no long arrays): what ``discrepancy.json`` holds."""
@@ -246,6 +250,7 @@ class DiscrepancyResult:
             "effects": [e.to_dict() for e in self.effects],
             "minor_effects": [c.to_dict() for c in self.minor_effects],
             "operating_point_shift": {k: float(v) for k, v in self.operating_point_shift.items()},
+            "notes": list(self.notes),
         }
 
     def __str__(self) -> str:
@@ -259,6 +264,7 @@ class DiscrepancyResult:
             f"  held-out RMS {g['holdout_rms_before']:.4g} -> {g['holdout_rms_after']:.4g} "
             f"({100 * g['reduction']:.1f} % smaller)"
         )
+        lines += [f"  note: {n}" for n in self.notes]
         for c in self.candidates[:5]:
             lines.append(
                 f"  candidate {c.effect.describe()}: dBIC {c.delta_bic:.1f}, held-out z "

@@ -70,6 +70,8 @@ def _header(doc: Mapping[str, Any], manifest: Mapping[str, Any]) -> str:
                    "of the gap to matter (see Minor effects); the nominal model stays.")
     else:
         finding = "<b>No effect accepted</b>: the nominal model stays."
+    finding += "".join(f'<br><span class="note"><b>Note:</b> {esc(n)}</span>'
+                       for n in doc.get("notes") or [] if isinstance(n, str))
     nav = " ".join(f'<a href="#{k}">{esc(t)}</a>' for k, t in _SECTIONS)
     return (f"<h1>Discrepancy: {esc(doc.get('verdict'))} — {esc(doc.get('job'))}</h1>\n"
             f"<p class=\"meta\">{' · '.join(facts)}</p>\n<p id=\"finding\">{finding}</p>\n"

@@ -39,6 +39,40 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     return digest.hexdigest()
 
 
+def _finite_or_none(obj: Any) -> float | None:
+    value = float(obj)
+    return value if math.isfinite(value) else None
+
+
+def _datetime_text(obj: dt.datetime) -> str:
+    return iso_utc(obj) if obj.tzinfo is not None else obj.isoformat()
+
+
+#: Leaf values and their JSON form, in the order they are tried (a datetime is a date).
+_LEAVES: tuple[tuple[tuple[type, ...], Any], ...] = (
+    ((np.bool_,), bool),
+    ((int, np.integer), int),
+    ((float, np.floating), _finite_or_none),
+    ((dt.datetime,), _datetime_text),
+    ((dt.date, dt.time), lambda o: o.isoformat()),
+    ((dt.timedelta,), lambda o: o.total_seconds()),
+    ((np.datetime64,), str),
+    ((os.PathLike,), os.fspath),
+)
+
+
+def _json_mapping(obj: Mapping, where: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in obj.items():
+        if isinstance(key, (np.integer, np.floating, np.bool_)):
+            key = key.item()
+        if not isinstance(key, (str, int, float, bool)) and key is not None:
+            raise TypeError(f"{where}: mapping key {key!r} of type {type(key).__name__} is "
+                            "not JSON-serialisable; use str keys")
+        out[str(key)] = json_ready(value, f"{where}.{key}")
+    return out
+
+
 def json_ready(obj: Any, where: str = "$") -> Any:
     """Convert ``obj`` to plain JSON types: NaN/inf -> None, numpy -> python.
 
@@ -54,38 +88,16 @@ def json_ready(obj: Any, where: str = "$") -> Any:
     """
     if obj is None or isinstance(obj, (bool, str)):
         return obj
-    if isinstance(obj, (np.bool_,)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        value = float(obj)
-        return value if math.isfinite(value) else None
+    for types, convert in _LEAVES:
+        if isinstance(obj, types):
+            return convert(obj)
     if isinstance(obj, Mapping):
-        out: dict[str, Any] = {}
-        for key, value in obj.items():
-            if isinstance(key, (np.integer, np.floating, np.bool_)):
-                key = key.item()
-            if not isinstance(key, (str, int, float, bool)) and key is not None:
-                raise TypeError(f"{where}: mapping key {key!r} of type {type(key).__name__} is not JSON-serialisable; use str keys")
-            out[str(key)] = json_ready(value, f"{where}.{key}")
-        return out
-    if isinstance(obj, np.ndarray):
-        return [json_ready(v, f"{where}[{i}]") for i, v in enumerate(obj.tolist())]
-    if isinstance(obj, (list, tuple)):
-        return [json_ready(v, f"{where}[{i}]") for i, v in enumerate(obj)]
+        return _json_mapping(obj, where)
+    if isinstance(obj, (np.ndarray, list, tuple)):
+        items = obj.tolist() if isinstance(obj, np.ndarray) else obj
+        return [json_ready(v, f"{where}[{i}]") for i, v in enumerate(items)]
     if isinstance(obj, (set, frozenset)):
         return sorted(json_ready(v, f"{where}[]") for v in obj)
-    if isinstance(obj, dt.datetime):
-        return iso_utc(obj) if obj.tzinfo is not None else obj.isoformat()
-    if isinstance(obj, (dt.date, dt.time)):
-        return obj.isoformat()
-    if isinstance(obj, dt.timedelta):
-        return obj.total_seconds()
-    if isinstance(obj, np.datetime64):
-        return str(obj)
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return json_ready(dataclasses.asdict(obj), where)
     raise TypeError(
