@@ -90,6 +90,9 @@ def load_recording(cfg, files: list[Path] | None = None, tick: Tick = silent) ->
                    stray_fraction=STRAY_FRACTION)
     order = [grid.names.index(t) for t in tags]
     values = np.asarray(grid.values)[:, order]
+    scales = np.array([s.scale for _, s in sig.values()])
+    if np.any(scales != 1.0):  # signals.*.scale: the export in the units the job uses
+        values = values * scales
     good = np.asarray(grid.good)[:, order]
     spikes = {}
     if cfg.quality.spikes == "mask":

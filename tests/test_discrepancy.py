@@ -533,3 +533,36 @@ def test_saturation_limits_serialise_as_strings():
     d = Effect("saturation", "fuel", {"low": -math.inf, "high": 2.0}).to_dict()
     assert d["parameters"] == {"low": "-inf", "high": 2.0}
     json.dumps(d, allow_nan=False)
+
+
+def test_a_candidate_whose_simulation_diverges_is_dropped_with_its_parameters(drum,
+                                                                              monkeypatch):
+    """Issue 34, build 6: a fitted candidate whose whole-record simulation diverges is
+    dropped from the selection and listed with its parameters (``diverged``), and the
+    run goes on.  The noise-free drum record of the test above, with every gain
+    candidate's whole-record simulation made to diverge (what an effect that
+    destabilises a loop does): the hidden gain cannot be named, it is listed as diverged
+    with its fitted factor (each class once), and no error escapes."""
+    import pipeline.discrepancy.fit as fit_module
+
+    trial = make_hidden_effect_trial(drum, None, seed=5, n=6000)
+    truth = predict_outputs(drum, Effect("gain", "feedwater_flow", {"factor": 1.37}),
+                            trial.inputs, dt_s=trial.dt_s)
+    real = fit_module.predict_with
+
+    def diverging_gains(P, effect, inputs):
+        whole = next(iter(inputs.values())).size == P.n
+        return None if whole and effect.name == "gain" else real(P, effect, inputs)
+
+    monkeypatch.setattr(fit_module, "predict_with", diverging_gains)
+    # one search (the chain's joint refits simulate through the chain, not this path)
+    result = analyse_discrepancy(drum, inputs=trial.inputs, measured=truth, dt_s=trial.dt_s,
+                                 config=DiscrepancyConfig(max_effects=1))
+    assert result.effect is None or result.effect.name != "gain"
+    assert all(c.effect.name != "gain" for c in result.candidates)
+    gains = {e.location: e.parameters["factor"] for e in result.diverged if e.name == "gain"}
+    assert gains.get("feedwater_flow") == pytest.approx(1.37, rel=1e-3)  # fitted, then dropped
+    assert len(gains) == len([e for e in result.diverged if e.name == "gain"])  # once each
+    d = result.to_dict()
+    assert {"name": "gain", "location": "feedwater_flow"}.items() <= d["diverged"][
+        [e["location"] for e in d["diverged"]].index("feedwater_flow")].items()

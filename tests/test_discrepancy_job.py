@@ -391,3 +391,41 @@ def test_the_default_time_budget_and_a_bad_one():
     for bad in (0.0, -1.0, math.inf, math.nan):
         with pytest.raises(ConfigError, match="discrepancy.max_time_s=.* null .no budget. or"):
             DiscrepancyConfig(max_time_s=bad)
+
+
+def test_an_op_exported_as_a_fraction_is_named_with_its_factor(tmp_path, capsys):
+    """Issue 34, build 6: the zoo's heat exchanger (its own simulator, not
+    ``pipeline.simulate``) with the controller output exported as a fraction 0-1 where
+    the model works in %.  Before: a controller saturation closing 98 % of the gap, a
+    confident wrong answer.  Now: exit 2, one message naming the output and the factor
+    100 and the fix in YAML terms; with that fix (``scale: 100``) the run goes through
+    and analyses the OP in % (the measured series equals the export times 100)."""
+    from tests.zoo import FAMILIES
+    from tests.zoo.trial import make_trial, write_trial
+
+    trial = make_trial(FAMILIES["heat_exchanger"], None, 3_900_001)
+    percent = trial.record.measured["controller"].copy()
+    trial.record.measured["controller"] = percent / 100.0
+    job = write_trial(trial, tmp_path / "fraction")
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    assert main(["discrepancy", str(job), "--no-prefect"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("plantdyn: error:") == 1 and "Traceback" not in err
+    assert "output 'controller'" in err and "by a factor of" in err and "≈ 100" in err
+    assert "'scale: 100' under signals.outputs.controller" in err
+    after = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    assert [p for p in after if p not in before and "storage" in p.parts
+            and p.suffix in (".json", ".parquet", ".md", ".html")] == []  # no run written
+
+    doc = yaml.safe_load(job.read_text())
+    doc["signals"]["outputs"]["controller"]["scale"] = 100
+    job.write_text(yaml.safe_dump(doc, sort_keys=False))
+    assert main(["discrepancy", str(job), "--no-prefect"]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    series = pl.read_parquet(run_dir / "discrepancy_series.parquet")
+    measured = series.filter(pl.col("output") == "controller")["measured"].to_numpy()
+    # the analysed stretch is a part of the record: the export's % values, up to the
+    # operating point the job takes off (its mean) and the CSV's printed digits
+    k = measured.size
+    tail = percent[-k:] - percent[-k:].mean()
+    assert np.allclose(measured - measured.mean(), tail, atol=1e-6 * np.ptp(percent) + 1e-9)

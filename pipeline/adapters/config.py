@@ -71,6 +71,10 @@ class SignalConfig(_Strict):
     max_gap_s: float | None = Field(default=None, gt=0, le=30 * 86_400)
     """Longest span bridged by interpolation/hold; default 10 grid periods."""
     unit: str | None = None
+    scale: float = Field(default=1.0, gt=0.0, le=1e9)
+    """Multiplies the exported values before anything else uses them: puts a signal in
+    the units a model or a reader expects (100 for an OP exported as a fraction 0-1
+    where the model works in %)."""
 
 
 class SignalsConfig(_Strict):

@@ -14,7 +14,13 @@ from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.fit import Fit, Fitter, predict_with, refit_nested_lags
 from pipeline.discrepancy.joint import N_JOINT, joint_refit, prior_basis
 from pipeline.discrepancy.localise import localise
-from pipeline.discrepancy.problem import Problem, settling_time, sigma_floor, validate_signals
+from pipeline.discrepancy.problem import (
+    Problem,
+    check_scales,
+    settling_time,
+    sigma_floor,
+    validate_signals,
+)
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, DiscrepancySeries
 from pipeline.discrepancy.screen import class_key, kept_classes, nested_partners, screen_all
 from pipeline.discrepancy.select import (
@@ -128,6 +134,8 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
     for k, s in enumerate(chain.steps[1:], 2):
         timings.update({f"step{k}/{key}": v for key, v in s.timings_s.items()})
     n_sims = sum(s.n_fit_simulations for s in chain.steps)
+    diverged = tuple({_fit_key(e): e for s in chain.steps for e in s.diverged}.values())
+    first = dataclasses.replace(first, diverged=diverged)
     if not links:
         return dataclasses.replace(first, effects=(), timings_s=timings,
                                    n_fit_simulations=n_sims, minor_effects=minor)
@@ -219,7 +227,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         output_offsets=output_offsets(effect, n=P.n, dt_s=P.dt_s, outputs=outputs),
         noise=noise, screening=screening, series=series, dt_s=P.dt_s, config=config,
         timings_s=timings, n_fit_simulations=int(fits_total), minor_effects=minor,
-        revised_prior=revised.get(id(effect), tuple(prior)),
+        revised_prior=revised.get(id(effect), tuple(prior)), diverged=tuple(P.diverged),
     )
 
 
@@ -368,6 +376,7 @@ def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any
             f"and a hold-out of {config.holdout_fraction:.2f}; give a longer record or lower "
             "discrepancy.warmup_s"
         )
+    check_scales(y, y_nom, outputs, slice(fit_start, holdout_start))
     n_p = int(np.clip(round(settling / dt_s), 10,
                       max(10, min(200, (holdout_start - fit_start) // 25))))
     if config.max_delay_s is None:
@@ -457,15 +466,13 @@ def _search(P: Problem, resid: np.ndarray, fir_res: list[np.ndarray], noise: dic
             # search was done there; only the noise weighting changed)
             effect = fitter.fit(c, warm=previous.get(class_key(c)))
             y_pred = fitter.predict(effect, full=True)
-            if y_pred is not None:
-                preds.append((c, effect, y_pred))
+            _keep_finite(P, preds, c, effect, y_pred, say)
         for c in extra:
             if class_key(c) not in white_fits:
                 effect = white_fitter.fit(c)
                 white_fits[class_key(c)] = (effect, white_fitter.predict(effect, full=True))
             effect, y_pred = white_fits[class_key(c)]
-            if y_pred is not None:
-                preds.append((c, effect, y_pred))
+            _keep_finite(P, preds, c, effect, y_pred, say)
         refit_nested_lags(fitter, preds)
         fits_total += fitter.n_eval
         previous = {class_key(c): e for c, e, _ in preds}
@@ -483,6 +490,19 @@ def _search(P: Problem, resid: np.ndarray, fir_res: list[np.ndarray], noise: dic
         say("screen", "screening given the earlier effects refitted jointly")
         joint_classes = screen_all(P, resid, h_cache, basis)[0]
     return preds, classes, fits_total, joint_classes
+
+
+def _keep_finite(P: Problem, preds: list, c: Any, effect: Effect, y_pred: np.ndarray | None,
+                 say: Callable[[str, str], None]) -> None:
+    """A fitted candidate joins the selection when its whole-record simulation stays
+    finite; one that diverges is dropped and recorded with its parameters
+    (``P.diverged``, the result's ``diverged``) -- never a failure of the run."""
+    if y_pred is not None:
+        preds.append((c, effect, y_pred))
+    else:
+        # each class once, as last fitted
+        P.diverged[:] = [d for d in P.diverged if _fit_key(d) != _fit_key(effect)] + [effect]
+        say("fit", f"dropped {effect.describe()}: its simulation diverges")
 
 
 def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
+from pipeline.discrepancy.problem import SCALE_FACTOR_HINT
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
 from pipeline.discrepancy.select import holdout_gap, same_class
 from pipeline.effects import Effect, apply_effect, original_location, output_offsets
@@ -145,11 +146,6 @@ def _lookalikes(link: Link, dt_s: float) -> tuple[Candidate, ...]:
         dataclasses.replace(link.candidate, n_parameters=n_par,
                             effect=dataclasses.replace(e, name=name, parameters=params))
         for name, (params, n_par) in starts.items() if name != e.name)
-
-
-#: A fitted gain factor this far from 1 (or its inverse) is more likely a unit or scale
-#: mismatch between the export and the model than a plant change.
-SCALE_FACTOR_HINT = 30.0
 
 
 def simulate_with(augmented: Model, effects: Sequence[Effect], inputs: Mapping[str, Any],

@@ -18,6 +18,66 @@ from pipeline.simulate import simulate
 #: Innovation stds are floored at this fraction of the output's std (:func:`sigma_floor`).
 _SIGMA_FLOOR_RTOL = 1e-6
 
+#: A factor this far from 1 (or its inverse) between a measured output and the nominal
+#: model's simulation of it -- or a fitted gain factor -- is more likely a unit or scale
+#: mismatch between the export and the model than a plant change: the catalogue's effects
+#: change a gain by tens of percent, a unit error by a power of ten (an OP exported as a
+#: fraction 0-1 where the model expects %: 100).
+SCALE_FACTOR_HINT = 30.0
+#: The measured output must follow the scaled simulation this closely (correlation over
+#: the fit part) for the factor to be read as a scale: a quarter of its variance explained.
+SCALE_MIN_CORRELATION = 0.5
+
+
+def check_scales(y: np.ndarray, y_nominal: np.ndarray, outputs: tuple[str, ...],
+                 part: slice) -> None:
+    """Refuse a measured output whose scale differs from the model's by a unit factor.
+
+    The least-squares factor ``b = <m, s> / <s, s>`` between the measured output ``m`` and
+    the nominal simulation ``s`` (both less their means over `part`) is the gain that
+    maps the model's output onto the measurement.  When the two are correlated
+    (:data:`SCALE_MIN_CORRELATION`) and ``b`` is :data:`SCALE_FACTOR_HINT` or more away
+    from 1, no catalogue effect is the explanation: the search would fit a saturation
+    or a gain of ``b`` to a unit error (an OP exported as a fraction was named a
+    controller saturation closing 98 % of the gap), so the analysis stops with the
+    factor named.
+
+    Parameters
+    ----------
+    y, y_nominal : ndarray (N, n_y)
+        Measured outputs and the nominal model's simulation of them.
+    outputs : tuple of str
+        Their names.
+    part : slice
+        Samples compared (the fit part).
+
+    Raises
+    ------
+    ConfigError
+        An output whose scale is off by a factor beyond :data:`SCALE_FACTOR_HINT`.
+    """
+    for i, name in enumerate(outputs):
+        m, sim = y[part, i] - np.mean(y[part, i]), y_nominal[part, i] - np.mean(y_nominal[part, i])
+        ss, mm = float(sim @ sim), float(m @ m)
+        if ss <= 0.0 or mm <= 0.0:
+            continue
+        b = float(m @ sim) / ss
+        corr = float(m @ sim) / math.sqrt(ss * mm)
+        if corr < SCALE_MIN_CORRELATION or 1.0 / SCALE_FACTOR_HINT < b < SCALE_FACTOR_HINT:
+            continue
+        factor = 1.0 / b
+        decade = 10.0 ** round(math.log10(factor))
+        near = abs(factor / decade - 1.0) <= 0.15  # a power of ten: a unit's factor
+        likely, suggest = (f" ≈ {decade:g}", f"{decade:g}") if near else ("", f"{factor:.3g}")
+        raise ConfigError(
+            f"output {name!r}: the measurement is {b:.3g} × the nominal model's simulation "
+            f"of it (correlation {corr:.2f} over the fit part), so its scale differs from "
+            f"the model's by a factor of {factor:.3g}{likely}: a unit mismatch, not a plant "
+            "effect (e.g. an OP exported as a fraction 0-1 where the model expects %).  Put "
+            f"the signal in the model's units with 'scale: {suggest}' under "
+            f"signals.outputs.{name} in the job YAML, or fix the model's units"
+        )
+
 
 @dataclass
 class Problem:
@@ -42,6 +102,10 @@ class Problem:
     #: block and output names of the nominal model: a later search of the chain screens
     #: only locations with a counterpart there (:func:`pipeline.effects.original_location`)
     location_names: tuple[str, ...] | None = None
+    #: fitted candidates whose simulation over the whole record diverged: dropped from
+    #: the selection, listed in the result with their parameters (shared by the copies
+    #: the white-weighted screening makes)
+    diverged: list = field(default_factory=list)
 
     @property
     def n_y(self) -> int:

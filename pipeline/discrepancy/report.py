@@ -132,6 +132,10 @@ def _header(doc: Mapping[str, Any]) -> list[str]:
                      "the gap to matter (see *Minor effects*); the nominal model stays.")
     else:
         lines.append("**No effect accepted**: the nominal model stays.")
+    diverged = [e for e in doc.get("diverged") or [] if isinstance(e, Mapping)]
+    if diverged:
+        lines += ["", "Dropped because its simulation diverges (it destabilises a loop): "
+                  + "; ".join(effect_text(e) for e in diverged) + "."]
     notes = [n for n in doc.get("notes") or [] if isinstance(n, str)]
     if notes:
         lines += [""] + [f"> **Note:** {md_cell(n)}" for n in notes]

@@ -196,6 +196,9 @@ class DiscrepancyResult:
         With two or more effects: the constant by which each free output's operating
         point moved for the final augmented model (``free_offsets``); :attr:`series`
         ``.augmented`` includes it.  Empty otherwise.
+    diverged : tuple of Effect
+        Fitted candidates whose simulation over the record diverged (an effect that
+        destabilises a loop): dropped from the selection, listed with their parameters.
     notes : tuple of str
         How the search ended when not by its own rules: the time budget
         (``max_time_s``) ran out, or the chain returned to one it had held.
@@ -224,6 +227,7 @@ class DiscrepancyResult:
     minor_effects: tuple[Candidate, ...] = ()
     operating_point_shift: dict[str, float] = field(default_factory=dict)
     revised_prior: tuple[Effect, ...] = ()
+    diverged: tuple[Effect, ...] = ()
     notes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
@@ -250,6 +254,7 @@ class DiscrepancyResult:
             "effects": [e.to_dict() for e in self.effects],
             "minor_effects": [c.to_dict() for c in self.minor_effects],
             "operating_point_shift": {k: float(v) for k, v in self.operating_point_shift.items()},
+            "diverged": [e.to_dict() for e in self.diverged],
             "notes": list(self.notes),
         }
 

@@ -319,12 +319,14 @@ def main_zoo(args: argparse.Namespace) -> None:
     effects = tuple(e for e in args.effects if e in ZOO_EFFECTS) \
         if args.effects != list(EFFECT_NAMES) else ZOO_EFFECTS
     start = time.perf_counter()
-    jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours)
+    seed0 = ZOO_SEED0 if args.seed0 is None else args.seed0
+    jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours,
+                    seed0=seed0)
     if args.keep:
         jobs = [(*j, args.keep) for j in jobs]
     results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl)
     print(f"\n## Zoo suite: {trials} trials per (family, effect) + {nulls} nulls per family, "
-          f"seeds from {ZOO_SEED0}, {time.perf_counter() - start:.0f} s wall on "
+          f"seeds from {seed0}, {time.perf_counter() - start:.0f} s wall on "
           f"{args.workers} workers\n")
     print(summarise_zoo(results))
 
@@ -485,6 +487,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="zoo: record length (default per family)")
     parser.add_argument("--keep", default=None, help="zoo: keep every trial's folder here")
     parser.add_argument("--jsonl", default=None, help="zoo: append each trial's row here")
+    parser.add_argument("--seed0", type=int, default=None,
+                        help="zoo: first seed (default ZOO_SEED0; fresh seeds for a new run)")
     args = parser.parse_args(argv)
     defaults = {"clean": (50, 50), "nuisance": (50, 100), "pairs": (100, 0)}
     for suite in ([] if args.timing_only else SUITES if args.suite == "all" else [args.suite]):
