@@ -430,19 +430,24 @@ def test_a_gain_and_a_dead_time_act_on_the_block_a_saturation_wrapped(boiler):
 def test_one_sample_dead_time_and_a_very_short_lag_are_lookalikes(boiler):
     # With a zero-order hold, a first-order lag with tau << dt IS a one-sample delay, so
     # the data cannot tell dead_time (1 sample) from extra_lag (tiny tau) at the same
-    # block: the workflow must say so instead of picking one.
+    # block: the workflow names the simplest member of the tie and reports the others as
+    # equivalent explanations (issue 34, build 4), not "inconclusive".
     trial = make_hidden_effect_trial(boiler, None, seed=11, n=6000)
     truth = predict_outputs(boiler, Effect("dead_time", "turbine_pressure", {"delay_s": 2.0}),
                             trial.inputs, dt_s=2.0)
     rng = np.random.default_rng(0)
     noisy = {k: v + 0.05 * np.std(v) * rng.normal(size=v.size) for k, v in truth.items()}
     result = analyse_discrepancy(boiler, inputs=trial.inputs, measured=noisy, dt_s=2.0)
-    assert result.verdict == "inconclusive"
-    assert result.effect is None
-    names = {c.effect.name for c in result.lookalikes}
-    assert {"dead_time", "extra_lag"} <= names
-    assert result.augmented_model == boiler
-    assert result.gap["holdout_rms_after"] == result.gap["holdout_rms_before"]
+    assert result.verdict == "effect_found"
+    tie = [result.effects[0].candidate, *result.equivalent_effects]
+    assert {"dead_time", "extra_lag"} <= {c.effect.name for c in tie}
+    assert all(c.effect.location in ("turbine_pressure", *c.effect.equivalent_locations)
+               or "turbine_pressure" in c.effect.equivalent_locations for c in tie)
+    # the named one has the fewest parameters of the tie, and it closes the gap
+    assert result.effects[0].candidate.n_parameters == min(c.n_parameters for c in tie)
+    assert result.gap["holdout_rms_after"] < 0.5 * result.gap["holdout_rms_before"]
+    names = [e["name"] for e in result.to_dict()["equivalent_effects"]]
+    assert names == [c.effect.name for c in result.equivalent_effects]
 
 
 def test_coloured_noise_alone_is_not_an_effect(drum):

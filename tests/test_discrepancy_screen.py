@@ -69,29 +69,40 @@ def sensor_bias_record(n: int = 10_000):
     return model, inputs, measured, dt_s
 
 
-def test_an_effect_behind_a_large_sensor_bias_is_a_finding():
+def test_an_effect_behind_a_large_sensor_bias_is_sized_against_what_the_bias_leaves():
     """A drum-level sensor that reads 17 units low and drifts -3 units/h, and an
     operating-point gain at the feedwater demand rising with steam flow.  The bias is 90 %
-    of the nominal model's held-out gap; the gain closes ~15 % of what the bias leaves
+    of the nominal model's held-out gap; the gain closes ~11 % of what the bias leaves
     but under 5 % of the nominal gap.  Practical significance is judged against the gap
     the dynamics leave once the sensor correction is applied
-    (``analyse._gap_reference``): both are findings, in order.  Against the raw nominal
-    gap (the rule before) the gain was a minor effect (pairs trial 1500001).
+    (``analyse._gap_reference``), at the lower 95 % confidence bound of the share closed
+    (``select.reduction_lower_bound``, issue 34): on this record the gain's share is
+    11 % with a bootstrap spread of about 4 %, so its bound sits near the 5 % bar.  The
+    gain is found with its slope whichever side of the bar the bound falls: as the
+    chain's second effect, or listed under ``minor_effects`` -- and either way it is
+    measured against what the bias leaves, not the raw nominal gap (the rule before
+    made it 0.7 %, pairs trial 1500001).
 
     Truth from the independent plant (continuous time, Heun at dt/10); 13 % white sensor
     noise as in that trial (its slope was fitted 2 % off: 10 % tolerance)."""
     model, inputs, measured, dt_s = sensor_bias_record()
     result = analyse_discrepancy(model, inputs=inputs, measured=measured, dt_s=dt_s, seed=1)
     chain = [s.candidate.effect for s in result.effects]
-    assert [(e.name, e.location) for e in chain[:2]] == [
-        ("sensor_bias_drift", "drum_level"), ("operating_point_gain", "feedwater_demand")], \
-        [e.describe() for e in chain]
+    assert (chain[0].name, chain[0].location) == ("sensor_bias_drift", "drum_level")
     assert abs(chain[0].parameters["bias"] / -17.0 - 1.0) < 0.05
-    assert chain[1].parameters["signal"] == "steam_flow"
-    assert abs(chain[1].parameters["slope"] / -0.0234 - 1.0) < 0.10
-    # the case the rule is for: the gain closes >= 5 % of what the bias leaves, but
-    # under 5 % of the nominal gap (all in the units of result.gap)
-    first, second = result.effects[:2]
-    nominal = first.gap_before
-    assert second.gap_before - second.gap_after >= 0.05 * second.gap_before
-    assert second.gap_before - second.gap_after < 0.05 * nominal
+    if len(result.effects) >= 2:
+        gain = result.effects[1].candidate
+    else:
+        gain = next(m for m in result.minor_effects if m.effect.name == "operating_point_gain"
+                    and "feedwater_demand" in (m.effect.location,
+                                               *m.effect.equivalent_locations))
+    assert gain.effect.name == "operating_point_gain"
+    assert "feedwater_demand" in (gain.effect.location, *gain.effect.equivalent_locations)
+    assert gain.effect.parameters["signal"] == "steam_flow"
+    assert abs(gain.effect.parameters["slope"] / -0.0234 - 1.0) < 0.10
+    # sized against what the bias leaves: >= 5 % of that gap, under 5 % of the nominal
+    first = result.effects[0]
+    assert gain.gap_reduction >= 0.05
+    assert gain.gap_reduction * first.gap_after < 0.05 * first.gap_before
+    # and the verdict follows the bound: a finding exactly when the bound clears the bar
+    assert (len(chain) >= 2) == (gain.gap_reduction_low >= 0.05)

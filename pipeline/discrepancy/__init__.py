@@ -62,10 +62,12 @@ workflow"):
    candidate that flattens the prediction (e.g. a narrow saturation band) can win (a)
    and (b) while the prediction an engineer looks at gets worse -- found on the steam
    generator, where such a clip of O2 passed (a) and (b) and raised its held-out RMS
-   by 70 %).  ``inconclusive``: another accepted candidate of a different
-   class lies within ``lookalike_margin`` of the best BIC (the ``lookalikes``), or the
-   best-fitting candidate fails the held-out test while a worse one passes.
-   ``no_significant_effect``: none passes.
+   by 70 %).  A finding must also close ``min_gap_reduction`` of the gap at the lower
+   confidence bound of the share it closes (``gap_reduction_low``).  Accepted
+   candidates of different classes within ``lookalike_margin`` of the best BIC are a
+   tie: the simplest is named, the others are its ``equivalent_effects``.
+   ``no_significant_effect``: none passes, or the best-fitting candidate fails the
+   held-out test while a worse one passes (it is listed as ``rejected``).
 5. **Augment**: the accepted effect is added to the model
    (:func:`pipeline.effects.apply_effect`) and the held-out output-error RMS before and
    after is the ``gap``.

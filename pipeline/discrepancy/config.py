@@ -52,7 +52,8 @@ class DiscrepancyConfig:
         pass must still shrink the gap by ``min_gap_reduction`` to be a finding.
     lookalike_margin : float
         BIC distance under which two accepted candidates of different classes are
-        indistinguishable (verdict ``inconclusive``).
+        indistinguishable: the simplest is named, the others are its
+        ``equivalent_effects``.
     n_fit_candidates : int
         Candidate classes fitted exactly after screening.
     max_delay_s : float or None

@@ -127,11 +127,20 @@ def _header(doc: Mapping[str, Any]) -> list[str]:
         lines.append(f"**Effect found:** {effect_text(effect)} — added to `model_augmented.yaml`.")
     elif doc.get("verdict") == "inconclusive":
         lines.append("**Inconclusive:** look-alike candidates fit about equally well:")
+    elif rejected := [c for c in doc.get("rejected") or [] if isinstance(c, Mapping)]:
+        lines.append("**No significant effect**: the candidate that fits the fit part best, "
+                     + "; ".join(effect_text(c) for c in rejected) + ", fails on held-out "
+                     "data — what the fit part shows is not a stable plant effect; the "
+                     "nominal model stays.")
     elif doc.get("minor_effects"):
         lines.append("**No significant effect**: what the tests detect closes too little of "
                      "the gap to matter (see *Minor effects*); the nominal model stays.")
     else:
         lines.append("**No effect accepted**: the nominal model stays.")
+    equivalent = [c for c in doc.get("equivalent_effects") or [] if isinstance(c, Mapping)]
+    if equivalent:
+        lines += ["", "Equivalent explanations (the data cannot tell them apart; the "
+                  "simplest is named): " + "; ".join(effect_text(c) for c in equivalent) + "."]
     diverged = [e for e in doc.get("diverged") or [] if isinstance(e, Mapping)]
     if diverged:
         lines += ["", "Dropped because its simulation diverges (it destabilises a loop): "

@@ -54,6 +54,10 @@ class Candidate:
         (:func:`pipeline.discrepancy.select.holdout_rms_test`).
     passed_by : str
         Which acceptance passed: ``"whitened"``, ``"held-out RMS"``, ``"both"`` or ``""``.
+    gap_reduction_low : float
+        One-sided 95 % lower confidence bound of :attr:`gap_reduction` (the held-out RMS
+        test's block bootstrap): what practical significance is judged on
+        (:func:`pipeline.discrepancy.select.reduction_lower_bound`).
     """
 
     effect: Effect
@@ -68,6 +72,7 @@ class Candidate:
     gap_reduction: float = math.nan
     holdout_rms_p: float = math.nan
     passed_by: str = ""
+    gap_reduction_low: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
@@ -84,6 +89,7 @@ class Candidate:
             gap_reduction=json_float(self.gap_reduction),
             holdout_rms_p=json_float(self.holdout_rms_p),
             passed_by=self.passed_by,
+            gap_reduction_low=json_float(self.gap_reduction_low),
         )
         return out
 
@@ -196,6 +202,14 @@ class DiscrepancyResult:
         With two or more effects: the constant by which each free output's operating
         point moved for the final augmented model (``free_offsets``); :attr:`series`
         ``.augmented`` includes it.  Empty otherwise.
+    equivalent_effects : tuple of Candidate
+        With ``effect_found``: look-alikes of :attr:`effect` the data cannot tell apart
+        (within ``lookalike_margin`` of its BIC, each passing every test); the simplest
+        of the tie is :attr:`effect` (``discrepancy.json`` ``equivalent_effects``).
+    rejected : tuple of Candidate
+        With ``no_significant_effect``: the best-BIC candidate, which failed on held-out
+        data while a weaker one passed -- the fit part's discrepancy is not a stable
+        plant effect.
     diverged : tuple of Effect
         Fitted candidates whose simulation over the record diverged (an effect that
         destabilises a loop): dropped from the selection, listed with their parameters.
@@ -227,6 +241,8 @@ class DiscrepancyResult:
     minor_effects: tuple[Candidate, ...] = ()
     operating_point_shift: dict[str, float] = field(default_factory=dict)
     revised_prior: tuple[Effect, ...] = ()
+    equivalent_effects: tuple[Candidate, ...] = ()
+    rejected: tuple[Candidate, ...] = ()
     diverged: tuple[Effect, ...] = ()
     notes: tuple[str, ...] = ()
 
@@ -254,6 +270,8 @@ class DiscrepancyResult:
             "effects": [e.to_dict() for e in self.effects],
             "minor_effects": [c.to_dict() for c in self.minor_effects],
             "operating_point_shift": {k: float(v) for k, v in self.operating_point_shift.items()},
+            "equivalent_effects": [c.to_dict() for c in self.equivalent_effects],
+            "rejected": [c.to_dict() for c in self.rejected],
             "diverged": [e.to_dict() for e in self.diverged],
             "notes": list(self.notes),
         }
@@ -264,6 +282,10 @@ class DiscrepancyResult:
             lines.append(f"  effect: {self.effect.describe()}")
         for c in self.lookalikes:
             lines.append(f"  look-alike: {c.effect.describe()} (criterion {c.criterion:.1f})")
+        for c in self.equivalent_effects:
+            lines.append(f"  equivalent: {c.effect.describe()} (criterion {c.criterion:.1f})")
+        for c in self.rejected:
+            lines.append(f"  rejected (fails on held-out data): {c.effect.describe()}")
         g = self.gap
         lines.append(
             f"  held-out RMS {g['holdout_rms_before']:.4g} -> {g['holdout_rms_after']:.4g} "

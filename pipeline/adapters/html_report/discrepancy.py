@@ -65,11 +65,19 @@ def _header(doc: Mapping[str, Any], manifest: Mapping[str, Any]) -> str:
                    + "; ".join(effect_html(e) for e in chain) + " — in model_augmented.yaml.")
     elif doc.get("verdict") == "inconclusive":
         finding = "<b>Inconclusive</b>: look-alike candidates fit about equally well."
+    elif rejected := [c for c in doc.get("rejected") or [] if isinstance(c, Mapping)]:
+        finding = ("<b>No significant effect</b>: the candidate that fits best, "
+                   + "; ".join(effect_html(c) for c in rejected) + ", fails on held-out "
+                   "data; the nominal model stays.")
     elif doc.get("minor_effects"):
         finding = ("<b>No significant effect</b>: what the tests detect closes too little "
                    "of the gap to matter (see Minor effects); the nominal model stays.")
     else:
         finding = "<b>No effect accepted</b>: the nominal model stays."
+    equivalent = [c for c in doc.get("equivalent_effects") or [] if isinstance(c, Mapping)]
+    if equivalent:
+        finding += ("<br>Equivalent explanations (the simplest is named): "
+                    + "; ".join(effect_html(c) for c in equivalent))
     finding += "".join(f'<br><span class="note"><b>Note:</b> {esc(n)}</span>'
                        for n in doc.get("notes") or [] if isinstance(n, str))
     nav = " ".join(f'<a href="#{k}">{esc(t)}</a>' for k, t in _SECTIONS)
