@@ -410,9 +410,23 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
         delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
         delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
         n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
-        integrating=ctx.integrating, method=method, diagnostics=diagnostics_of(ne),
+        integrating=ctx.integrating, method=method,
+        diagnostics=diagnostics_of(ne, _shared_white_factor(ctx, P)),
         extra={"first_stage": first_stage} if first_stage else {},
         noise_model=tuple(models), n_k=nkm, step_cov=arr.step_cov)
+
+
+def _shared_white_factor(ctx: GramContext, P: int):
+    """The scaled Cholesky factor of the white normal equations at ``P`` lags (every
+    unknown) when a fit on ``ctx`` has already computed it (:class:`pipeline.
+    prediction_error._Problem` shares it on the Gram) — the factor
+    :func:`pipeline.step_result.diagnostics_of` would compute again — else None."""
+    from pipeline.lag_products import Block
+
+    key = ("white", 0, (Block(0, ctx.n_x, 0, P),), np.arange(P * ctx.n_x).tobytes(),
+           "factor")
+    fac = ctx.lg.cache.get(key)
+    return None if fac is None else (fac[0][0], True)
 
 
 def check_instruments(ctx: GramContext, P: int) -> dict:
@@ -511,10 +525,11 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             parts.append((design, NestedGLS(ctx.lg, design, d_fixed[i], what=f"output {i}")))
         ne_P = ctx.white_normal_equations(P)
         sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
-        white = scipy.linalg.cho_factor(ne_P.A / np.outer(sc, sc), lower=True,
-                                        check_finite=False)[0]
+        As = ne_P.A / np.outer(sc, sc)
+        white = scipy.linalg.cho_factor(As, lower=True, check_finite=False)[0]
     except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
         return None
+    diagnostics_at = _diagnostics_by_order(ne_P, As, white)
 
     moments: dict = {}
 
@@ -543,16 +558,40 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
                                      tuple(float(v) for v in fit.d[1:]),
                                      float(np.sqrt(fit.sigma2)), {"iterations": 0},
                                      design.nuisance))
-        ne = ctx.white_normal_equations(m)
         return StepResponseEstimate(
             delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
             delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
             n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
             integrating=ctx.integrating, method="prediction_error",
-            diagnostics=diagnostics_of(ne, (white[: m * n_x, : m * n_x], True)),
+            diagnostics=diagnostics_at(m * n_x),
             noise_model=tuple(models), n_k=n_k.copy(), step_cov=arr.step_cov)
 
     return est_at
+
+
+def _diagnostics_by_order(ne_P: NormalEquations, As: np.ndarray, white: np.ndarray):
+    """``diagnostics_of`` the white normal equations of every order from those at the
+    largest: everything but the condition number reads the first lag block only (the
+    same at every order), and the condition number of order ``m`` is LAPACK's estimate
+    from the leading ``k = m n_x`` block of the scaled matrix ``As`` and of its Cholesky
+    factor ``white`` — no copy of the order's normal equations per order.
+
+    Returns ``diagnostics_at(k)`` -> :class:`pipeline.step_result.Diagnostics`.
+    """
+    import dataclasses
+
+    import scipy.linalg
+
+    base = diagnostics_of(ne_P, (white, True))
+    abs_As = np.abs(As)
+
+    def diagnostics_at(k: int):
+        norm = abs_As[:k, :k].sum(axis=0).max()
+        rcond, _ = scipy.linalg.lapack.dpocon(white[:k, :k], norm, uplo="L")
+        cond = float(1.0 / rcond) if rcond > 0 else float("inf")
+        return dataclasses.replace(base, condition_number=cond)
+
+    return diagnostics_at
 
 
 def _nested_moments(F: np.ndarray, P: int, n_x: int, cov_lags):
@@ -591,5 +630,4 @@ def _fill_nested(arr: PairArrays, i: int, b: np.ndarray, sigma2: float, m: int, 
     arr.dh_std[i, :, :m] = np.sqrt(sigma2 * dh_var[m - 1, :m, :]).T
     arr.step_std[i, :, :m] = np.sqrt(sigma2 * step_var[m - 1, :m, :]).T
     lags, C = tail[m - 1]
-    for j in range(n_x):
-        arr.step_cov[i, j][np.ix_(lags, lags)] = sigma2 * C[j]
+    arr.step_cov[i][:, lags[:, None], lags[None, :]] = sigma2 * C  # every input at once

@@ -534,6 +534,7 @@ class NestedGLS:
         # the forward half of every order's solve: leading entries of L^-1 (c / scale)
         self.z = scipy.linalg.solve_triangular(c0[0], self.c / scale, lower=True,
                                                check_finite=False)
+        self.piv = np.abs(np.diag(c0[0]))
 
     def fit(self, k: int, sigma2: float) -> OutputFit | None:
         """The fit of the first ``k`` unknowns (:func:`fit_fixed_noise` with ``sigma2``),
@@ -546,8 +547,7 @@ class NestedGLS:
         sigma2 : float
             Innovation variance to report.
         """
-        L, scale = self.fac[0][0][:k, :k], self.fac[1][:k]
-        piv = np.abs(np.diag(L))
+        piv = self.piv[:k]
         if piv.min() ** 2 < _RCOND * piv.max() ** 2:
             return None
         try:
@@ -555,8 +555,10 @@ class NestedGLS:
         except InsufficientDataError:
             return None
         c = self.c[:k]
-        b = scipy.linalg.solve_triangular(L, self.z[:k], lower=True, trans="T",
-                                          check_finite=False) / scale
+        # b = D^-1 L_k^-T z_k = F_k' z_k: the inverse factor is at hand, and a product
+        # with its leading block reads it in place (a triangular solve on the leading
+        # block of L would copy it first, which costs more than the solve)
+        b = self.F[:k, :k].T @ self.z[:k]
         V = max(self.yy - b @ c, 0.0)
         return OutputFit(b, self.F[:k, :k], float(sigma2), self.d, V, self.prob.n_d, n_par,
                          0, {}, "gls")
