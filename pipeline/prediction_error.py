@@ -456,7 +456,12 @@ def _covariance(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
     fac, U, C, sr = _schur(prob, d, J, R11)
     extra = scipy.linalg.solve_triangular(C, (U / sr[None, :]).T, lower=True,
                                           check_finite=False)
-    return np.vstack([_inv_factor(fac), extra])
+    F0 = _inv_factor(fac)
+    # stacked in Fortran order (column per unknown), as the factors themselves come
+    F = np.empty((F0.shape[0] + extra.shape[0], F0.shape[1]), order="F")
+    F[: F0.shape[0]] = F0
+    F[F0.shape[0]:] = extra
+    return F
 
 
 def _dof(prob: _Problem, m: int, p: int) -> int:

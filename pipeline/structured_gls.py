@@ -138,9 +138,15 @@ class StructuredFactor:
         return self.Ys @ self._project(self.Ys.T @ rhs)
 
     def inv_factor(self) -> np.ndarray:
-        """``F = W' = P Y_s'`` with ``A~^-1 = F' F`` (``n x m``), formed once."""
+        """``F = W' = P Y_s'`` with ``A~^-1 = F' F`` (``n x m``, Fortran order: its
+        columns are the unknowns, which is how the step-response propagation reads it),
+        formed once."""
         if self._F is None:
-            self._F = self._project(self.Ys.T)
+            if self.Qr is None:
+                self._F = np.asfortranarray(self.Ys.T)
+            else:
+                # F' = Y_s P = Y_s - (Y_s Q_r) Q_r', built row-major and returned transposed
+                self._F = (self.Ys - (self.Ys @ self.Qr) @ self.Qr.T).T
         return self._F
 
 
