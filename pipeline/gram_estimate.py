@@ -111,11 +111,16 @@ class GramContext:
         P : int
             Number of lags (at most the Gram's ``n_lags``).
         """
-        G = self.lg.G
+        from pipeline.lag_products import signal_gram
+
         n_x = self.n_x
-        A = G[:P, :n_x, :P, :n_x].reshape(P * n_x, P * n_x)
-        C = np.stack([G[0, c, :P, :n_x].reshape(-1) for c in self.y_col])
-        yy = np.array([G[0, c, 0, c] for c in self.y_col])
+        # from the contiguous sub-Grams the fits share (the same numbers as slices of G)
+        Gxx = signal_gram(self.lg, 0, (0, n_x), (0, n_x))
+        A = Gxx[:P, :, :P, :].reshape(P * n_x, P * n_x)
+        C = np.stack([signal_gram(self.lg, 0, (c, c + 1), (0, n_x))[0, 0, :P, :].reshape(-1)
+                      for c in self.y_col])
+        yy = np.array([signal_gram(self.lg, 0, (c, c + 1), (c, c + 1))[0, 0, 0, 0]
+                       for c in self.y_col])
         return NormalEquations(A, C, yy, self.lg.n_d, n_x, P, self.integrating,
                                self.lg.n_segments)
 
@@ -142,7 +147,7 @@ def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
         With integrating outputs, also hold their levels and the cumulated inputs, with
         the profiled Grams, so that the level form can be fitted.
     """
-    from pipeline.lag_products import build_lag_gram
+    from pipeline.lag_products import ROW_GROUPS, build_lag_gram
 
     x = as_2d(x, "x")
     y = as_2d(y, "y")
@@ -187,6 +192,8 @@ def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
 
     lg = build_lag_gram(segments(), n_lags=n_lags, k0_extra=1 if ints else 0,
                         centred=use_level)
+    if lg is not None:  # the outputs' sub-Grams are asked for one output at a time
+        lg.cache[ROW_GROUPS] = ((n_x, n_x + n_y),)
     if lg is None:
         longest = max((b - a for a, b in segs), default=0)
         raise InsufficientDataError(

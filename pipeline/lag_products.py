@@ -41,7 +41,8 @@ import numpy as np
 import scipy.fft
 
 __all__ = ["Block", "LagGram", "build_lag_gram", "filtered_gram", "shifted_products", "take",
-           "first_block_row", "assemble_gram", "assemble_lag_gram", "signal_gram"]
+           "first_block_row", "assemble_gram", "assemble_lag_gram", "assemble_block",
+           "signal_gram", "ROW_GROUPS"]
 
 
 @dataclass(frozen=True)
@@ -83,30 +84,46 @@ class LagGram:
     Attributes
     ----------
     G : ndarray (n_lags, n_w, n_lags, n_w)
-        ``G[l1, s1, l2, s2] = sum_k w_s1(k - l1) w_s2(k - l2)``.
+        ``G[l1, s1, l2, s2] = sum_k w_s1(k - l1) w_s2(k - l2)``.  Built from ``seeds`` on
+        first use when the Gram was built lazily: a fit that reads only contiguous
+        sub-Grams (:func:`signal_gram`) never needs the whole of it.
     profiled : tuple of ndarray
         The same with the first 1, 2, 3 terms of ``1, t, t^2`` per segment profiled out
         (empty when not built).
     n_d : int
         Observations summed.
     n_segments : int
+    seeds : tuple
+        Per segment, its first block row and head and tail samples
+        (:func:`assemble_block`); empty when ``G`` was given.
     """
 
-    G: np.ndarray
+    _G: np.ndarray | None
     n_d: int
     n_segments: int
     profiled: tuple = ()
     cache: dict = field(default_factory=dict, compare=False, repr=False)
     """Arithmetic shared by every fit on this Gram (contiguous sub-Grams, the white
     factor); :func:`signal_gram` fills it."""
+    seeds: tuple = field(default=(), compare=False, repr=False)
+
+    @property
+    def G(self) -> np.ndarray:
+        if self._G is None:  # the whole Gram, as the eager build sums it
+            G = None
+            for seed in self.seeds:
+                Gs = assemble_block(*seed, (0, self.n_w), (0, self.n_w))
+                G = Gs if G is None else G + Gs
+            object.__setattr__(self, "_G", G)
+        return self._G
 
     @property
     def n_lags(self) -> int:
-        return self.G.shape[0]
+        return self._G.shape[0] if self._G is not None else self.seeds[0][0].shape[0]
 
     @property
     def n_w(self) -> int:
-        return self.G.shape[1]
+        return self._G.shape[1] if self._G is not None else self.seeds[0][0].shape[1]
 
     def __add__(self, other: "LagGram") -> "LagGram":
         prof = tuple(a + b for a, b in zip(self.profiled, other.profiled)) \
@@ -131,13 +148,22 @@ class LagGram:
         return self.profiled[nuisance - 1]
 
 
+ROW_GROUPS = "row_groups"
+"""Key of ``LagGram.cache`` holding signal ranges ``(lo, hi)`` whose single-signal
+sub-Grams are asked for one signal at a time (the outputs): a lazily built Gram assembles
+the whole range once (:func:`signal_gram`)."""
+
+
 def signal_gram(lg: LagGram, nuisance: int, s1: tuple[int, int],
                 s2: tuple[int, int]) -> np.ndarray:
     """Contiguous copy ``G[:, s1, :, s2]`` of a lag Gram, cached on ``lg``.
 
     Every fit on the Gram slices the same signal ranges (the inputs against themselves
     for every output, one output against the inputs); strided 4-D slices of the full
-    Gram cost a copy per use, a contiguous copy costs it once.
+    Gram cost a copy per use, a contiguous copy costs it once.  On a lazily built Gram
+    whose whole ``G`` is not formed yet, the sub-Gram is assembled from the seeds
+    (the same numbers): one output against the inputs, or against itself, for every
+    output of its :data:`ROW_GROUPS` range at once.
 
     Parameters
     ----------
@@ -154,9 +180,39 @@ def signal_gram(lg: LagGram, nuisance: int, s1: tuple[int, int],
     """
     key = ("signal_gram", nuisance, tuple(s1), tuple(s2))
     if key not in lg.cache:
-        G = lg.gram(nuisance)
-        lg.cache[key] = np.ascontiguousarray(G[:, s1[0]:s1[1], :, s2[0]:s2[1]])
+        if nuisance == 0 and lg._G is None:
+            lg.cache[key] = _lazy_signal_gram(lg, tuple(s1), tuple(s2))
+        else:
+            G = lg.gram(nuisance)
+            lg.cache[key] = np.ascontiguousarray(G[:, s1[0]:s1[1], :, s2[0]:s2[1]])
     return lg.cache[key]
+
+
+def _lazy_signal_gram(lg: LagGram, s1: tuple, s2: tuple) -> np.ndarray:
+    """:func:`signal_gram` from the seeds (see there)."""
+    group = next((g for g in lg.cache.get(ROW_GROUPS, ())
+                  if s1[1] - s1[0] == 1 and g[0] <= s1[0] < g[1]), None)
+    if group is None:
+        return _sum_blocks(lg, s1, s2, diagonal=False)
+    i = s1[0] - group[0]
+    if s1 == s2:  # one output against itself: from the group's diagonal blocks
+        gkey = ("group_diagonal", group)
+        if gkey not in lg.cache:
+            lg.cache[gkey] = _sum_blocks(lg, group, group, diagonal=True)
+        return np.ascontiguousarray(lg.cache[gkey][:, i, :]).reshape(lg.n_lags, 1, -1, 1)
+    gkey = ("group_block", group, s2)
+    if gkey not in lg.cache:
+        lg.cache[gkey] = _sum_blocks(lg, group, s2, diagonal=False)
+    return np.ascontiguousarray(lg.cache[gkey][:, i : i + 1])
+
+
+def _sum_blocks(lg: LagGram, a: tuple, b: tuple, diagonal: bool) -> np.ndarray:
+    """A sub-Gram summed over the segments' seeds in the eager build's order."""
+    G = None
+    for seed in lg.seeds:
+        Gs = assemble_block(*seed, a, b, diagonal=diagonal)
+        G = Gs if G is None else G + Gs
+    return G
 
 
 def filtered_gram(G: np.ndarray, d: np.ndarray, b1: Block, b2: Block) -> np.ndarray:
@@ -371,6 +427,70 @@ def assemble_lag_gram(r: np.ndarray, w: np.ndarray, k0: int, n: int, L: int) -> 
     return G
 
 
+def assemble_block(r: np.ndarray, head: np.ndarray, tail: np.ndarray, a: tuple, b: tuple,
+                   diagonal: bool = False) -> np.ndarray:
+    """The sub-Gram ``G[:, a, :, b]`` of one segment from its first block row — the
+    diagonal recursion of :func:`assemble_lag_gram` restricted to rows ``a`` and columns
+    ``b`` (the same operations on the same numbers, entry by entry).
+
+    Parameters
+    ----------
+    r : ndarray (L, n_w, n_w)
+        First block row (:func:`first_block_row` of the segment's signals with
+        themselves).
+    head, tail : ndarray (L - 1, n_w)
+        ``w(k0 - 1 - q)`` and ``w(N - 1 - q)``, ``q = 0..L-2``: the samples entering and
+        leaving the sums along a diagonal.
+    a, b : tuple of int
+        Signal ranges ``(lo, hi)`` of rows and columns.
+    diagonal : bool
+        With ``a == b``: only each signal against itself, as an array
+        ``(L, |a|, L)`` (``[q, s, p] = G[q, s, p, s]``).
+
+    Returns
+    -------
+    ndarray (L, |a|, L, |b|), or (L, |a|, L) with ``diagonal``
+    """
+    L = r.shape[0]
+    sa, sb = slice(*a), slice(*b)
+    na, nb = a[1] - a[0], b[1] - b[0]
+    G = np.empty((L, na, L) if diagonal else (L, na, L, nb))
+
+    def along(s, rows, cols, m):  # G[q, rows, q + s, cols] for q < m
+        if diagonal:
+            vals = np.empty((m, na))
+            vals[0] = np.diagonal(r[s][rows, cols])
+            if m > 1:
+                inc = head[: m - 1, rows] * head[s : s + m - 1, cols]
+                inc -= tail[: m - 1, rows] * tail[s : s + m - 1, cols]
+                np.cumsum(inc, axis=0, out=inc)
+                vals[1:] = vals[0] + inc
+            return vals
+        vals = np.empty((m, rows.stop - rows.start, cols.stop - cols.start))
+        vals[0] = r[s][rows, cols]
+        if m > 1:
+            inc = head[: m - 1, rows, None] * head[s : s + m - 1, None, cols]
+            inc -= tail[: m - 1, rows, None] * tail[s : s + m - 1, None, cols]
+            np.cumsum(inc, axis=0, out=inc)
+            vals[1:] = r[s][rows, cols] + inc
+        return vals
+
+    for s in range(L):
+        m = L - s
+        q = np.arange(m)
+        vals = along(s, sa, sb, m)
+        if diagonal:
+            G[q, :, q + s] = vals
+            if s:
+                G[q + s, :, q] = vals
+            continue
+        G[q, :, q + s, :] = vals
+        if s:  # the lower diagonal: G[q + s, a, q, b] = G[q, b, q + s, a]'
+            low = vals if a == b else along(s, sb, sa, m)
+            G[q + s, :, q, :] = low.transpose(0, 2, 1)
+    return G
+
+
 NUISANCE_DEGREES = 3
 """Profiled Grams are built for polynomials of 1, 2 and 3 terms per segment (a constant,
 plus a trend, plus a quadratic)."""
@@ -436,10 +556,21 @@ def build_lag_gram(segments, *, n_lags: int, k0_extra: int = 0,
 
     Returns
     -------
-    LagGram or None when no segment is long enough.
+    LagGram or None when no segment is long enough.  Without ``centred`` the Gram is
+    lazy: each segment's first block row is computed here (the data pass) and the
+    recursion runs when ``G`` or a sub-Gram is first asked for.
     """
     L = int(n_lags)
     k0 = L - 1 + int(k0_extra)
+    if not centred:
+        seeds, n_d = [], 0
+        back = np.arange(L - 1)
+        for w in segments:
+            if w.shape[0] > k0:
+                seeds.append((first_block_row(w, w, k0, L), w[k0 - 1 - back],
+                              w[w.shape[0] - 1 - back]))
+                n_d += w.shape[0] - k0
+        return LagGram(None, n_d, len(seeds), (), seeds=tuple(seeds)) if seeds else None
     total = None
     for w in segments:
         if w.shape[0] <= k0:

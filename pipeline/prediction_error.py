@@ -220,7 +220,6 @@ class _Problem:
 
     def __init__(self, lg: LagGram, design: Design, what: str):
         self.lg = lg
-        self.G = lg.gram(design.nuisance)
         self.n_d = lg.n_d
         self.n_const = lg.n_segments * design.nuisance
         self.design = design
@@ -237,6 +236,12 @@ class _Problem:
                              and np.array_equal(self.sel, np.arange(self.sel.size)))
         self._white_key = ("white", design.nuisance, tuple(self.blocks),
                            self.sel.tobytes())
+
+    @property
+    def G(self) -> np.ndarray:
+        """The design's whole lag Gram (built on first use; one-block designs read only
+        contiguous sub-Grams)."""
+        return self.lg.gram(self.design.nuisance)
 
     def _sub(self):
         """The contiguous sub-Grams of a one-block design and its blocks in them."""
@@ -352,7 +357,7 @@ class _Problem:
         qx = Gyx2[lag_y].T - Gxx.reshape(L * n_s, L * n_s)[:, cols] @ B[cols]
         qy = Gyy[:, 0, lag_y, 0] - Gyx2[:, cols] @ B[cols]  # (L, shifts)
         blk, yb = self.blocks[0], self.design.y
-        q = np.zeros((shifts, L, self.G.shape[1]))
+        q = np.zeros((shifts, L, self.lg.n_w))
         q[:, :, blk.sig_lo : blk.sig_hi] = qx.T.reshape(shifts, L, n_s)
         q[:, :, yb.sig_lo] = qy.T
         return q
@@ -368,7 +373,7 @@ class _Problem:
     def max_shift(self) -> int:
         """Largest filter order the Gram's lags allow for this design."""
         top = max(b.lag_hi for b in self.blocks + [self.design.y])
-        return self.G.shape[0] - top
+        return self.lg.n_lags - top
 
 
 def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
