@@ -533,7 +533,9 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
         ne_P = ctx.white_normal_equations(P)
         sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
         As = ne_P.A / np.outer(sc, sc)
-        white = scipy.linalg.cho_factor(As, lower=True, check_finite=False)[0]
+        shared = _shared_white_factor(ctx, P)  # the fit at n_p_max factored it already
+        white = shared[0] if shared is not None else \
+            scipy.linalg.cho_factor(As, lower=True, check_finite=False)[0]
     except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
         return None
     diagnostics_at = _diagnostics_by_order(ne_P, As, white)
@@ -590,10 +592,19 @@ def _diagnostics_by_order(ne_P: NormalEquations, As: np.ndarray, white: np.ndarr
     import scipy.linalg
 
     base = diagnostics_of(ne_P, (white, True))
+    K, n_x = As.shape[0], ne_P.n_x
+    # column sums of |As| over the first m n_x rows, every m: one running sum over the
+    # rows (the same sums, row by row, as each order's own column sums)
     abs_As = np.abs(As)
+    acc = np.zeros(K)
+    col_sums = {}
+    for row in range(K):
+        acc += abs_As[row]
+        if (row + 1) % n_x == 0:
+            col_sums[row + 1] = acc.copy()
 
     def diagnostics_at(k: int):
-        norm = abs_As[:k, :k].sum(axis=0).max()
+        norm = col_sums[k][:k].max() if k in col_sums else abs_As[:k, :k].sum(axis=0).max()
         rcond, _ = scipy.linalg.lapack.dpocon(white[:k, :k], norm, uplo="L")
         cond = float(1.0 / rcond) if rcond > 0 else float("inf")
         return dataclasses.replace(base, condition_number=cond)

@@ -146,9 +146,13 @@ class OutputFit:
 def _factor(M: np.ndarray, what: str):
     """Scaled Cholesky of a symmetric positive definite matrix, with a clear error."""
     scale = np.sqrt(np.clip(np.diag(M), 1e-300, None))
-    Ms = M / np.outer(scale, scale)
+    # M / outer(scale, scale), written once into a Fortran-ordered array that LAPACK
+    # factors in place (no temporary for the outer product, no copy for LAPACK)
+    Ms = np.empty(M.shape, order="F")
+    np.multiply(scale[:, None], scale[None, :], out=Ms)
+    np.divide(M, Ms, out=Ms)
     try:
-        c = scipy.linalg.cho_factor(Ms, lower=True, check_finite=False)
+        c = scipy.linalg.cho_factor(Ms, lower=True, overwrite_a=True, check_finite=False)
     except np.linalg.LinAlgError:
         raise SingularSystemError(f"normal equations of {what} are singular") from None
     piv = np.abs(np.diag(c[0]))
@@ -172,10 +176,13 @@ def _inv_factor(fac) -> np.ndarray:
     if isinstance(fac, StructuredFactor):
         return fac.inv_factor()
     c, scale = fac
-    Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
+    # inverted and scaled in place on the one copy np.tril makes
+    Linv, info = scipy.linalg.lapack.dtrtri(np.asfortranarray(np.tril(c[0])), lower=1,
+                                            overwrite_c=1)
     if info != 0:
         raise SingularSystemError("triangular factor is singular")
-    return Linv / scale[None, :]
+    np.divide(Linv, scale[None, :], out=Linv)
+    return Linv
 
 
 # ------------------------------------------------------------------ building blocks
@@ -545,6 +552,26 @@ class NestedGLS:
         self.z = scipy.linalg.solve_triangular(c0[0], self.c / scale, lower=True,
                                                check_finite=False)
         self.piv = np.abs(np.diag(c0[0]))
+        self._b_at: dict | None = None
+
+    def _solutions(self) -> dict:
+        """``{k: b_k}`` for every ``k`` a whole number of lags (every unknown of a
+        one-block design): ``b_k = F_k' z_k`` and ``F`` is lower triangular, so ``b_k[j]``
+        sums ``F[i, j] z[i]`` over the rows ``i < k`` — per lag block of rows, then a
+        running sum over the blocks: one pass over ``F`` for every order instead of a
+        product per order."""
+        if self._b_at is None:
+            self._b_at = {}
+            if self.prob.single and self.prob.full_sel:
+                n_s = self.prob.blocks[0].n_sig
+                K = self.F.shape[0]
+                Bk = (self.F.T * self.z[None, :]).reshape(K, K // n_s, n_s).sum(axis=2)
+                acc = np.zeros(K)
+                for blk in range(K // n_s):
+                    acc += Bk[:, blk]
+                    k = (blk + 1) * n_s
+                    self._b_at[k] = acc[:k].copy()
+        return self._b_at
 
     def fit(self, k: int, sigma2: float) -> OutputFit | None:
         """The fit of the first ``k`` unknowns (:func:`fit_fixed_noise` with ``sigma2``),
@@ -568,7 +595,9 @@ class NestedGLS:
         # b = D^-1 L_k^-T z_k = F_k' z_k: the inverse factor is at hand, and a product
         # with its leading block reads it in place (a triangular solve on the leading
         # block of L would copy it first, which costs more than the solve)
-        b = self.F[:k, :k].T @ self.z[:k]
+        b = self._solutions().get(k)
+        if b is None:
+            b = self.F[:k, :k].T @ self.z[:k]
         V = max(self.yy - b @ c, 0.0)
         return OutputFit(b, self.F[:k, :k], float(sigma2), self.d, V, self.prob.n_d, n_par,
                          0, {}, "gls")

@@ -84,9 +84,11 @@ def _filter_rows(X: np.ndarray, d: np.ndarray) -> np.ndarray:
     array is several times slower than these ``p`` vectorised updates per lag.)"""
     Y = np.array(X, dtype=float, copy=True)
     p = d.size - 1
+    tmp = np.empty(Y.shape[1:])  # one work array for every d_a Y[l - a]
     for lag in range(1, Y.shape[0]):
         for a in range(1, min(p, lag) + 1):
-            Y[lag] -= d[a] * Y[lag - a]
+            np.multiply(d[a], Y[lag - a], out=tmp)
+            Y[lag] -= tmp
     return Y
 
 
