@@ -468,6 +468,8 @@ def _covariance(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
     fac, U, C, sr = _schur(prob, d, J, R11)
     extra = scipy.linalg.solve_triangular(C, (U / sr[None, :]).T, lower=True,
                                           check_finite=False)
+    if isinstance(fac, StructuredFactor):
+        return fac.stacked_inv_factor(extra)
     F0 = _inv_factor(fac)
     # stacked in Fortran order (column per unknown), as the factors themselves come
     F = np.empty((F0.shape[0] + extra.shape[0], F0.shape[1]), order="F")
