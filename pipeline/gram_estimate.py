@@ -193,7 +193,7 @@ def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
     lg = build_lag_gram(segments(), n_lags=n_lags, k0_extra=1 if ints else 0,
                         centred=use_level)
     if lg is not None:  # the outputs' sub-Grams are asked for one output at a time
-        lg.cache[ROW_GROUPS] = ((n_x, n_x + n_y),)
+        lg.cache[ROW_GROUPS] = (((n_x, n_x + n_y), (0, n_x)),)
     if lg is None:
         longest = max((b - a for a, b in segs), default=0)
         raise InsufficientDataError(

@@ -42,7 +42,7 @@ import scipy.fft
 
 __all__ = ["Block", "LagGram", "build_lag_gram", "filtered_gram", "shifted_products", "take",
            "first_block_row", "assemble_gram", "assemble_lag_gram", "assemble_block",
-           "signal_gram", "ROW_GROUPS"]
+           "assemble_parts", "signal_gram", "ROW_GROUPS"]
 
 
 @dataclass(frozen=True)
@@ -149,9 +149,10 @@ class LagGram:
 
 
 ROW_GROUPS = "row_groups"
-"""Key of ``LagGram.cache`` holding signal ranges ``(lo, hi)`` whose single-signal
-sub-Grams are asked for one signal at a time (the outputs): a lazily built Gram assembles
-the whole range once (:func:`signal_gram`)."""
+"""Key of ``LagGram.cache`` holding ``(group, cols)`` pairs of signal ranges ``(lo, hi)``:
+the signals of ``group`` (the outputs) are asked for one at a time, against ``cols`` (the
+inputs) and against themselves, and ``cols`` against themselves — a lazily built Gram
+assembles those three parts together, once (:func:`signal_gram`)."""
 
 
 def signal_gram(lg: LagGram, nuisance: int, s1: tuple[int, int],
@@ -190,27 +191,27 @@ def signal_gram(lg: LagGram, nuisance: int, s1: tuple[int, int],
 
 def _lazy_signal_gram(lg: LagGram, s1: tuple, s2: tuple) -> np.ndarray:
     """:func:`signal_gram` from the seeds (see there)."""
-    group = next((g for g in lg.cache.get(ROW_GROUPS, ())
-                  if s1[1] - s1[0] == 1 and g[0] <= s1[0] < g[1]), None)
-    if group is None:
-        return _sum_blocks(lg, s1, s2, diagonal=False)
-    i = s1[0] - group[0]
-    if s1 == s2:  # one output against itself: from the group's diagonal blocks
-        gkey = ("group_diagonal", group)
-        if gkey not in lg.cache:
-            lg.cache[gkey] = _sum_blocks(lg, group, group, diagonal=True)
-        return np.ascontiguousarray(lg.cache[gkey][:, i, :]).reshape(lg.n_lags, 1, -1, 1)
-    gkey = ("group_block", group, s2)
-    if gkey not in lg.cache:
-        lg.cache[gkey] = _sum_blocks(lg, group, s2, diagonal=False)
-    return np.ascontiguousarray(lg.cache[gkey][:, i : i + 1])
-
-
-def _sum_blocks(lg: LagGram, a: tuple, b: tuple, diagonal: bool) -> np.ndarray:
-    """A sub-Gram summed over the segments' seeds in the eager build's order."""
+    for group, cols in lg.cache.get(ROW_GROUPS, ()):
+        one = s1[1] - s1[0] == 1 and group[0] <= s1[0] < group[1]
+        if not (s1 == s2 == cols or (one and (s2 == cols or s1 == s2))):
+            continue
+        pkey = ("group_parts", group, cols)
+        if pkey not in lg.cache:
+            parts = None
+            for seed in lg.seeds:  # summed over segments in the eager build's order
+                ps = assemble_parts(*seed, group, cols)
+                parts = ps if parts is None else tuple(a + b for a, b in zip(parts, ps))
+            lg.cache[pkey] = parts
+        G_cc, G_gc, G_gg = lg.cache[pkey]
+        if s1 == s2 == cols:
+            return G_cc
+        i = s1[0] - group[0]
+        if s1 == s2:
+            return np.ascontiguousarray(G_gg[:, i, :]).reshape(lg.n_lags, 1, -1, 1)
+        return np.ascontiguousarray(G_gc[:, i : i + 1])
     G = None
     for seed in lg.seeds:
-        Gs = assemble_block(*seed, a, b, diagonal=diagonal)
+        Gs = assemble_block(*seed, s1, s2)
         G = Gs if G is None else G + Gs
     return G
 
@@ -427,8 +428,21 @@ def assemble_lag_gram(r: np.ndarray, w: np.ndarray, k0: int, n: int, L: int) -> 
     return G
 
 
-def assemble_block(r: np.ndarray, head: np.ndarray, tail: np.ndarray, a: tuple, b: tuple,
-                   diagonal: bool = False) -> np.ndarray:
+def _diagonal_values(r, head, tail, s: int, m: int, rows: slice, cols: slice):
+    """``G[q, rows, q + s, cols]`` for ``q < m``: the diagonal recursion of
+    :func:`assemble_lag_gram` (its operations, restricted to the rows and columns)."""
+    vals = np.empty((m, rows.stop - rows.start, cols.stop - cols.start))
+    vals[0] = r[s][rows, cols]
+    if m > 1:
+        inc = head[: m - 1, rows, None] * head[s : s + m - 1, None, cols]
+        inc -= tail[: m - 1, rows, None] * tail[s : s + m - 1, None, cols]
+        np.cumsum(inc, axis=0, out=inc)
+        vals[1:] = r[s][rows, cols] + inc
+    return vals
+
+
+def assemble_block(r: np.ndarray, head: np.ndarray, tail: np.ndarray, a: tuple,
+                   b: tuple) -> np.ndarray:
     """The sub-Gram ``G[:, a, :, b]`` of one segment from its first block row — the
     diagonal recursion of :func:`assemble_lag_gram` restricted to rows ``a`` and columns
     ``b`` (the same operations on the same numbers, entry by entry).
@@ -443,52 +457,63 @@ def assemble_block(r: np.ndarray, head: np.ndarray, tail: np.ndarray, a: tuple, 
         leaving the sums along a diagonal.
     a, b : tuple of int
         Signal ranges ``(lo, hi)`` of rows and columns.
-    diagonal : bool
-        With ``a == b``: only each signal against itself, as an array
-        ``(L, |a|, L)`` (``[q, s, p] = G[q, s, p, s]``).
 
     Returns
     -------
-    ndarray (L, |a|, L, |b|), or (L, |a|, L) with ``diagonal``
+    ndarray (L, |a|, L, |b|)
     """
     L = r.shape[0]
     sa, sb = slice(*a), slice(*b)
-    na, nb = a[1] - a[0], b[1] - b[0]
-    G = np.empty((L, na, L) if diagonal else (L, na, L, nb))
-
-    def along(s, rows, cols, m):  # G[q, rows, q + s, cols] for q < m
-        if diagonal:
-            vals = np.empty((m, na))
-            vals[0] = np.diagonal(r[s][rows, cols])
-            if m > 1:
-                inc = head[: m - 1, rows] * head[s : s + m - 1, cols]
-                inc -= tail[: m - 1, rows] * tail[s : s + m - 1, cols]
-                np.cumsum(inc, axis=0, out=inc)
-                vals[1:] = vals[0] + inc
-            return vals
-        vals = np.empty((m, rows.stop - rows.start, cols.stop - cols.start))
-        vals[0] = r[s][rows, cols]
-        if m > 1:
-            inc = head[: m - 1, rows, None] * head[s : s + m - 1, None, cols]
-            inc -= tail[: m - 1, rows, None] * tail[s : s + m - 1, None, cols]
-            np.cumsum(inc, axis=0, out=inc)
-            vals[1:] = r[s][rows, cols] + inc
-        return vals
-
+    G = np.empty((L, a[1] - a[0], L, b[1] - b[0]))
     for s in range(L):
         m = L - s
         q = np.arange(m)
-        vals = along(s, sa, sb, m)
-        if diagonal:
-            G[q, :, q + s] = vals
-            if s:
-                G[q + s, :, q] = vals
-            continue
+        vals = _diagonal_values(r, head, tail, s, m, sa, sb)
         G[q, :, q + s, :] = vals
         if s:  # the lower diagonal: G[q + s, a, q, b] = G[q, b, q + s, a]'
-            low = vals if a == b else along(s, sb, sa, m)
+            low = vals if a == b else _diagonal_values(r, head, tail, s, m, sb, sa)
             G[q + s, :, q, :] = low.transpose(0, 2, 1)
     return G
+
+
+def assemble_parts(r: np.ndarray, head: np.ndarray, tail: np.ndarray, group: tuple,
+                   cols: tuple) -> tuple:
+    """The three sub-Grams a fit of each ``group`` signal on the ``cols`` signals reads,
+    of one segment, in one diagonal recursion over both ranges (:func:`assemble_block`'s
+    numbers): ``cols`` against themselves ``(L, |c|, L, |c|)``, every ``group`` signal
+    against ``cols`` ``(L, |g|, L, |c|)``, and each ``group`` signal against itself
+    ``(L, |g|, L)`` (``[q, i, p] = G[q, i, p, i]``).
+
+    Parameters
+    ----------
+    r : ndarray (L, n_w, n_w)
+        First block row.
+    head, tail : ndarray (L - 1, n_w)
+        Samples entering and leaving the sums (:func:`assemble_block`).
+    group, cols : tuple of int
+        Signal ranges ``(lo, hi)``.
+    """
+    L = r.shape[0]
+    lo, hi = min(group[0], cols[0]), max(group[1], cols[1])
+    c = slice(cols[0] - lo, cols[1] - lo)
+    g = slice(group[0] - lo, group[1] - lo)
+    gi = np.arange(g.start, g.stop)
+    nc, ng = c.stop - c.start, g.stop - g.start
+    G_cc = np.empty((L, nc, L, nc))
+    G_gc = np.empty((L, ng, L, nc))
+    G_gg = np.empty((L, ng, L))
+    for s in range(L):
+        m = L - s
+        q = np.arange(m)
+        vals = _diagonal_values(r, head, tail, s, m, slice(lo, hi), slice(lo, hi))
+        G_cc[q, :, q + s, :] = vals[:, c, c]
+        G_gc[q, :, q + s, :] = vals[:, g, c]
+        G_gg[q, :, q + s] = vals[:, gi, gi]
+        if s:  # lower diagonals: the transposes
+            G_cc[q + s, :, q, :] = vals[:, c, c].transpose(0, 2, 1)
+            G_gc[q + s, :, q, :] = vals[:, c, g].transpose(0, 2, 1)
+            G_gg[q + s, :, q] = vals[:, gi, gi]
+    return G_cc, G_gc, G_gg
 
 
 NUISANCE_DEGREES = 3

@@ -150,7 +150,7 @@ def test_lazy_lag_gram_equals_its_definition():
     L = 7
     ref = _explicit_lag_gram(segs, L)
     lg = build_lag_gram(iter(segs), n_lags=L)
-    lg.cache[ROW_GROUPS] = ((2, 5),)  # signals 2..4 asked for one at a time
+    lg.cache[ROW_GROUPS] = (((2, 5), (0, 2)),)  # signals 2..4 asked for one at a time
     scale = np.max(np.abs(ref))
     # sub-Grams assembled from the seeds, before the whole Gram exists
     for s1, s2 in [((0, 2), (0, 2)), ((3, 4), (0, 2)), ((2, 3), (2, 3)), ((4, 5), (4, 5)),
