@@ -18,7 +18,7 @@ import numpy as np
 import scipy.linalg
 import scipy.special
 
-__all__ = ["truncation_test", "chi2_sf"]
+__all__ = ["chi2_sf", "truncation_test"]
 
 
 def chi2_sf(x, df):
