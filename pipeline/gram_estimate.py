@@ -111,11 +111,16 @@ class GramContext:
         P : int
             Number of lags (at most the Gram's ``n_lags``).
         """
-        G = self.lg.G
+        from pipeline.lag_products import signal_gram
+
         n_x = self.n_x
-        A = G[:P, :n_x, :P, :n_x].reshape(P * n_x, P * n_x)
-        C = np.stack([G[0, c, :P, :n_x].reshape(-1) for c in self.y_col])
-        yy = np.array([G[0, c, 0, c] for c in self.y_col])
+        # from the contiguous sub-Grams the fits share (the same numbers as slices of G)
+        Gxx = signal_gram(self.lg, 0, (0, n_x), (0, n_x))
+        A = Gxx[:P, :, :P, :].reshape(P * n_x, P * n_x)
+        C = np.stack([signal_gram(self.lg, 0, (c, c + 1), (0, n_x))[0, 0, :P, :].reshape(-1)
+                      for c in self.y_col])
+        yy = np.array([signal_gram(self.lg, 0, (c, c + 1), (c, c + 1))[0, 0, 0, 0]
+                       for c in self.y_col])
         return NormalEquations(A, C, yy, self.lg.n_d, n_x, P, self.integrating,
                                self.lg.n_segments)
 
@@ -142,7 +147,7 @@ def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
         With integrating outputs, also hold their levels and the cumulated inputs, with
         the profiled Grams, so that the level form can be fitted.
     """
-    from pipeline.lag_products import build_lag_gram
+    from pipeline.lag_products import ROW_GROUPS, build_lag_gram
 
     x = as_2d(x, "x")
     y = as_2d(y, "y")
@@ -187,6 +192,8 @@ def lag_gram_context(x, y, *, integrating=False, mask=None, instruments=None,
 
     lg = build_lag_gram(segments(), n_lags=n_lags, k0_extra=1 if ints else 0,
                         centred=use_level)
+    if lg is not None:  # the outputs' sub-Grams are asked for one output at a time
+        lg.cache[ROW_GROUPS] = (((n_x, n_x + n_y), (0, n_x)),)
     if lg is None:
         longest = max((b - a for a, b in segs), default=0)
         raise InsufficientDataError(
@@ -410,9 +417,23 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
         delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
         delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
         n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
-        integrating=ctx.integrating, method=method, diagnostics=diagnostics_of(ne),
+        integrating=ctx.integrating, method=method,
+        diagnostics=diagnostics_of(ne, _shared_white_factor(ctx, P)),
         extra={"first_stage": first_stage} if first_stage else {},
         noise_model=tuple(models), n_k=nkm, step_cov=arr.step_cov)
+
+
+def _shared_white_factor(ctx: GramContext, P: int):
+    """The scaled Cholesky factor of the white normal equations at ``P`` lags (every
+    unknown) when a fit on ``ctx`` has already computed it (:class:`pipeline.
+    prediction_error._Problem` shares it on the Gram) — the factor
+    :func:`pipeline.step_result.diagnostics_of` would compute again — else None."""
+    from pipeline.lag_products import Block
+
+    key = ("white", 0, (Block(0, ctx.n_x, 0, P),), np.arange(P * ctx.n_x).tobytes(),
+           "factor")
+    fac = ctx.lg.cache.get(key)
+    return None if fac is None else (fac[0][0], True)
 
 
 def check_instruments(ctx: GramContext, P: int) -> dict:
@@ -511,10 +532,13 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             parts.append((design, NestedGLS(ctx.lg, design, d_fixed[i], what=f"output {i}")))
         ne_P = ctx.white_normal_equations(P)
         sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
-        white = scipy.linalg.cho_factor(ne_P.A / np.outer(sc, sc), lower=True,
-                                        check_finite=False)[0]
+        As = ne_P.A / np.outer(sc, sc)
+        shared = _shared_white_factor(ctx, P)  # the fit at n_p_max factored it already
+        white = shared[0] if shared is not None else \
+            scipy.linalg.cho_factor(As, lower=True, check_finite=False)[0]
     except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
         return None
+    diagnostics_at = _diagnostics_by_order(ne_P, As, white)
 
     moments: dict = {}
 
@@ -543,16 +567,49 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
                                      tuple(float(v) for v in fit.d[1:]),
                                      float(np.sqrt(fit.sigma2)), {"iterations": 0},
                                      design.nuisance))
-        ne = ctx.white_normal_equations(m)
         return StepResponseEstimate(
             delta_h=arr.delta_h, step=arr.step, step_std=arr.step_std, delta_h_std=arr.dh_std,
             delta_g=arr.delta_g, rate=arr.rate, rate_std=arr.rate_std, n_p=npm,
             n_d=ctx.lg.n_d, dt=float(dt), residual_rms=rms, sigma2=sigma2,
             integrating=ctx.integrating, method="prediction_error",
-            diagnostics=diagnostics_of(ne, (white[: m * n_x, : m * n_x], True)),
+            diagnostics=diagnostics_at(m * n_x),
             noise_model=tuple(models), n_k=n_k.copy(), step_cov=arr.step_cov)
 
     return est_at
+
+
+def _diagnostics_by_order(ne_P: NormalEquations, As: np.ndarray, white: np.ndarray):
+    """``diagnostics_of`` the white normal equations of every order from those at the
+    largest: everything but the condition number reads the first lag block only (the
+    same at every order), and the condition number of order ``m`` is LAPACK's estimate
+    from the leading ``k = m n_x`` block of the scaled matrix ``As`` and of its Cholesky
+    factor ``white`` — no copy of the order's normal equations per order.
+
+    Returns ``diagnostics_at(k)`` -> :class:`pipeline.step_result.Diagnostics`.
+    """
+    import dataclasses
+
+    import scipy.linalg
+
+    base = diagnostics_of(ne_P, (white, True))
+    K, n_x = As.shape[0], ne_P.n_x
+    # column sums of |As| over the first m n_x rows, every m: one running sum over the
+    # rows (the same sums, row by row, as each order's own column sums)
+    abs_As = np.abs(As)
+    acc = np.zeros(K)
+    col_sums = {}
+    for row in range(K):
+        acc += abs_As[row]
+        if (row + 1) % n_x == 0:
+            col_sums[row + 1] = acc.copy()
+
+    def diagnostics_at(k: int):
+        norm = col_sums[k][:k].max() if k in col_sums else abs_As[:k, :k].sum(axis=0).max()
+        rcond, _ = scipy.linalg.lapack.dpocon(white[:k, :k], norm, uplo="L")
+        cond = float(1.0 / rcond) if rcond > 0 else float("inf")
+        return dataclasses.replace(base, condition_number=cond)
+
+    return diagnostics_at
 
 
 def _nested_moments(F: np.ndarray, P: int, n_x: int, cov_lags):
@@ -566,16 +623,20 @@ def _nested_moments(F: np.ndarray, P: int, n_x: int, cov_lags):
     |lags|, |lags|) the step covariance at ``cov_lags(m)``.
     """
     K = P * n_x
-    F3 = F.reshape(K, P, n_x)
-    CS = np.cumsum(F3, axis=1)
-    dh_var = np.cumsum((F3 ** 2).reshape(P, n_x, P, n_x).sum(axis=1), axis=0)
-    step_var = np.cumsum((CS ** 2).reshape(P, n_x, P, n_x).sum(axis=1), axis=0)
+    # FT[l, j, k] = F[k, l n_x + j]: F's transpose, a view of the Fortran-ordered factor
+    # (a copy otherwise), so that the sums over lags and rows run along contiguous memory
+    FT = np.ascontiguousarray(F.T).reshape(P, n_x, K)
+    CS = FT.copy()
+    for lag in range(1, P):  # np.cumsum(FT, axis=0) (the same sums), 5x faster
+        CS[lag] += CS[lag - 1]
+    dh_var = np.cumsum((FT ** 2).reshape(P, n_x, P, n_x).sum(axis=3), axis=2)
+    step_var = np.cumsum((CS ** 2).reshape(P, n_x, P, n_x).sum(axis=3), axis=2)
     tail = []
     for m in range(1, P + 1):
         lags = np.asarray(cov_lags(m), dtype=int)
-        sub = CS[: m * n_x, lags, :]  # (m n_x, |lags|, n_x)
-        tail.append((lags, np.einsum("kaj,kbj->jab", sub, sub)))
-    return dh_var, step_var, tail
+        sub = np.ascontiguousarray(CS[lags, :, : m * n_x].transpose(1, 0, 2))  # (n_x, |lags|, k)
+        tail.append((lags, sub @ sub.transpose(0, 2, 1)))
+    return dh_var.transpose(2, 0, 1), step_var.transpose(2, 0, 1), tail
 
 
 def _fill_nested(arr: PairArrays, i: int, b: np.ndarray, sigma2: float, m: int, moments,
@@ -591,5 +652,4 @@ def _fill_nested(arr: PairArrays, i: int, b: np.ndarray, sigma2: float, m: int, 
     arr.dh_std[i, :, :m] = np.sqrt(sigma2 * dh_var[m - 1, :m, :]).T
     arr.step_std[i, :, :m] = np.sqrt(sigma2 * step_var[m - 1, :m, :]).T
     lags, C = tail[m - 1]
-    for j in range(n_x):
-        arr.step_cov[i, j][np.ix_(lags, lags)] = sigma2 * C[j]
+    arr.step_cov[i][:, lags[:, None], lags[None, :]] = sigma2 * C  # every input at once

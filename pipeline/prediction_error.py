@@ -146,9 +146,13 @@ class OutputFit:
 def _factor(M: np.ndarray, what: str):
     """Scaled Cholesky of a symmetric positive definite matrix, with a clear error."""
     scale = np.sqrt(np.clip(np.diag(M), 1e-300, None))
-    Ms = M / np.outer(scale, scale)
+    # M / outer(scale, scale), written once into a Fortran-ordered array that LAPACK
+    # factors in place (no temporary for the outer product, no copy for LAPACK)
+    Ms = np.empty(M.shape, order="F")
+    np.multiply(scale[:, None], scale[None, :], out=Ms)
+    np.divide(M, Ms, out=Ms)
     try:
-        c = scipy.linalg.cho_factor(Ms, lower=True, check_finite=False)
+        c = scipy.linalg.cho_factor(Ms, lower=True, overwrite_a=True, check_finite=False)
     except np.linalg.LinAlgError:
         raise SingularSystemError(f"normal equations of {what} are singular") from None
     piv = np.abs(np.diag(c[0]))
@@ -172,10 +176,13 @@ def _inv_factor(fac) -> np.ndarray:
     if isinstance(fac, StructuredFactor):
         return fac.inv_factor()
     c, scale = fac
-    Linv, info = scipy.linalg.lapack.dtrtri(np.tril(c[0]), lower=1)
+    # inverted and scaled in place on the one copy np.tril makes
+    Linv, info = scipy.linalg.lapack.dtrtri(np.asfortranarray(np.tril(c[0])), lower=1,
+                                            overwrite_c=1)
     if info != 0:
         raise SingularSystemError("triangular factor is singular")
-    return Linv / scale[None, :]
+    np.divide(Linv, scale[None, :], out=Linv)
+    return Linv
 
 
 # ------------------------------------------------------------------ building blocks
@@ -220,7 +227,6 @@ class _Problem:
 
     def __init__(self, lg: LagGram, design: Design, what: str):
         self.lg = lg
-        self.G = lg.gram(design.nuisance)
         self.n_d = lg.n_d
         self.n_const = lg.n_segments * design.nuisance
         self.design = design
@@ -237,6 +243,12 @@ class _Problem:
                              and np.array_equal(self.sel, np.arange(self.sel.size)))
         self._white_key = ("white", design.nuisance, tuple(self.blocks),
                            self.sel.tobytes())
+
+    @property
+    def G(self) -> np.ndarray:
+        """The design's whole lag Gram (built on first use; one-block designs read only
+        contiguous sub-Grams)."""
+        return self.lg.gram(self.design.nuisance)
 
     def _sub(self):
         """The contiguous sub-Grams of a one-block design and its blocks in them."""
@@ -352,7 +364,7 @@ class _Problem:
         qx = Gyx2[lag_y].T - Gxx.reshape(L * n_s, L * n_s)[:, cols] @ B[cols]
         qy = Gyy[:, 0, lag_y, 0] - Gyx2[:, cols] @ B[cols]  # (L, shifts)
         blk, yb = self.blocks[0], self.design.y
-        q = np.zeros((shifts, L, self.G.shape[1]))
+        q = np.zeros((shifts, L, self.lg.n_w))
         q[:, :, blk.sig_lo : blk.sig_hi] = qx.T.reshape(shifts, L, n_s)
         q[:, :, yb.sig_lo] = qy.T
         return q
@@ -368,7 +380,7 @@ class _Problem:
     def max_shift(self) -> int:
         """Largest filter order the Gram's lags allow for this design."""
         top = max(b.lag_hi for b in self.blocks + [self.design.y])
-        return self.G.shape[0] - top
+        return self.lg.n_lags - top
 
 
 def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
@@ -456,7 +468,14 @@ def _covariance(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
     fac, U, C, sr = _schur(prob, d, J, R11)
     extra = scipy.linalg.solve_triangular(C, (U / sr[None, :]).T, lower=True,
                                           check_finite=False)
-    return np.vstack([_inv_factor(fac), extra])
+    if isinstance(fac, StructuredFactor):
+        return fac.stacked_inv_factor(extra)
+    F0 = _inv_factor(fac)
+    # stacked in Fortran order (column per unknown), as the factors themselves come
+    F = np.empty((F0.shape[0] + extra.shape[0], F0.shape[1]), order="F")
+    F[: F0.shape[0]] = F0
+    F[F0.shape[0]:] = extra
+    return F
 
 
 def _dof(prob: _Problem, m: int, p: int) -> int:
@@ -534,6 +553,27 @@ class NestedGLS:
         # the forward half of every order's solve: leading entries of L^-1 (c / scale)
         self.z = scipy.linalg.solve_triangular(c0[0], self.c / scale, lower=True,
                                                check_finite=False)
+        self.piv = np.abs(np.diag(c0[0]))
+        self._b_at: dict | None = None
+
+    def _solutions(self) -> dict:
+        """``{k: b_k}`` for every ``k`` a whole number of lags (every unknown of a
+        one-block design): ``b_k = F_k' z_k`` and ``F`` is lower triangular, so ``b_k[j]``
+        sums ``F[i, j] z[i]`` over the rows ``i < k`` — per lag block of rows, then a
+        running sum over the blocks: one pass over ``F`` for every order instead of a
+        product per order."""
+        if self._b_at is None:
+            self._b_at = {}
+            if self.prob.single and self.prob.full_sel:
+                n_s = self.prob.blocks[0].n_sig
+                K = self.F.shape[0]
+                Bk = (self.F.T * self.z[None, :]).reshape(K, K // n_s, n_s).sum(axis=2)
+                acc = np.zeros(K)
+                for blk in range(K // n_s):
+                    acc += Bk[:, blk]
+                    k = (blk + 1) * n_s
+                    self._b_at[k] = acc[:k].copy()
+        return self._b_at
 
     def fit(self, k: int, sigma2: float) -> OutputFit | None:
         """The fit of the first ``k`` unknowns (:func:`fit_fixed_noise` with ``sigma2``),
@@ -546,8 +586,7 @@ class NestedGLS:
         sigma2 : float
             Innovation variance to report.
         """
-        L, scale = self.fac[0][0][:k, :k], self.fac[1][:k]
-        piv = np.abs(np.diag(L))
+        piv = self.piv[:k]
         if piv.min() ** 2 < _RCOND * piv.max() ** 2:
             return None
         try:
@@ -555,8 +594,12 @@ class NestedGLS:
         except InsufficientDataError:
             return None
         c = self.c[:k]
-        b = scipy.linalg.solve_triangular(L, self.z[:k], lower=True, trans="T",
-                                          check_finite=False) / scale
+        # b = D^-1 L_k^-T z_k = F_k' z_k: the inverse factor is at hand, and a product
+        # with its leading block reads it in place (a triangular solve on the leading
+        # block of L would copy it first, which costs more than the solve)
+        b = self._solutions().get(k)
+        if b is None:
+            b = self.F[:k, :k].T @ self.z[:k]
         V = max(self.yy - b @ c, 0.0)
         return OutputFit(b, self.F[:k, :k], float(sigma2), self.d, V, self.prob.n_d, n_par,
                          0, {}, "gls")

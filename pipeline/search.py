@@ -16,9 +16,9 @@ Truncation test (noise-model searches): a flat tail alone is not enough.  A resp
 has not started yet (dead time) has a flat tail, and a noise-model fit does not let the
 last coefficient absorb the missing response the way white least squares does on slow
 inputs.  So an order ``m`` also needs the fit at ``n_p_max`` to show nothing significant
-beyond lag ``m`` (:func:`_truncation_test`, level :data:`TRUNCATION_ALPHA`: the next half
-of the response summed, every increment jointly, and the whole left-out part of the gain
-summed — Bonferroni over the three), and the chosen
+beyond lag ``m`` (:func:`pipeline.truncation.truncation_test`, level
+:data:`TRUNCATION_ALPHA`: the next half of the response summed, every increment jointly,
+and the whole left-out part of the gain summed — Bonferroni over the three), and the chosen
 order is then lengthened by :data:`NOISE_MODEL_N_P_MARGIN`.  Without them the truncation
 bias exceeded the band: with AR noise N_p stopped inside the dead time (N_p = 3 for a
 3-sample delay).  The thesis' white-noise search keeps its rule (N_p·T ≈ the 98 %
@@ -73,7 +73,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.special
 
 from pipeline.checks import window_agreement
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
@@ -93,6 +92,7 @@ from pipeline.step_result import StepResponseEstimate
 from pipeline._threads import single_threaded_blas
 from pipeline.feedback import FEEDBACK_LEADS, feedback_test
 from pipeline.progress import Tick, silent
+from pipeline.truncation import truncation_test as _truncation_test
 from pipeline.settledness import (TAIL_FRACTION, tail_lags, TRUNCATION_ALPHA, left_out_of, pair_curve,
                                   tail_moving)
 
@@ -262,75 +262,6 @@ def choose_orders(
     n_p, settled, trace = _tail_rule(est_at, info_at, no_test, P, ne.n_y, ne.n_x, n_p_min,
                                      candidates, settle=False)
     return n_p, settled, trace, bic_order
-
-
-def _truncation_test(ref: StepResponseEstimate):
-    """``p(m)`` -> (n_y, n_x) p-values that pair increments beyond lag ``m`` are zero in
-    the reference (longest) fit ``ref`` (module doc)."""
-    import scipy.linalg
-
-    n_y, n_x, P = ref.step.shape
-    D = np.eye(P) - np.eye(P, k=-1)  # step -> delta_h
-    pairs = {}
-    for i in range(n_y):
-        T = D @ D if ref.integrating[i] else D
-        for j in range(n_x):
-            n = int(ref.n_p[i, j])
-            Tn = T[:n, :n]
-            inc = Tn @ ref.step[i, j, :n]
-            C = Tn @ ref.step_cov[i, j, :n, :n] @ Tn.T
-            # Wald statistics of every trailing block inc[m:] at once: the trailing
-            # blocks of C are the leading blocks of C reversed, and one Cholesky factor
-            # gives every leading block's quadratic form (cumulative sums of z^2)
-            keep = np.flatnonzero(np.diag(C) > 0)  # lags fixed at zero (n_k) drop out
-            Cr = C[np.ix_(keep, keep)][::-1, ::-1]
-            s = np.sqrt(np.diag(Cr))
-            try:
-                Lc = np.linalg.cholesky(Cr / np.outer(s, s))
-                z = scipy.linalg.solve_triangular(Lc, inc[keep][::-1] / s, lower=True)
-                wald = np.cumsum(z**2)  # wald[k-1]: the last k kept increments
-            except np.linalg.LinAlgError:
-                wald = None
-            pairs[i, j] = (inc, C, keep, wald)
-
-    def p_at(m: int) -> np.ndarray:
-        out = np.ones((n_y, n_x))
-        for (i, j), (inc, C, keep, wald) in pairs.items():
-            if m >= inc.size:
-                continue
-            b, Cm = inc[m:], C[m:, m:]
-            # (a) the change over the next half of the response, lags m+1 .. 1.5 m —
-            # 1 df, the powerful test against the smooth, decaying tail a truncated
-            # response leaves (its signal is largest right after m, while the variance of
-            # a sum over all remaining lags grows with their number)
-            k = min(b.size, max(3, m // 2))
-            var = float(Cm[:k, :k].sum())
-            p_sum = float(_chi2_sf(b[:k].sum() ** 2 / var, 1)) if var > 0 else 1.0
-            # (b) every increment beyond m — catches tails that move and come back
-            k_all = int(np.sum(keep >= m))
-            if k_all == 0:
-                p_all = 1.0
-            elif wald is not None:
-                p_all = float(_chi2_sf(wald[k_all - 1], k_all))
-            else:
-                w, V = np.linalg.eigh(0.5 * (Cm + Cm.T))
-                ok = w > 1e-12 * max(w.max(), 1e-300)
-                zz = V[:, ok].T @ b
-                p_all = float(_chi2_sf(float(np.sum(zz**2 / w[ok])), int(ok.sum())))
-            # (c) everything the horizon m leaves out of the gain: the sum of every
-            # increment beyond m, 1 df — the power against a slow or weak response whose
-            # tail is small per lag but adds up (a gain read off an unsettled curve)
-            var_out = float(Cm.sum())
-            p_out = float(_chi2_sf(b.sum() ** 2 / var_out, 1)) \
-                if var_out > 0 else 1.0
-            out[i, j] = min(1.0, 3 * min(p_sum, p_all, p_out))  # Bonferroni over the three
-        return out
-
-    return p_at
-
-
-def _chi2_sf(x: float, df: int) -> float:  # scipy.stats.chi2.sf, minus its 0.3 ms per call
-    return float(scipy.special.chdtrc(df, x))
 
 
 def _clip_n_k(n_k, m: int, n_y: int, n_x: int) -> np.ndarray:

@@ -60,21 +60,27 @@ class InputGramInverse:
         self.n_s = n_s
         self.ok = False
         self.cond = np.inf
-        Gs = G / np.outer(sc, sc)
+        # G / outer(sc, sc) written into a Fortran-ordered array LAPACK factors in place;
+        # G is exactly symmetric, so its transpose (row-major) gives the same column sums
+        Gs = np.empty(G.shape, order="F")
+        np.multiply(sc[:, None], sc[None, :], out=Gs)
+        np.divide(G, Gs, out=Gs)
+        norm = np.abs(Gs.T).sum(axis=0).max()
         try:
-            R = scipy.linalg.cholesky(Gs, lower=False, check_finite=False)
+            R = scipy.linalg.cholesky(Gs, lower=False, overwrite_a=True, check_finite=False)
         except np.linalg.LinAlgError:
             return
-        rcond, _ = scipy.linalg.lapack.dpocon(R, np.abs(Gs).sum(axis=0).max(), uplo="U")
+        rcond, _ = scipy.linalg.lapack.dpocon(R, norm, uplo="U")
         piv = np.abs(np.diag(R))
         # LAPACK's 1-norm estimate, and never below what the pivots show
         self.cond = max(float((piv.max() / piv.min()) ** 2), 1.0 / max(rcond, 1e-300))
-        Rinv, info = scipy.linalg.lapack.dtrtri(R, lower=0)
+        Rinv, info = scipy.linalg.lapack.dtrtri(R, lower=0, overwrite_c=1)
         if info != 0:
             return
         # G = (R S)'(R S) with S = diag(sc): (R S)^-1 = S^-1 R^-1, upper triangular, and
         # its leading blocks invert the leading blocks of R S (any fewer lags)
-        self.Rinv = np.triu(Rinv) / sc[:, None]
+        self.Rinv = np.triu(Rinv)
+        np.divide(self.Rinv, sc[:, None], out=self.Rinv)
         self.ok = True
 
 
@@ -84,9 +90,11 @@ def _filter_rows(X: np.ndarray, d: np.ndarray) -> np.ndarray:
     array is several times slower than these ``p`` vectorised updates per lag.)"""
     Y = np.array(X, dtype=float, copy=True)
     p = d.size - 1
+    tmp = np.empty(Y.shape[1:])  # one work array for every d_a Y[l - a]
     for lag in range(1, Y.shape[0]):
         for a in range(1, min(p, lag) + 1):
-            Y[lag] -= d[a] * Y[lag - a]
+            np.multiply(d[a], Y[lag - a], out=tmp)
+            Y[lag] -= tmp
     return Y
 
 
@@ -137,10 +145,36 @@ class StructuredFactor:
         """
         return self.Ys @ self._project(self.Ys.T @ rhs)
 
+    def stacked_inv_factor(self, extra: np.ndarray) -> np.ndarray:
+        """``[F; extra]`` (Fortran order), ``F`` of :meth:`inv_factor` with rows ``extra``
+        (``k x m``) under it — built in place, without ``F`` on its own.
+
+        Parameters
+        ----------
+        extra : ndarray (k, m)
+            Rows stacked under ``F``.
+        """
+        m, n1 = self.Ys.shape
+        Ft = np.empty((m, n1 + extra.shape[0]))
+        top = Ft[:, :n1]
+        if self.Qr is None:
+            top[...] = self.Ys
+        else:  # the same products and difference as inv_factor
+            np.matmul(self.Ys @ self.Qr, self.Qr.T, out=top)
+            np.subtract(self.Ys, top, out=top)
+        Ft[:, n1:] = extra.T
+        return Ft.T
+
     def inv_factor(self) -> np.ndarray:
-        """``F = W' = P Y_s'`` with ``A~^-1 = F' F`` (``n x m``), formed once."""
+        """``F = W' = P Y_s'`` with ``A~^-1 = F' F`` (``n x m``, Fortran order: its
+        columns are the unknowns, which is how the step-response propagation reads it),
+        formed once."""
         if self._F is None:
-            self._F = self._project(self.Ys.T)
+            if self.Qr is None:
+                self._F = np.asfortranarray(self.Ys.T)
+            else:
+                # F' = Y_s P = Y_s - (Y_s Q_r) Q_r', built row-major and returned transposed
+                self._F = (self.Ys - (self.Ys @ self.Qr) @ self.Qr.T).T
         return self._F
 
 

@@ -129,3 +129,105 @@ def test_noise_model_estimate_is_the_gls_of_its_own_filter(path):
         # filter's own uncertainty, which in open loop is small
         std_ref = np.sqrt(s2) * _step_std_ref(inv_ref, 0, P)
         np.testing.assert_allclose(est.step_std[i, 0, :P], std_ref, rtol=0.05)
+
+
+def _explicit_lag_gram(segments, L: int) -> np.ndarray:
+    """``G[l1, a, l2, b] = sum_k w_a(k - l1) w_b(k - l2)`` over ``k = L-1 .. n-1`` of each
+    segment, summed — the definition, one regressor matrix per segment."""
+    G = 0.0
+    for w in segments:
+        n = w.shape[0]
+        Z = np.stack([w[L - 1 - lag : n - lag] for lag in range(L)], axis=1)  # (obs, L, n_w)
+        G = G + np.einsum("kla,kmb->lamb", Z, Z)
+    return G
+
+
+def test_lazy_lag_gram_equals_its_definition():
+    from pipeline.lag_products import ROW_GROUPS, build_lag_gram, signal_gram
+
+    rng = np.random.default_rng(3)
+    segs = [rng.standard_normal((400, 5)), rng.standard_normal((250, 5))]
+    L = 7
+    ref = _explicit_lag_gram(segs, L)
+    lg = build_lag_gram(iter(segs), n_lags=L)
+    lg.cache[ROW_GROUPS] = (((2, 5), (0, 2)),)  # signals 2..4 asked for one at a time
+    scale = np.max(np.abs(ref))
+    # sub-Grams assembled from the seeds, before the whole Gram exists
+    for s1, s2 in [((0, 2), (0, 2)), ((3, 4), (0, 2)), ((2, 3), (2, 3)), ((4, 5), (4, 5)),
+                   ((0, 3), (1, 5))]:
+        sub = signal_gram(lg, 0, s1, s2)
+        np.testing.assert_allclose(sub, ref[:, s1[0]:s1[1], :, s2[0]:s2[1]], rtol=0,
+                                   atol=1e-12 * scale)
+    assert lg._G is None  # nothing above needed the whole Gram
+    np.testing.assert_allclose(lg.G, ref, rtol=0, atol=1e-12 * scale)
+    assert lg.n_d == (400 - L + 1) + (250 - L + 1) and lg.n_segments == 2
+
+
+def test_filtered_gram_is_the_filtered_regressors_product():
+    from pipeline.lag_products import Block, filtered_gram
+
+    rng = np.random.default_rng(4)
+    w = rng.standard_normal((300, 4))
+    L, d = 9, np.array([1.0, -0.7, 0.2])
+    G = _explicit_lag_gram([w], L)
+    wf = ss.lfilter(d, [1.0], w, axis=0)
+    k = np.arange(L - 1, 300)
+    b1, b2 = Block(0, 3, 0, 5), Block(3, 4, 1, 3)
+
+    def regressor(blk):
+        return np.hstack([wf[k - lag][:, blk.sig_lo:blk.sig_hi]
+                          for lag in range(blk.lag_lo, blk.lag_hi)])
+
+    ref = regressor(b1).T @ regressor(b2)
+    np.testing.assert_allclose(filtered_gram(G, d, b1, b2), ref, rtol=1e-10,
+                               atol=1e-10 * np.max(np.abs(ref)))
+
+
+def _truncation_reference(ref, m: int) -> np.ndarray:
+    """The truncation test's three p-values per pair, one pair at a time with scipy.stats
+    (no shared factor, no stacking)."""
+    import scipy.stats
+
+    n_y, n_x, P = ref.step.shape
+    D = np.eye(P) - np.eye(P, k=-1)
+    out = np.ones((n_y, n_x))
+    for i in range(n_y):
+        for j in range(n_x):
+            n = int(ref.n_p[i, j])
+            if m >= n:
+                continue
+            inc = D[:n, :n] @ ref.step[i, j, :n]
+            C = D[:n, :n] @ ref.step_cov[i, j, :n, :n] @ D[:n, :n].T
+            b, Cm = inc[m:], C[m:, m:]
+            k = min(b.size, max(3, m // 2))
+            p_sum = scipy.stats.chi2.sf(b[:k].sum() ** 2 / Cm[:k, :k].sum(), 1)
+            p_all = scipy.stats.chi2.sf(b @ np.linalg.solve(Cm, b), b.size)
+            p_out = scipy.stats.chi2.sf(b.sum() ** 2 / Cm.sum(), 1)
+            out[i, j] = min(1.0, 3 * min(p_sum, p_all, p_out))
+    return out
+
+
+def test_vectorised_truncation_test_equals_pair_by_pair():
+    from pipeline.truncation import truncation_test
+
+    x, y = _mimo(seed=10)
+    est = estimate_step_responses(x, y, n_p=P, dt=1.0, noise="auto")
+    p_at = truncation_test(est)
+    for m in (1, 3, 5, P - 1, P):
+        np.testing.assert_allclose(p_at(m), _truncation_reference(est, m), rtol=1e-8,
+                                   atol=1e-14)
+
+
+def test_nested_orders_diagnostics_equal_each_orders_own():
+    from pipeline.step_result import diagnostics_of
+
+    x, y = _mimo(seed=11)
+    d = [np.array([1.0, -0.8]), np.array([1.0, -0.6])]
+    ctx = lag_gram_context(x, y, n_lags=lags_needed(np.array([[P]]), False, 1))
+    est_at = nested_fixed_noise(ctx, P=P, n_k=np.zeros((N_Y, N_X), dtype=int), dt=1.0,
+                                forms=["direct"] * N_Y, d_fixed=d, sigma2_fixed=[1.0, 1.0])
+    for m in (2, 5, P):
+        own = diagnostics_of(ctx.white_normal_equations(m))
+        got = est_at(m).diagnostics
+        np.testing.assert_allclose(got.condition_number, own.condition_number, rtol=1e-10)
+        np.testing.assert_allclose(got.vif, own.vif, rtol=1e-12)
