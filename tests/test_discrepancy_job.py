@@ -85,15 +85,17 @@ def test_wrong_model_gain_is_named_and_the_augmented_model_resimulates(make_job,
         assert key in c0
 
     # Independent re-simulation of model_augmented.yaml on the raw signals: subtract the
-    # reported operating point (u: its mean; y: the documented nominal-residual offset),
-    # simulate from rest, RMS over the hold-out samples == the reported holdout_rms_after.
+    # reported operating point (u: its mean; y: the documented nominal-residual offset,
+    # moved by the augmented model's operating_point_shift: the output's constant
+    # profiled on the fit part), simulate from rest, RMS over the hold-out samples == the
+    # reported holdout_rms_after.
     doc = yaml.safe_load((run_dir / "model_augmented.yaml").read_text())
     model = model_from_dict(doc)
     assert model.blocks[0].k == pytest.approx(PLANT_GAIN, rel=0.03)
     sig = plant_signals(seed=1, hours=2.0)
     op = d["data"]["operating_point"]["values"]
     assert op["u"] == pytest.approx(sig["u"].mean(), rel=1e-9)
-    u, y = sig["u"] - op["u"], sig["y"] - op["y"]
+    u, y = sig["u"] - op["u"], sig["y"] - op["y"] - d["operating_point_shift"].get("y", 0.0)
     sim = simulate(model, {"u": u}, dt_s=1.0).signals["y"]
     h0, h1 = d["holdout_samples"]
     rms = math.sqrt(float(np.mean((y[h0:h1] - sim[h0:h1]) ** 2)))

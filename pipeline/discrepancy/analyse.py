@@ -118,7 +118,7 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
              also: tuple[Candidate, ...]) -> DiscrepancyResult:
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
-                     _gap_reference(chain.steps, prior), also)
+                     _gap_reference(chain.steps, prior), also, free_offsets)
 
     chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say,
                   clock=clock)
@@ -170,7 +170,8 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
           config: DiscrepancyConfig, seed: int, say: Callable[[str, str], None],
           clock: Callable[[], float] | None, base: Model,
           prior: tuple[Effect, ...], gap_reference: float | None = None,
-          also: tuple[Candidate, ...] = ()) -> DiscrepancyResult:
+          also: tuple[Candidate, ...] = (),
+          free_offsets: tuple[str, ...] = ()) -> DiscrepancyResult:
     """One search: localise, screen, fit and select the best effect for ``model`` (the
     nominal model `base` with the chain's `prior` effects; locations limited to those with a
     counterpart in the nominal model; the best candidates also refitted jointly with
@@ -186,7 +187,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         timings[stage] = now - last
         last = now
 
-    P, nominal, resid = _problem(model, inputs, measured, dt_s, config, say)
+    P, nominal, resid = _problem(model, inputs, measured, dt_s, config, say, free_offsets)
     P.location_names = (*base.block_names, *base.outputs)
     lap("simulate")
     say("localise", "residual regression, bootstrap, lags, bands, windows, load bins")
@@ -358,9 +359,11 @@ def _nested_lags(fitted: list, chosen: list[int]) -> list[int]:
 
 
 def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
-             dt_s: float, config: DiscrepancyConfig, say: Callable[[str, str], None]):
+             dt_s: float, config: DiscrepancyConfig, say: Callable[[str, str], None],
+             free_offsets: tuple[str, ...] = ()):
     """Validate, simulate the nominal model, choose warm-up, split, N_p and the largest
-    delay: the :class:`Problem`, the nominal simulation and the residual."""
+    delay: the :class:`Problem`, the nominal simulation and the residual (the free
+    outputs' constants profiled out of every prediction, the nominal one included)."""
     ins, outputs, y = validate_signals(model, inputs, measured, dt_s)
     n = y.shape[0]
     dt_s = float(dt_s)
@@ -390,7 +393,9 @@ def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any
     P = Problem(model=model, inputs=ins, outputs=outputs, y=y, dt_s=dt_s, n=n,
                 fit_start=fit_start, holdout_start=holdout_start, config=config,
                 settling_s=settling, n_p=n_p, max_delay=max_delay,
-                nominal_signals=nominal.signals, y_nominal=y_nom)
+                nominal_signals=nominal.signals, y_nominal=y_nom,
+                free=tuple(i for i, o in enumerate(outputs) if o in free_offsets))
+    P.y_nominal = y_nom = P.with_free_offsets(y_nom)
     return P, nominal, y - y_nom
 
 

@@ -286,8 +286,8 @@ class Chain:
         effects : sequence of Effect
             Effects with nominal locations.
         recentre : bool
-            Re-estimate the free outputs' constant (every search after the first does;
-            the reported result does when the chain holds two or more effects).
+            Re-estimate the free outputs' constant on the fit part (as every search
+            profiles it out of each candidate's prediction; the reported chain does).
         """
         augmented = build(self.model, effects, self.dt_s)
         sim = simulate_with(augmented, effects, {k: self.inputs[k] for k in augmented.inputs},
@@ -653,8 +653,8 @@ def chain_steps(chain: Chain, links: Sequence[Link],
     pred: dict[str, np.ndarray] = {}
     shift: dict[str, float] = {}
     for k in range(1, len(links) + 1):
-        pred, shift = chain.prediction([lk.effect for lk in links[:k]],
-                                       recentre=len(links) > 1)
+        # the free outputs' constants as every search profiled them (also for one effect)
+        pred, shift = chain.prediction([lk.effect for lk in links[:k]])
         after = gap(pred)
         g0, g1 = before["holdout_rms_after"], after["holdout_rms_after"]
         # the reduction this effect brings to the chain as finally fitted (the search

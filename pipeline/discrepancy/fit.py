@@ -398,7 +398,9 @@ class Fitter:
 def predict_with(P: Problem, effect: Effect, inputs: Mapping[str, np.ndarray]
                  ) -> np.ndarray | None:
     """Outputs (rows of `inputs`, n_y) of the search's model with `effect` added as it is,
-    measurement offsets included; None if the simulation fails or blows up.
+    measurement offsets and the free outputs' profiled constants
+    (:meth:`Problem.with_free_offsets`) included; None if the simulation fails or blows
+    up.
 
     Parameters
     ----------
@@ -418,7 +420,9 @@ def predict_with(P: Problem, effect: Effect, inputs: Mapping[str, np.ndarray]
     except PipelineError:
         return None
     y = np.column_stack([out[o] for o in P.outputs])
-    return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
+    if not (np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12):
+        return None
+    return P.with_free_offsets(y)
 
 
 def _local_minima(values: np.ndarray, sse: np.ndarray, m: int = 3) -> list[float]:

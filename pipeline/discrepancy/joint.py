@@ -140,7 +140,9 @@ def _outputs(P: Problem, nominal: Model, effects: Sequence[Effect], stop: int
     except (PipelineError, ValueError):
         return None
     y = np.column_stack([sim.signals[o] for o in P.outputs])
-    return y if np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12 else None
+    if not (np.all(np.isfinite(y)) and np.max(np.abs(y)) < 1e12):
+        return None
+    return P.with_free_offsets(y)  # the free outputs' constants profiled, as every fit's
 
 
 #: Relative finite-difference step of :func:`prior_basis` (in log for a positive

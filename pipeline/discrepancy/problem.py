@@ -106,6 +106,33 @@ class Problem:
     #: the selection, listed in the result with their parameters (shared by the copies
     #: the white-weighted screening makes)
     diverged: list = field(default_factory=list)
+    #: indices of the outputs whose constant is not known (``free_offsets``): every
+    #: prediction has it profiled out on the fit part (:meth:`with_free_offsets`)
+    free: tuple[int, ...] = ()
+
+    def with_free_offsets(self, y: np.ndarray) -> np.ndarray:
+        """`y` (predicted outputs from sample 0, at least to the hold-out) with each free
+        output moved by the constant that makes its fit-part residual zero-mean.
+
+        An output measured from its mean has no known constant: the nominal model's is
+        set that way, and every candidate gets the same treatment (the constant profiled
+        out, as a least-squares intercept is), so an effect that moves an output's mean
+        -- a saturation with the controller winding up moves its measured OP's -- is
+        compared on equal terms instead of carrying the nominal model's constant.
+
+        Parameters
+        ----------
+        y : ndarray (M, n_y)
+            Predicted outputs from sample 0; returned as it is when shorter than the
+            fit part's end (``holdout_start``) or when no output is free.
+        """
+        if not self.free or y.shape[0] < self.holdout_start:
+            return y
+        part = slice(self.fit_start, self.holdout_start)
+        y = np.array(y, dtype=float, copy=True)
+        for i in self.free:
+            y[:, i] += float(np.mean(self.y[part, i] - y[part, i]))
+        return y
 
     @property
     def n_y(self) -> int:

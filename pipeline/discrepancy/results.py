@@ -199,8 +199,7 @@ class DiscrepancyResult:
         Candidates that passed every statistical test but shrink the held-out gap by less
         than ``min_gap_reduction`` (at the step where the chain stopped).
     operating_point_shift : dict of str -> float
-        With two or more effects: the constant by which each free output's operating
-        point moved for the final augmented model (``free_offsets``); :attr:`series`
+        With effects: the constant by which each free output's operating point moved for the final augmented model (``free_offsets``); :attr:`series`
         ``.augmented`` includes it.  Empty otherwise.
     equivalent_effects : tuple of Candidate
         With ``effect_found``: look-alikes of :attr:`effect` the data cannot tell apart
