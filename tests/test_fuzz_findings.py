@@ -61,6 +61,26 @@ def test_catalog_with_a_name_that_is_not_utf8(site):  # noqa: F811 - the importe
         err[-2000:]
 
 
+def test_catalog_text_value_that_is_not_utf8(site):  # noqa: F811 - the imported fixture
+    storage = site / "storage"
+    catalog = storage / "catalog.sqlite"
+    con = sqlite3.connect(catalog)
+    con.execute("PRAGMA journal_mode=DELETE")
+    [(path,)] = con.execute("SELECT path FROM runs LIMIT 1").fetchall()
+    # the same bytes with one that is not UTF-8, written as TEXT (what a flipped bit does)
+    bad = path.encode()[:-3] + b"\xb3" + path.encode()[-2:]
+    con.execute("UPDATE runs SET path = CAST(? AS TEXT) WHERE path = ?", (bad, path))
+    con.commit()
+    con.close()
+    before = listing(storage)
+    refused(*cli("runs", "plant", "--storage", storage, "--no-plot"),
+            "the catalog is damaged (a text value in it is not UTF-8)",
+            f"run `plantdyn reindex {storage}`")
+    assert listing(storage) == before
+    rc, out, err = cli("reindex", storage)
+    assert rc == 0 and "catalog rebuilt from 2 run folder(s)" in out, err[-2000:]
+
+
 @pytest.mark.parametrize("key, value", [("files", 1e308), ("files", [1]), ("files", None),
                                         ("files", [{"name": 5}]), ("config", "x")])
 def test_export_of_a_manifest_whose_files_are_not_a_list(site, tmp_path, key, value):  # noqa: F811

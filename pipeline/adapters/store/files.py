@@ -272,6 +272,10 @@ def storage_error(exc: BaseException, path: Path, doing: str) -> StorageError | 
         elif "unable to open" in text:
             cause = "the catalog cannot be opened"
             fix = f"check that {path.parent} exists and is writable"
+        elif "could not decode" in text:  # a flipped byte inside a text value
+            cause = "the catalog is damaged (a text value in it is not UTF-8)"
+            fix = (f"run `plantdyn reindex {path.parent}`: it moves the file aside and "
+                   "rebuilds the catalog from the run folders")
         elif "not a database" in text or "malformed" in text:
             cause = "the catalog file is not an SQLite database (corrupt or replaced)"
             fix = (f"run `plantdyn reindex {path.parent}`: it moves the file aside and "
