@@ -76,7 +76,7 @@ def test_an_effect_behind_a_large_sensor_bias_is_sized_against_what_the_bias_lea
     but under 5 % of the nominal gap.  Practical significance is judged against the gap
     the dynamics leave once the sensor correction is applied
     (``analyse._gap_reference``), at the lower 95 % confidence bound of the share closed
-    (``select.reduction_lower_bound``, issue 34): on this record the gain's share is
+    (``select.holdout_rms_evidence``, issue 34): on this record the gain's share is
     11 % with a bootstrap spread of about 4 %, so its bound sits near the 5 % bar.  The
     gain is found with its slope whichever side of the bar the bound falls: as the
     chain's second effect, or listed under ``minor_effects`` -- and either way it is

@@ -26,9 +26,8 @@ from pipeline.discrepancy.screen import class_key, kept_classes, nested_partners
 from pipeline.discrepancy.select import (
     criteria,
     holdout_gap,
-    holdout_rms_test,
     PRACTICAL_ALPHA,
-    reduction_lower_bound,
+    holdout_rms_evidence,
     holdout_z_score,
     pooled_rms,
     rms_of,
@@ -604,8 +603,8 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         whitened = bool(dbic >= config.bic_margin and t_hold >= config.holdout_z_min
                         and gap_c < gap_nom)
         e_cand = (y[hold_slice] - fit.y_pred[hold_slice]) / np.array(hold_std)
-        _, p_rms = holdout_rms_test(e_nom, e_cand, seed=seed + k)
-        low = reduction_lower_bound(e_nom, e_cand, seed=seed + k, alpha=PRACTICAL_ALPHA)
+        _, p_rms, low = holdout_rms_evidence(e_nom, e_cand, seed=seed + k,
+                                             alpha=PRACTICAL_ALPHA)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
@@ -631,7 +630,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     def practical(c: Candidate) -> bool:
         # the share of the gap it closes, at its lower confidence bound: a point
         # estimate of a few percent is within what a slow disturbance moves between
-        # stretches of the hold-out (select.reduction_lower_bound)
+        # stretches of the hold-out (select.holdout_rms_evidence)
         return c.gap_reduction_low * gap_nom >= bar
 
     findings = [c for c in passed if practical(c)]

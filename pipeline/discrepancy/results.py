@@ -57,7 +57,7 @@ class Candidate:
     gap_reduction_low : float
         One-sided 95 % lower confidence bound of :attr:`gap_reduction` (the held-out RMS
         test's block bootstrap): what practical significance is judged on
-        (:func:`pipeline.discrepancy.select.reduction_lower_bound`).
+        (:func:`pipeline.discrepancy.select.holdout_rms_evidence`).
     """
 
     effect: Effect

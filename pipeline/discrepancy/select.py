@@ -111,10 +111,9 @@ def holdout_rms_test(nominal: np.ndarray, candidate: np.ndarray, *, seed: int,
     p_value : float
         One-sided bootstrap p-value of ``R <= 0``: ``(1 + #{R* <= 0}) / (1 + n_boot)``.
     """
-    reduction, boot = _block_bootstrap(nominal, candidate, seed, n_blocks, n_boot)
-    if boot is None:
-        return reduction, 1.0
-    p_value = (1.0 + float(np.sum(~(boot > 0.0)))) / (1.0 + n_boot)
+    reduction, p_value, _ = holdout_rms_evidence(nominal, candidate, seed=seed,
+                                                 alpha=PRACTICAL_ALPHA, n_blocks=n_blocks,
+                                                 n_boot=n_boot)
     return reduction, p_value
 
 
@@ -140,19 +139,19 @@ def _block_bootstrap(nominal: np.ndarray, candidate: np.ndarray, seed: int, n_bl
 
 
 #: One-sided level of the lower confidence bound practical significance is judged on
-#: (:func:`reduction_lower_bound`): 5 %, the convention of a minimum-effect (one-sided
+#: (:func:`holdout_rms_evidence`): 5 %, the convention of a minimum-effect (one-sided
 #: equivalence, TOST) test.  Not ``holdout_rms_alpha`` (1 %): that level guards the
 #: search's ~10 candidates against a detection by luck; the bound asks only how large a
 #: detected candidate's effect is.
 PRACTICAL_ALPHA = 0.05
 
 
-def reduction_lower_bound(nominal: np.ndarray, candidate: np.ndarray, *, seed: int,
-                          alpha: float, n_blocks: int = RMS_TEST_BLOCKS,
-                          n_boot: int = RMS_TEST_REPLICATES) -> float:
-    """One-sided ``1 - alpha`` lower confidence bound of the held-out gap reduction ``R``
-    (:func:`holdout_rms_test`'s statistic, the same block bootstrap: the ``alpha``
-    quantile of its replicates).
+def holdout_rms_evidence(nominal: np.ndarray, candidate: np.ndarray, *, seed: int,
+                         alpha: float, n_blocks: int = RMS_TEST_BLOCKS,
+                         n_boot: int = RMS_TEST_REPLICATES) -> tuple[float, float, float]:
+    """:func:`holdout_rms_test`'s ``R`` and p-value, and the one-sided ``1 - alpha``
+    lower confidence bound of ``R`` (the ``alpha`` quantile of the same bootstrap
+    replicates), from one block bootstrap.
 
     Practical significance asks how much of the gap a candidate closes; on a record
     with a slow unmeasured disturbance the point estimate of that share varies from one
@@ -167,14 +166,21 @@ def reduction_lower_bound(nominal: np.ndarray, candidate: np.ndarray, *, seed: i
     seed : int
         Seeds the bootstrap.
     alpha : float
-        One-sided level (``holdout_rms_alpha``).
+        One-sided level of the bound (:data:`PRACTICAL_ALPHA`).
     n_blocks, n_boot : int
         As :func:`holdout_rms_test`.
+
+    Returns
+    -------
+    reduction, p_value, lower : float
+        ``R``, the p-value of ``R <= 0`` and the lower bound (``R`` itself when the
+        hold-out is too short to bootstrap).
     """
     reduction, boot = _block_bootstrap(nominal, candidate, seed, n_blocks, n_boot)
     if boot is None:
-        return reduction
-    return min(reduction, float(np.quantile(boot, alpha)))
+        return reduction, 1.0, reduction
+    p_value = (1.0 + float(np.sum(~(boot > 0.0)))) / (1.0 + n_boot)
+    return reduction, p_value, min(reduction, float(np.quantile(boot, alpha)))
 
 
 def same_class(a: Effect, b: Effect) -> bool:
