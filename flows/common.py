@@ -212,7 +212,6 @@ def console_without_user_error_tracebacks() -> None:
             handler.setFormatter(_OneLineUserErrors(handler.formatter or logging.Formatter()))
 
 
-
 #: Extra task options of the stages that read or write files: transient I/O is retried.
 IO_RETRIES = {"retries": 2, "retry_delay_seconds": 1, "retry_condition_fn": retry_transient_io}
 
@@ -284,3 +283,28 @@ class TaskStages(StageRunner):
     def _done(self, name, t0):
         super()._done(name, t0)
         self.on_done(name)
+
+
+def flow_stages(job: str, what: str, percent: dict[str, float]) -> tuple[StageLines, TaskStages]:
+    """A flow's stage lines and its :class:`TaskStages` (ingest and store retried on
+    transient I/O), with the flow's progress artifact moved to ``percent[stage]`` as each
+    stage ends.
+
+    Parameters
+    ----------
+    job : str
+        The job's name (the artifact key).
+    what : str
+        The workflow, for the artifact's description (``estimation``, ``discrepancy``).
+    percent : dict of str to float
+        Progress when each stage has ended.
+    """
+    from prefect.artifacts import create_progress_artifact, update_progress_artifact
+
+    artifact = create_progress_artifact(0.0, key=artifact_key(job, "progress"),
+                                        description=f"{job}: {what} progress")
+    tell = StageLines()
+    stages = TaskStages(tell, options={"ingest": IO_RETRIES, "store": IO_RETRIES},
+                        on_done=lambda stage: update_progress_artifact(
+                            artifact, percent.get(stage, 0.0), description=stage))
+    return tell, stages

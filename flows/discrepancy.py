@@ -8,20 +8,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from prefect import flow
-from prefect.artifacts import (
-    create_markdown_artifact,
-    create_progress_artifact,
-    create_table_artifact,
-    update_progress_artifact,
-)
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
 
 from flows.common import (
-    IO_RETRIES,
-    StageLines,
-    TaskStages,
     artifact_key,
     console_without_user_error_tracebacks,
     flow_started,
+    flow_stages,
 )
 from pipeline import discrepancy_job as dj
 from pipeline.adapters.config import load_job
@@ -49,12 +42,7 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
     """
     flow_started()
     cfg = cfg if cfg is not None else load_job(job_path)
-    progress = create_progress_artifact(0.0, key=artifact_key(cfg.job, "progress"),
-                                        description=f"{cfg.job}: discrepancy progress")
-    tell = StageLines()
-    stages = TaskStages(tell, options={"ingest": IO_RETRIES, "store": IO_RETRIES},
-                        on_done=lambda stage: update_progress_artifact(
-                            progress, PROGRESS_PERCENT.get(stage, 0.0), description=stage))
+    tell, stages = flow_stages(cfg.job, "discrepancy", PROGRESS_PERCENT)
     report = dj.run_discrepancy(cfg, files=[Path(f) for f in files] if files else None,
                                 run_id=run_id, progress=tell, stage=stages)
     create_markdown_artifact(report.report_md, key=artifact_key(cfg.job, "report"),

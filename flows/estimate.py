@@ -9,20 +9,13 @@ import json
 from pathlib import Path
 
 from prefect import flow
-from prefect.artifacts import (
-    create_markdown_artifact,
-    create_progress_artifact,
-    create_table_artifact,
-    update_progress_artifact,
-)
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
 
 from flows.common import (
-    IO_RETRIES,
-    StageLines,
-    TaskStages,
     artifact_key,
     console_without_user_error_tracebacks,
     flow_started,
+    flow_stages,
     task_runner_for,
 )
 from pipeline import jobs
@@ -65,12 +58,7 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     """
     flow_started()
     cfg = cfg if cfg is not None else load_job(job_path)
-    progress = create_progress_artifact(0.0, key=artifact_key(cfg.job, "progress"),
-                                        description=f"{cfg.job}: estimation progress")
-    tell = StageLines()
-    stages = TaskStages(tell, options={"ingest": IO_RETRIES, "store": IO_RETRIES},
-                        on_done=lambda stage: update_progress_artifact(
-                            progress, PROGRESS_PERCENT.get(stage, 0.0), description=stage))
+    tell, stages = flow_stages(cfg.job, "estimation", PROGRESS_PERCENT)
     report = jobs.run_job(cfg, files=[Path(f) for f in files] if files else None,
                           run_id=run_id, progress=tell, stage=stages)
     # the artifacts show what was stored, read back from the run directory
