@@ -412,15 +412,10 @@ def assemble_lag_gram(r: np.ndarray, w: np.ndarray, k0: int, n: int, L: int) -> 
     back = np.arange(L - 1)
     head = w[k0 - 1 - back]  # w(k0-1-q): enters block (q+1, p+1)
     tail = w[n - 1 - back]  # w(N-1-q): leaves it
+    every = slice(0, n_w)
     for s in range(L):
         m = L - s
-        vals = np.empty((m, n_w, n_w))
-        vals[0] = r[s]
-        if m > 1:
-            inc = head[: m - 1, :, None] * head[s : s + m - 1, None, :]
-            inc -= tail[: m - 1, :, None] * tail[s : s + m - 1, None, :]
-            np.cumsum(inc, axis=0, out=inc)
-            vals[1:] = r[s] + inc
+        vals = _diagonal_values(r, head, tail, s, m, every, every)
         q = np.arange(m)
         G[q, :, q + s, :] = vals
         if s:
@@ -429,8 +424,9 @@ def assemble_lag_gram(r: np.ndarray, w: np.ndarray, k0: int, n: int, L: int) -> 
 
 
 def _diagonal_values(r, head, tail, s: int, m: int, rows: slice, cols: slice):
-    """``G[q, rows, q + s, cols]`` for ``q < m``: the diagonal recursion of
-    :func:`assemble_lag_gram` (its operations, restricted to the rows and columns)."""
+    """``G[q, rows, q + s, cols]`` for ``q < m``: the diagonal recursion along block
+    diagonal ``s`` (every lag Gram here is built from it: :func:`assemble_lag_gram`,
+    :func:`assemble_block`, :func:`assemble_parts`)."""
     vals = np.empty((m, rows.stop - rows.start, cols.stop - cols.start))
     vals[0] = r[s][rows, cols]
     if m > 1:
