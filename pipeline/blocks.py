@@ -485,6 +485,27 @@ class Deadband(Block):
 
 
 @dataclass(frozen=True, kw_only=True)
+class Backlash(Block):
+    """Backlash (play, hysteresis with memory) of total ``width``, as a worn valve.
+
+    The output holds while the input moves within ``width`` of the last turning point
+    and follows it at a distance ``width/2`` once it has: ``y_k = u_k - width/2`` when
+    ``u_k > y_{k-1} + width/2``, ``u_k + width/2`` when ``u_k < y_{k-1} - width/2``,
+    else ``y_{k-1}``.  The memory starts at rest (``y_{-1} = 0``, the deviation
+    model's operating point), so a constant input inside the play gives 0.  Unlike
+    :class:`Deadband` (a fixed zone around the operating point) the zone travels with
+    the input: a valve that moves far still loses ``width`` at every reversal.
+    """
+
+    width: float
+    TYPE: ClassVar[str] = "backlash"
+    LINEAR: ClassVar[bool] = False
+
+    def _check_parameters(self) -> None:
+        self._real("width", minimum=0.0)
+
+
+@dataclass(frozen=True, kw_only=True)
 class Saturation(Block):
     """Static saturation ``clip(u, low, high)``; limits may be ``-inf``/``inf``."""
 
@@ -533,6 +554,7 @@ BLOCK_TYPES: dict[str, type[Block]] = {
         PID,
         Sum,
         Deadband,
+        Backlash,
         Saturation,
         OperatingPointGain,
     )

@@ -30,8 +30,16 @@ from pipeline.errors import ConfigError, ModelError
 from pipeline.model import Model
 from pipeline.simulate import discrete_state_space, simulate
 
-__all__ = ["HiddenEffectTrial", "MIN_VISIBILITY", "TRIAL_GAP_REDUCTION", "HOLDOUT_FRACTION",
+__all__ = ["HIDDEN_EFFECTS", "HiddenEffectTrial", "MIN_VISIBILITY", "TRIAL_GAP_REDUCTION", "HOLDOUT_FRACTION",
            "holdout_start", "trial_inputs", "make_hidden_effect_trial", "make_hidden_effects_trial", "unit_ar1"]
+
+#: The effects the boiler trials hide (the catalogue before the plant zoo's actuator
+#: effects; the published suites' seeds are ``seed0 + 1000 * HIDDEN_EFFECTS.index(e)``).
+#: Valve backlash is tried on the plant zoo (``tests/zoo``), which simulates a valve.
+HIDDEN_EFFECTS: tuple[str, ...] = (
+    "gain", "dead_time", "extra_lag", "inverse_response", "sensor_bias_drift",
+    "operating_point_gain", "deadband", "saturation", "unmodelled_input",
+)
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,8 @@ sensor_bias_drift      ``bias + drift_per_h * t_h`` added to the measured       
 operating_point_gain   ``operating_point_gain`` block after B:                     slope 0
                        ``v (1 + slope * signal)``
 deadband               ``deadband`` block (``width``) on B's summed input          0
+backlash               ``backlash`` block (``width``, with memory) on B's summed   0
+                       input: a valve's play, which travels with the valve
 saturation             ``saturation`` block (``low``, ``high``) after B: limits    ±inf
                        on B's output (an actuator or controller-output limit)
 unmodelled_input       ``first_order`` (``k``, ``tau_s``, ``delay_s``) from the    k 0
@@ -59,6 +61,7 @@ import numpy as np
 
 from pipeline.errors import ConfigError, ModelError
 from pipeline.blocks import (
+    Backlash,
     Block,
     Deadband,
     FirstOrder,
@@ -94,6 +97,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "sensor_bias_drift",
     "operating_point_gain",
     "deadband",
+    "backlash",
     "saturation",
     "unmodelled_input",
 )
@@ -107,6 +111,7 @@ EFFECT_PARAMETERS: dict[str, dict[str, Any]] = {
     "sensor_bias_drift": {"bias": 0.0, "drift_per_h": 0.0},
     "operating_point_gain": {"slope": 0.0, "signal": None},
     "deadband": {"width": 0.0},
+    "backlash": {"width": 0.0},
     "saturation": {"low": -math.inf, "high": math.inf},
     "unmodelled_input": {"k": 0.0, "tau_s": 0.0, "delay_s": 0.0},
 }
@@ -242,8 +247,9 @@ def applicable_locations(
         # nonlinear blocks have no gain and no delay_s; a lag after them is still
         # meaningful but the catalogue places dynamics effects on linear blocks only.
         return [b.name for b in model.blocks if b.LINEAR]
-    if name in ("operating_point_gain", "deadband", "saturation"):
-        return [b.name for b in model.blocks if not isinstance(b, (Deadband, Saturation))]
+    if name in ("operating_point_gain", "deadband", "backlash", "saturation"):
+        return [b.name for b in model.blocks
+                if not isinstance(b, (Deadband, Backlash, Saturation))]
     if name == "sensor_bias_drift":
         return outputs
     if name == "unmodelled_input":
@@ -422,9 +428,10 @@ def _with_block_effect(model: Model, name: str, loc: str, p: Mapping[str, Any],
             lambda up: OperatingPointGain(name=loc, inputs=(Term(up),), slope=slope,
                                           signal=signal),
         )
-    elif name == "deadband":
-        db_name = _unique_name(model, f"{loc}__deadband")
-        augmented = insert_before(model, loc, block=Deadband(name=db_name, width=float(p["width"])))
+    elif name in ("deadband", "backlash"):
+        kind = Deadband if name == "deadband" else Backlash
+        db_name = _unique_name(model, f"{loc}__{name}")
+        augmented = insert_before(model, loc, block=kind(name=db_name, width=float(p["width"])))
     elif name == "saturation":
         low, high = float(p["low"]), float(p["high"])
         augmented = _after(

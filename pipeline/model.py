@@ -34,12 +34,14 @@ Block types and their transfer functions (``s`` in 1/s, every linear block may a
 - ``sum`` (inputs only): the weighted sum of its inputs
 - ``deadband`` (``width`` >= 0): 0 for ``|u| <= width/2``, else ``u - sign(u) width/2``
   (static, continuous)
+- ``backlash`` (``width`` >= 0): play with memory -- the output holds until the input
+  has reversed by ``width``, then follows it ``width/2`` behind (a worn valve)
 - ``saturation`` (``low`` < ``high``, either may be ±inf): ``clip(u, low, high)``
 - ``operating_point_gain`` (``slope``, ``signal``: a signal name):
   ``u (1 + slope * signal)``; static gain scheduling, an extension beyond design.md for
   the discrepancy effect of the same name
 
-``deadband``, ``saturation`` and ``operating_point_gain`` are nonlinear and take no
+``deadband``, ``backlash``, ``saturation`` and ``operating_point_gain`` are nonlinear and take no
 ``delay_s``.  A block reads ``input:`` (one term) or ``inputs:`` (a summed list).  A term
 is ``name``, ``-name`` (negated) or ``{signal: name, k: 2.0}`` (scaled).  A term names a
 model input or another block.
@@ -230,7 +232,7 @@ class Model:
 
     @property
     def is_linear(self) -> bool:
-        """True when every block is linear (no deadband/saturation/scheduling)."""
+        """True when every block is linear (no deadband/backlash/saturation/scheduling)."""
         return all(block.LINEAR for block in self.blocks)
 
     def block(self, name: str) -> Block:

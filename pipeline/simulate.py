@@ -41,9 +41,7 @@ Initial condition
 
 from __future__ import annotations
 
-import graphlib
 import math
-from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
@@ -53,8 +51,9 @@ import numpy as np
 import scipy.signal
 
 from pipeline.errors import ConfigError, DataQualityError, DivergenceError, ModelError
-from pipeline.blocks import Block, Deadband, OperatingPointGain, Saturation
+from pipeline.blocks import Block
 from pipeline.model import Model
+from pipeline.sample_program import DiscreteBlock, per_sample_response
 
 __all__ = [
     "DiscreteStateSpace",
@@ -140,18 +139,6 @@ class SimulationResult:
     method: str
 
 
-@dataclass(frozen=True)
-class _DiscreteBlock:
-    """One block at the sample period: undelayed ZOH dynamics + integer dead time."""
-
-    block: Block
-    a: np.ndarray  # (n, n)
-    b: np.ndarray  # (n,)
-    c: np.ndarray  # (n,)
-    d: float
-    n_delay: int
-
-
 # -- discretisation ------------------------------------------------------------------
 def _check_dt(dt_s: Any) -> float:
     if isinstance(dt_s, bool) or not isinstance(dt_s, (int, float, np.floating, np.integer)):
@@ -195,22 +182,22 @@ def _delay_samples(model: Model, dt_s: float) -> dict[str, int]:
     return counts
 
 
-def _discretise_block(block: Block, dt_s: float, n_delay: int) -> _DiscreteBlock:
+def _discretise_block(block: Block, dt_s: float, n_delay: int) -> DiscreteBlock:
     if not block.LINEAR:
         empty = np.zeros((0, 0))
-        return _DiscreteBlock(block, empty, np.zeros(0), np.zeros(0), 0.0, 0)
+        return DiscreteBlock(block, empty, np.zeros(0), np.zeros(0), 0.0, 0)
     num, den = block.transfer_function()
     scale = float(np.abs(num).max())
     if len(den) == 1 or scale == 0.0:
         # Static (or identically zero): tf2ss/cont2discrete need at least one state.
         d = float(num[-1] / den[-1]) if len(den) == 1 and len(num) == 1 else 0.0
-        return _DiscreteBlock(block, np.zeros((0, 0)), np.zeros(0), np.zeros(0), d, n_delay)
+        return DiscreteBlock(block, np.zeros((0, 0)), np.zeros(0), np.zeros(0), d, n_delay)
     # scipy's normalize() treats numerator coefficients below 1e-14 as zeros, so a
     # block with a tiny gain would lose it: convert the unit-scaled numerator, then
     # scale C and D (the output map only, so the system is unchanged).
     a, b, c, d = scipy.signal.tf2ss(num / scale, den)
     ad, bd, cd, dd, _ = scipy.signal.cont2discrete((a, b, c, d), dt_s, method="zoh")
-    return _DiscreteBlock(
+    return DiscreteBlock(
         block,
         np.asarray(ad),
         np.asarray(bd)[:, 0],
@@ -230,12 +217,12 @@ def _check_delay_length(model: Model, dt_s: float, n_samples: int) -> None:
                      where=f"the record ({n_samples} samples at dt_s={dt_s:g})")
 
 
-def _discretise(model: Model, dt_s: float) -> list[_DiscreteBlock]:
+def _discretise(model: Model, dt_s: float) -> list[DiscreteBlock]:
     delays = _delay_samples(model, dt_s)
     return [_discretise_block(b, dt_s, delays[b.name]) for b in model.blocks]
 
 
-def _augmented(db: _DiscreteBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def _augmented(db: DiscreteBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Block dynamics with its dead time as a shift register of ``n_delay`` states."""
     n, m = len(db.b), db.n_delay
     if m == 0:
@@ -253,7 +240,7 @@ def _augmented(db: _DiscreteBlock) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return a, b, c, 0.0
 
 
-def _state_names(blocks: Sequence[_DiscreteBlock]) -> list[str]:
+def _state_names(blocks: Sequence[DiscreteBlock]) -> list[str]:
     names = []
     for db in blocks:
         names += [f"{db.block.name}.x{j}" for j in range(len(db.b))]
@@ -300,7 +287,7 @@ def _require_linear(model: Model, what: str) -> None:
     if nonlinear:
         raise ModelError(
             f"model {model.name!r}: {what} needs a linear model, but blocks {nonlinear} are "
-            "nonlinear (deadband/saturation/operating_point_gain); use method='per_sample' "
+            "nonlinear (deadband/backlash/saturation/operating_point_gain); use method='per_sample' "
             "and initial='rest' or an explicit state vector"
         )
 
@@ -378,7 +365,7 @@ def loop_state_matrix(model: Model, names: Sequence[str], *, dt_s: float,
     return a_blk + b_blk @ m @ c_sys
 
 
-def _assemble(model: Model, blocks: Sequence[_DiscreteBlock], dt_s: float) -> DiscreteStateSpace:
+def _assemble(model: Model, blocks: Sequence[DiscreteBlock], dt_s: float) -> DiscreteStateSpace:
     parts = [_augmented(db) for db in blocks]
     sizes = [len(p[1]) for p in parts]
     n_x, n_b = sum(sizes), len(blocks)
@@ -453,168 +440,6 @@ def _lifted_response(
         x = a_chunk @ x + drive[:, k]
     y_lift = obs @ x_start + toeplitz @ u_lift  # (L n_y, n_chunks)
     return y_lift.T.reshape(n_chunks * chunk, n_y)[:n_samples]
-
-
-# -- per-sample path -----------------------------------------------------------------
-class _ProgramText:
-    """The constants of a generated per-sample program and its expression builders."""
-
-    def __init__(self) -> None:
-        self.consts: list[float] = []
-
-    def const(self, value: float) -> str:
-        """Name of a new constant holding `value`."""
-        self.consts.append(float(value))
-        return f"c{len(self.consts) - 1}"
-
-    def weighted(self, pairs: Sequence[tuple[str, float]]) -> str:
-        """The expression ``sum k * var`` (``0.0`` for no terms)."""
-        parts = []
-        for var, k in pairs:
-            if k == 1.0:
-                parts.append(var)
-            elif k == -1.0:
-                parts.append(f"-{var}")
-            else:
-                parts.append(f"{self.const(k)}*{var}")
-        return " + ".join(parts) if parts else "0.0"
-
-    @staticmethod
-    def nonzero(coefficients: np.ndarray, variables: Sequence[str]) -> list[tuple[str, float]]:
-        """The ``(variable, coefficient)`` pairs with a nonzero coefficient."""
-        # Skipping exact zeros (companion forms are sparse) changes no result.
-        return [(v, float(k)) for k, v in zip(coefficients, variables, strict=True) if k != 0.0]
-
-
-def _per_sample_program(model: Model, blocks: Sequence[_DiscreteBlock]) -> tuple[str, list[float]]:
-    """Python source of ``run(rows, states, queues, consts)`` for `model`, and constants.
-
-    Hand-written code generation because CPython executes straight-line arithmetic on
-    local floats far faster than small numpy operations per block and sample, and no
-    JIT (numba) is available.  Constants are passed in (not printed) so ±inf and every
-    bit of a float survive.  Per sample: phase 1 computes every block output in
-    feedthrough order (delayed and strictly proper blocks from their state only);
-    phase 2 updates states and dead-time queues once all inputs are known.
-    """
-    text = _ProgramText()
-    signal_var = {db.block.name: f"s{i}" for i, db in enumerate(blocks)}
-    signal_var.update({name: f"i{j}" for j, name in enumerate(model.inputs)})
-    index = {db.block.name: i for i, db in enumerate(blocks)}
-    phase1: list[str] = []
-    phase2: list[str] = []
-    for name in _evaluation_order(model):
-        i = index[name]
-        _block_lines(text, blocks[i], i, signal_var, phase1, phase2)
-    return _program_source(model, blocks, text.consts, phase1 + phase2), text.consts
-
-
-def _block_lines(text: _ProgramText, db: _DiscreteBlock, i: int, signal_var: dict[str, str],
-                 phase1: list[str], phase2: list[str]) -> None:
-    """Append block `i`'s output (phase 1) and state-update (phase 2) lines."""
-    block = db.block
-    s, u = f"s{i}", f"u{i}"
-    xs = [f"x{i}_{j}" for j in range(len(db.b))]
-    u_expr = text.weighted([(signal_var[t.signal], t.k) for t in block.inputs])
-    if isinstance(block, Deadband):
-        half = text.const(block.width / 2.0)
-        phase1.append(f"{u} = {u_expr}")
-        phase1.append(
-            f"{s} = {u} - {half} if {u} > {half} else ({u} + {half} if {u} < -{half} else 0.0)"
-        )
-        return
-    if isinstance(block, Saturation):
-        lo, hi = text.const(block.low), text.const(block.high)
-        phase1.append(f"{u} = {u_expr}")
-        phase1.append(f"{s} = {lo} if {u} < {lo} else ({hi} if {u} > {hi} else {u})")
-        return
-    if isinstance(block, OperatingPointGain):
-        phase1.append(f"{u} = {u_expr}")
-        phase1.append(f"{s} = {u} * (1.0 + {text.const(block.slope)} * {signal_var[block.signal]})")
-        return
-    # Linear: z = c x + d u (undelayed output), x+ = a x + b u, s = z delayed.
-    z_pairs = text.nonzero(db.c, xs)
-    if db.d != 0.0:
-        z_pairs.append((u, db.d))
-    z_expr = text.weighted(z_pairs)
-    if db.n_delay > 0:
-        phase1.append(f"{s} = q{i}[0]")
-        phase2.append(f"{u} = {u_expr}")
-        phase2.append(f"q{i}.append({z_expr})")  # maxlen drops the sample just read
-    elif db.d != 0.0:
-        phase1.append(f"{u} = {u_expr}")
-        phase1.append(f"{s} = {z_expr}")
-    else:
-        phase1.append(f"{s} = {z_expr}")
-        if xs:
-            phase2.append(f"{u} = {u_expr}")
-    if xs:
-        rhs = []
-        for j in range(len(xs)):
-            row = text.nonzero(db.a[j], xs)
-            if db.b[j] != 0.0:
-                row.append((u, float(db.b[j])))
-            rhs.append(text.weighted(row))
-        # Tuple assignment: the right side is evaluated with the old state.
-        phase2.append(f"{', '.join(xs)}, = ({', '.join(rhs)},)")
-
-
-def _program_source(model: Model, blocks: Sequence[_DiscreteBlock], consts: list[float],
-                    lines: list[str]) -> str:
-    """The ``run`` function around the per-sample `lines` (phase 1 then phase 2)."""
-    state_vars = [f"x{i}_{j}" for i, db in enumerate(blocks) for j in range(len(db.b))]
-    delayed = [i for i, db in enumerate(blocks) if db.n_delay > 0]
-    inputs = [f"i{j}" for j in range(len(model.inputs))]
-    signals = [f"s{i}" for i in range(len(blocks))]
-    body = ["def run(rows, states, queues, consts):"]
-    if consts:
-        body.append(f"    {', '.join(f'c{j}' for j in range(len(consts)))}, = consts")
-    if state_vars:
-        body.append(f"    {', '.join(state_vars)}, = states")
-    body += [f"    q{i} = queues[{k}]" for k, i in enumerate(delayed)]
-    body.append("    out = []")
-    body.append("    extend = out.extend")  # one flat list: np.array reads it 2.5x faster
-    body.append(f"    for {', '.join(inputs) + ',' if inputs else '_'} in rows:")
-    body += [f"        {line}" for line in lines]
-    body.append(f"        extend(({', '.join(signals)},))")
-    body.append("    return out")
-    return "\n".join(body) + "\n"
-
-
-def _evaluation_order(model: Model) -> list[str]:
-    """Blocks in an order where every feedthrough block follows the blocks it reads."""
-
-    names = set(model.block_names)
-    graph = {
-        b.name: (set(b.references()) & names if b.has_feedthrough else set())
-        for b in model.blocks
-    }
-    return list(graphlib.TopologicalSorter(graph).static_order())
-
-
-def _per_sample_response(
-    model: Model, blocks: Sequence[_DiscreteBlock], u: np.ndarray, x0: np.ndarray
-) -> np.ndarray:
-    source, consts = _per_sample_program(model, blocks)
-    namespace: dict[str, Any] = {}
-    # The source is generated above from validated numbers and fixed identifiers only.
-    exec(compile(source, f"<simulate {model.name}>", "exec"), namespace)  # noqa: S102
-    states: list[float] = []
-    queues: list[deque[float]] = []
-    offset = 0
-    for db in blocks:
-        n = len(db.b)
-        states += [float(v) for v in x0[offset:offset + n]]
-        if db.n_delay:
-            # x0 holds delay1 (newest) .. delayN (oldest, output next); the deque
-            # reads from the left, so it stores oldest first.
-            register = x0[offset + n:offset + n + db.n_delay]
-            queues.append(deque((float(v) for v in register[::-1]), maxlen=db.n_delay))
-        offset += n + db.n_delay
-    # rows as tuples made lazily from one list per column: a 2-D ``tolist`` builds a
-    # list per sample and took 3x as long on 1e5 samples
-    rows = zip(*(col.tolist() for col in u.T)) if u.shape[1] else [()] * u.shape[0]
-    out = namespace["run"](rows, states, queues, consts)
-    return np.array(out, dtype=float).reshape(u.shape[0], len(blocks))
 
 
 # -- public entry point --------------------------------------------------------------
@@ -695,7 +520,7 @@ def simulate(
         An array: the state in the layout of :func:`state_names`.
     method : {"auto", "linear", "per_sample"}
         ``"linear"``: one assembled state-space system, lifted (vectorised) simulation;
-        linear models only.  ``"per_sample"``: generated per-sample code; any model.
+        linear models only.  ``"per_sample"``: generated per-sample code (:mod:`pipeline.sample_program`); any model.
         ``"auto"``: ``"linear"`` for linear models with at most
         :data:`MAX_LIFTED_STATES` states, else ``"per_sample"``.
 
@@ -741,7 +566,7 @@ def simulate(
             assert system is not None
             y = _lifted_response(system.a, system.b, system.c, system.d, u, x0)
         else:
-            y = _per_sample_response(model, blocks, u, x0)
+            y = per_sample_response(model, blocks, u, x0)
     if not np.isfinite(y).all():  # the inputs are finite (checked above): the model grew
         from pipeline.stability import divergence_message
 

@@ -46,7 +46,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from pipeline.effects import EFFECT_NAMES
+from pipeline.effect_trials import HIDDEN_EFFECTS
 from tests.benchmarks.bench_discrepancy import (
     CI_SEED0,
     NONE,
@@ -86,7 +86,7 @@ def _check_names(results):
     k, n = sum(r["correct"] for r in trials), len(trials)
     threshold = binom.ppf(ALPHA, n, 0.9)
     assert k >= threshold, f"{k}/{n} correct, need >= {threshold:.0f}\n{summarise(results)}"
-    for effect in EFFECT_NAMES:
+    for effect in HIDDEN_EFFECTS:
         sub = [r for r in trials if r["effect"] == effect]
         k_e = sum(r["correct"] for r in sub)
         t_e = binom.ppf(ALPHA, len(sub), 0.9)

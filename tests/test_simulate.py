@@ -148,6 +148,22 @@ def test_deadband_static_map():
     np.testing.assert_allclose(y.outputs[:, 0], expected, rtol=0, atol=1e-15)
 
 
+def test_backlash_follows_the_input_a_half_width_behind_after_each_reversal():
+    # a triangle 0 -> 3 -> -3 -> 0 through play of width 1 (memory at rest, 0): the
+    # output holds until the input is 0.5 away, then trails it by 0.5 in the direction
+    # of travel; after the reversal at 3 it holds 2.5 until the input is down to 2.0
+    u = np.concatenate([np.linspace(0, 3, 301), np.linspace(3, -3, 601)[1:],
+                        np.linspace(-3, 0, 301)[1:]])
+    y = simulate(single_block({"type": "backlash", "width": 1.0}), {"u": u}, dt_s=1.0)
+    assert y.method == "per_sample"
+    up1, down, up2 = slice(0, 301), slice(301, 901), slice(901, None)
+    expected = np.empty_like(u)
+    expected[up1] = np.maximum(u[up1] - 0.5, 0.0)
+    expected[down] = np.minimum(u[down] + 0.5, 2.5)
+    expected[up2] = np.maximum(u[up2] - 0.5, -2.5)
+    np.testing.assert_allclose(y.outputs[:, 0], expected, rtol=0, atol=1e-12)
+
+
 def test_saturation_static_map_with_an_infinite_limit():
     u = np.linspace(-3, 3, 601)
     for low, high in [(-1.0, 2.0), (-np.inf, 0.5)]:

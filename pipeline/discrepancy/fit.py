@@ -182,7 +182,7 @@ class Fitter:
         if name == "dead_time":
             return self._fit_dead_time(s, mk, w)
         if name in ("gain", "extra_lag", "inverse_response", "operating_point_gain",
-                    "deadband"):
+                    "deadband", "backlash"):
             return self._fit_by_lsq(s, mk, w, n_starts)
         if name == "saturation":
             return self._fit_saturation_limits(s, mk, w, n_starts)
@@ -229,7 +229,7 @@ class Fitter:
 
     def _fit_by_lsq(self, s: Screen, mk: Callable[[dict], Effect],
                     w: Mapping[str, Any] | None, n_starts: int) -> Effect:
-        """gain, extra_lag, inverse_response, operating_point_gain, deadband: multi-start
+        """gain, extra_lag, inverse_response, operating_point_gain, deadband, backlash: multi-start
         bounded least squares in a transformed parameter."""
         P, dt = self.P, self.P.dt_s
         name, loc = s.name, s.location
@@ -270,7 +270,7 @@ class Fitter:
                 starts.insert(0, np.array([w["slope"] * spread]))
             return self._lsq(lambda x: mk({"slope": float(x[0] / spread), "signal": signal}),
                              starts, np.array([-5.0]), np.array([5.0]), n_starts=n_starts)
-        # deadband
+        # deadband, backlash: the width as a fraction of the input's extreme
         u = self._screener().block_input(loc)
         scale = float(np.max(np.abs(u))) or 1.0
         starts = [np.array([st["width"] / scale]) for st in s.starts[:2]]

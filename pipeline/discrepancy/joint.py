@@ -38,6 +38,7 @@ _FREE: dict[str, dict[str, bool]] = {
     "inverse_response": {"tau_s": True, "magnitude": False},
     "operating_point_gain": {"slope": False},
     "deadband": {"width": True},
+    "backlash": {"width": True},
     "saturation": {"low": False, "high": False},
     "unmodelled_input": {"k": False, "tau_s": True},
 }
@@ -56,6 +57,7 @@ _WEAKEN: dict[tuple[str, str], str] = {
     ("extra_lag", "tau_s"): "divide", ("inverse_response", "tau_s"): "divide",
     ("inverse_response", "magnitude"): "divide",
     ("operating_point_gain", "slope"): "divide", ("deadband", "width"): "divide",
+    ("backlash", "width"): "divide",
     ("unmodelled_input", "k"): "divide",
 }
 #: The joint refit starts from the best (whitened fit-part SSE) of the fits as they are

@@ -18,7 +18,7 @@ from pipeline.discrepancy.lure import first_crossing, inject_model, saturation_p
 from pipeline.discrepancy.problem import Problem
 from pipeline.effects import Effect, applicable_locations, original_location, predict_outputs
 from pipeline.errors import PipelineError
-from pipeline.blocks import Sum
+from pipeline.blocks import Backlash, Sum, Term
 from pipeline.model import Model
 from pipeline.simulate import simulate
 
@@ -294,8 +294,8 @@ class Screener:
         elif name in ("gain", "dead_time", "extra_lag", "inverse_response", "operating_point_gain",
                       "saturation"):
             n_par = self._grid_block_output(grid, name, loc, signal, taus)
-        elif name == "deadband":
-            self._grid_deadband(grid, loc)
+        elif name in ("deadband", "backlash"):
+            self._grid_play(grid, name, loc)
         if not grid:
             return None
         grid.sort(key=lambda g: -g[0])
@@ -425,16 +425,29 @@ class Screener:
                 dw = self.w(y_exact - self.P.y_nominal[: self.stop])
                 grid.append((self.fixed(dw), {"low": low, "high": high}, dw))
 
-    def _grid_deadband(self, grid: list[_GridPoint], loc: str) -> None:
-        """deadband at the input of block `loc`: widths as fractions of the input's extreme."""
+    def _grid_play(self, grid: list[_GridPoint], name: str, loc: str) -> None:
+        """deadband or backlash at the input of block `loc`: widths as fractions of the
+        input's extreme; the injected signal is the block's map of the nominal input
+        less that input (the backlash's by :func:`~pipeline.simulate.simulate` of the
+        one block, so its memory is the simulator's)."""
         u = self.block_input(loc)
         scale = float(np.max(np.abs(u)))
         if scale > 0:
             for frac in (0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.7):
                 width = frac * scale
-                du = -np.clip(u, -width / 2, width / 2)
-                dw = self.w(self.response(loc, du, f"deadband:{frac}", side="input"))
+                if name == "deadband":
+                    du = -np.clip(u, -width / 2, width / 2)
+                else:
+                    du = _backlash(u, width, self.P.dt_s) - u
+                dw = self.w(self.response(loc, du, f"{name}:{frac}", side="input"))
                 grid.append((self.fixed(dw), {"width": width}, dw))
+
+
+def _backlash(u: np.ndarray, width: float, dt_s: float) -> np.ndarray:
+    """`u` through a ``backlash`` block of `width` (memory at rest at the start)."""
+    one = Model(name="backlash", inputs=("u",), outputs=("b",),
+                blocks=(Backlash(name="b", inputs=(Term("u"),), width=width),))
+    return simulate(one, {"u": u}, dt_s=dt_s).outputs[:, 0]
 
 
 def near(a: float, b: float, tol: float) -> bool:

@@ -58,8 +58,8 @@ import yaml
 from pipeline.adapters.progress import bar as progress_bar
 from pipeline.discrepancy import analyse_discrepancy
 from pipeline.synthetic import make_discrepancy_demo
-from pipeline.effect_trials import make_hidden_effects_trial
-from pipeline.effects import EFFECT_NAMES, Effect
+from pipeline.effect_trials import HIDDEN_EFFECTS, make_hidden_effects_trial
+from pipeline.effects import Effect
 from pipeline.errors import ConfigError
 from pipeline.model import Model, model_from_dict
 
@@ -111,7 +111,7 @@ def load_model(name: str) -> Model:
 
 
 def trial_seed(seed0: int, effect: str | None, k: int) -> int:
-    index = len(EFFECT_NAMES) if effect is None else EFFECT_NAMES.index(effect)
+    index = len(HIDDEN_EFFECTS) if effect is None else HIDDEN_EFFECTS.index(effect)
     return seed0 + 1000 * index + k
 
 
@@ -149,8 +149,8 @@ def pair_names(seed: int) -> tuple[str, str]:
     """The random pair of catalogue effects of pair trial `seed` (a repeat is allowed:
     the two then sit at different locations)."""
     rng = np.random.default_rng([seed, 2])
-    a, b = rng.choice(len(EFFECT_NAMES), 2)
-    return EFFECT_NAMES[int(a)], EFFECT_NAMES[int(b)]
+    a, b = rng.choice(len(HIDDEN_EFFECTS), 2)
+    return HIDDEN_EFFECTS[int(a)], HIDDEN_EFFECTS[int(b)]
 
 
 #: Derived seeds of a trial whose draw is impossible: ``seed + SEED_STRIDE * attempt``.
@@ -268,7 +268,7 @@ def _run(args: tuple) -> dict[str, Any]:
 
 
 def suite_jobs(suite: str, trials: int, nulls: int, seed0: int,
-               effects: tuple[str, ...] = EFFECT_NAMES, n: int = 10_000) -> list[tuple]:
+               effects: tuple[str, ...] = HIDDEN_EFFECTS, n: int = 10_000) -> list[tuple]:
     """The ``(effect, seed, n, suite)`` jobs of a suite (pairs: ``trials`` pair trials
     and no nulls; the others: ``trials`` per effect and ``nulls`` nulls)."""
     if suite == "pairs":
@@ -317,7 +317,7 @@ def main_zoo(args: argparse.Namespace) -> None:
     nulls = 30 if args.nulls is None else args.nulls
     families = tuple(args.families or FAMILIES)
     effects = tuple(e for e in args.effects if e in ZOO_EFFECTS) \
-        if args.effects != list(EFFECT_NAMES) else ZOO_EFFECTS
+        if args.effects != list(HIDDEN_EFFECTS) else ZOO_EFFECTS
     start = time.perf_counter()
     seed0 = ZOO_SEED0 if args.seed0 is None else args.seed0
     jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours,
@@ -353,8 +353,8 @@ def run_jobs(jobs: list[tuple], *, workers: int = 2, verbose: bool = True,
 
 def summarise(results: list[dict[str, Any]]) -> str:
     """Confusion matrix (markdown) and the target numbers."""
-    rows = [*EFFECT_NAMES, NONE]
-    cols = [*EFFECT_NAMES, "inconclusive", NONE]
+    rows = [*HIDDEN_EFFECTS, NONE]
+    cols = [*HIDDEN_EFFECTS, "inconclusive", NONE]
     if any(r["label"] == "error" for r in results):
         cols.append("error")
     counts = Counter((r["effect"], r["label"]) for r in results)
@@ -381,7 +381,7 @@ def summarise(results: list[dict[str, Any]]) -> str:
     lines.append("| effect | correct | median parameter error | 90th pct | median noise-free error "
                  "removed | 10th pct | median time s |")
     lines.append("|---|---|---|---|---|---|---|")
-    for e in EFFECT_NAMES:
+    for e in HIDDEN_EFFECTS:
         sub = [r for r in effect_trials if r["effect"] == e]
         if not sub:
             continue
@@ -444,7 +444,7 @@ def summarise_pairs(results: list[dict[str, Any]]) -> str:
         lines.append(f"median parameter error (both named; the larger of the two): "
                      f"{np.median(pe):.4f}")
     lines += ["", "| effect | in pairs | named with location |", "|---|---|---|"]
-    for e in EFFECT_NAMES:
+    for e in HIDDEN_EFFECTS:
         flags = [ok for r in results for name, ok in r["truth_named"] if name == e]
         if flags:
             lines.append(f"| {e} | {len(flags)} | {sum(flags)} |")
@@ -480,7 +480,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="null trials (clean: 50, nuisance: 100)")
     parser.add_argument("--tune", action="store_true", help="use the tuning seeds")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
-    parser.add_argument("--effects", nargs="*", default=list(EFFECT_NAMES))
+    parser.add_argument("--effects", nargs="*", default=list(HIDDEN_EFFECTS))
     parser.add_argument("--timing-only", action="store_true")
     parser.add_argument("--families", nargs="*", default=None, help="zoo: families to run")
     parser.add_argument("--hours", type=float, default=None,
