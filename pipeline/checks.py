@@ -26,7 +26,7 @@ __all__ = [
     "cross_correlation_check",
 ]
 
-# Thresholds (documented in README "Checks"):
+# Thresholds (documented in docs/method.md, "What happens in a run", step 8 "Checks"):
 AGREEMENT_ALPHA = 0.01
 """False-alarm rate of the window-agreement test: a time-invariant plant fails 1 % of
 the time (the statistic is chi^2 under agreement with the calibrated covariance)."""

@@ -7,7 +7,7 @@ functions; the Prefect flow in ``flows/discrepancy.py`` wraps each in a task.
     load_recording (jobs) -> load_discrepancy_model -> prepare_discrepancy
       -> analyse (pipeline.discrepancy.analyse_discrepancy) -> write_discrepancy_run
 
-Decisions (also in the README):
+Decisions (also in docs/guide/discrepancy.md):
 
 * Grid: the recording's uniform grid (as for estimation jobs); ``sampling.dt_s``
   averages-then-decimates to a coarser period.  The α_T criterion is not used: a

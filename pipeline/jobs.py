@@ -7,7 +7,7 @@ windows), so the flow and a plain call produce the same results.
     load_recording -> prepare -> search_orders -> estimate_window (all + each window)
       -> summarise -> [monitor: compare with the baseline run] -> write_run (store + Rerun)
 
-Decisions (also in the README):
+Decisions (also in docs/method.md, "What happens in a run"):
 
 * Grid and a configured sample period: :mod:`pipeline.recording` (shared by every
   workflow).

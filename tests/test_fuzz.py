@@ -4,8 +4,8 @@ scripts/fuzz.sh).
 Each case is a valid job + export mutated one to three times (``tests/fuzzing.py``); the
 case passes when ``plantdyn run --no-prefect`` ends with exit 0 or 2, prints no traceback
 (exactly one error line on exit 2), stays under the time and memory limits and leaves no
-half-written run.  The seeds here (10001..) are disjoint from the README campaign's
-(1..2000), so the sample checks cases the fixes were not written against.
+half-written run.  The seeds here (10001..) are disjoint from the campaign's in
+docs/reliability.md (1..2000), so the sample checks cases the fixes were not written against.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 from tests import fuzzing
 
 #: 120 cases (about 50 s on a clean run; the suite's 15-minute budget): the campaigns in
-#: the README run thousands.
+#: docs/reliability.md run thousands.
 CI_CASES = 120
 CI_SEED = 10_001
 

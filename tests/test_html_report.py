@@ -6,8 +6,8 @@ there), once per module.  The page is checked as a document (every pair, unit, g
 grade, the rule; the statistics it recomputes from the stored files must equal the ones in
 checks.json) and as a picture: headless Chromium renders it, and the regions where the
 step-response matrix, the gain table and the residual plots are must hold drawings.  The
-screenshots are kept in ``tests/artefacts/`` (the README's two small copies in
-``tests/artefacts/readme/``).
+screenshots are kept in ``tests/artefacts/`` (the documentation's two small copies in
+``docs/images/``).
 """
 
 from __future__ import annotations
@@ -497,7 +497,7 @@ def _check_drawn(img: np.ndarray, region: tuple[int, int], *, colours: list[str]
 def _keep(png: Path, name: str, readme: str | None = None) -> None:
     from PIL import Image
 
-    from tests.readme_images import save_if_changed
+    from tests.readme_images import DOCS_IMAGES, save_if_changed
 
     ARTEFACTS.mkdir(exist_ok=True)
     shutil.copy(png, ARTEFACTS / name)
@@ -506,8 +506,8 @@ def _keep(png: Path, name: str, readme: str | None = None) -> None:
             top = im.convert("RGB").crop((0, 0, 1400, min(im.height, 2300)))
             small = top.resize((900, top.height * 900 // 1400), Image.LANCZOS).quantize(
                 256, method=Image.Quantize.FASTOCTREE)
-            save_if_changed(small, ARTEFACTS / "readme" / readme)
-        assert (ARTEFACTS / "readme" / readme).stat().st_size <= 300_000
+            save_if_changed(small, DOCS_IMAGES / readme)
+        assert (DOCS_IMAGES / readme).stat().st_size <= 300_000
 
 
 @pytest.mark.parametrize("which", ["demo", "frac2"])

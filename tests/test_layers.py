@@ -145,7 +145,7 @@ def test_source_sections_are_the_ingest_options_with_their_defaults():
 
 
 def test_no_module_over_800_lines_and_no_function_over_100():
-    """The size goals of the layout (README "Layout"): a module owns one concept, a
+    """The size goals of the layout (docs/development.md "Layout"): a module owns one concept, a
     function reads in one screen or two (lines counted with the docstring)."""
     long_modules, long_functions = [], []
     for folder in ("pipeline", "flows"):

@@ -13,9 +13,9 @@
   real rate is lower.  Allowed: at most 1 night flagged of 60 (1.7 %).  Binomially, a
   true rate of 5 % passes that with probability 19 %, the design bound 1.6 % with 75 %;
   the seeds are fixed, and ``python -m tests.test_monitor`` measures the rate on many
-  more nights and baselines (README numbers).  Power: a 30 % gain change of one pair is
-  flagged — that pair and only it — on at least 19 of 20 nights (≥ 95 %; expected
-  z ≈ 12, so every night).
+  more nights and baselines (the numbers in docs/guide/nightly.md).  Power: a 30 % gain
+  change of one pair is flagged — that pair and only it — on at least 19 of 20 nights
+  (≥ 95 %; expected z ≈ 12, so every night).
 * User level: five nights of historian exports through ``plantdyn nightly``'s flow with
   ``monitor: {baseline: first}``; the gain of one of two pairs rises 30 % on night 5.
   Nights 1–4 raise nothing, night 5 flags exactly that pair in checks.json, the catalog
@@ -380,7 +380,7 @@ def test_a_missing_pinned_baseline_is_exit_2_naming_the_runs(tmp_path, capsys):
         "report.md has sha256" in err
 
 
-if __name__ == "__main__":  # the README numbers: many nights, several baselines
+if __name__ == "__main__":  # the numbers in docs/guide/nightly.md: many nights, several baselines
     import argparse
     import time
 

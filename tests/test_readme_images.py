@@ -1,4 +1,4 @@
-"""README screenshot copies are rewritten only on a visible change (tests/readme_images.py)."""
+"""Documentation screenshot copies are rewritten only on a visible change (tests/readme_images.py)."""
 
 from __future__ import annotations
 

@@ -10,8 +10,8 @@ y axis the others would be flat lines); residuals of both outputs.
 The viewer tests spawn the real viewer headless (software Vulkan: libvulkan1 +
 mesa-vulkan-drivers, installed by scripts/test.sh) and screenshot single views
 (``ViewerClient.take_screenshot(view_id)``); the screenshots are kept in
-``tests/artefacts/`` (ignored by git), and small copies for the README are written to
-``tests/artefacts/readme/``.
+``tests/artefacts/`` (ignored by git), and small copies for the documentation are written
+to ``docs/images/``.
 """
 
 from __future__ import annotations
@@ -266,12 +266,12 @@ def _mask(img: np.ndarray, colour: tuple[int, int, int], tol: int) -> np.ndarray
 
 
 def _readme_copy(img: np.ndarray, name: str) -> Path:
-    """A small copy for the README (1280 px wide, 256 colours, ≤ 300 KB)."""
+    """A small copy for the documentation (1280 px wide, 256 colours, ≤ 300 KB)."""
     from PIL import Image
 
-    from tests.readme_images import save_if_changed
+    from tests.readme_images import DOCS_IMAGES, save_if_changed
 
-    out = ARTEFACTS / "readme" / name
+    out = DOCS_IMAGES / name
     small = Image.fromarray(img).resize((1280, round(img.shape[0] * 1280 / img.shape[1])), Image.LANCZOS)
     save_if_changed(small.quantize(colors=256, method=Image.Quantize.MEDIANCUT), out)
     assert out.stat().st_size <= 300_000, out.stat().st_size
@@ -295,8 +295,8 @@ def test_headless_viewer_shows_bands_and_non_empty_time_tabs(run_dir):
       step panels without a single band pixel: the checks above can fail, and the step
       responses live on ``elapsed`` only.
 
-    Screenshots: tests/artefacts/viewer_{steps,signals,residuals}.png; README copies in
-    tests/artefacts/readme/.
+    Screenshots: tests/artefacts/viewer_{steps,signals,residuals}.png; documentation copies
+    in docs/images/.
     """
     from PIL import Image
     from rerun.experimental import ViewerClient

@@ -196,8 +196,9 @@ def test_what_if_o2_effects_on_the_held_out_part(model, deviations):
     the analyser cannot read below 0 % (it does for 45 % of the record, fuel-rich), so
     clipping the model's O2 at 0 % (low = -3.35 in deviations) must help; the air/fuel
     ratio is nonlinear, so an air-scheduled combustion gain helps much more.  Neither
-    passes the whitened criteria (README: the AR noise model is near a unit root and
-    takes slow O2 errors for noise); run with -s to print the numbers the README quotes."""
+    passes the whitened criteria (docs/discrepancy-accuracy.md: the AR noise model is near
+    a unit root and takes slow O2 errors for noise); run with -s to print the numbers
+    docs/discrepancy-accuracy.md quotes."""
     from pipeline.effects import Effect, predict_outputs
 
     held = slice(6400, None)  # holdout_fraction 1/3 of 9600 samples

@@ -1,7 +1,7 @@
 """The drop folder of a nightly job, as files on disk: is a file complete, when does its
 data start, and how many files may be processed side by side.
 
-Decisions (README "Nightly over a backlog"):
+Decisions (docs/guide/nightly.md, "Nightly over a backlog"):
 
 * **Complete files only.**  A file is taken when its size and modification time have not
   changed for ``nightly.settle_s`` seconds (default 60; ``$PLANTDYN_SETTLE_S`` overrides
