@@ -276,6 +276,25 @@ def test_a_trial_runs_through_plantdyn_discrepancy(family, tmp_path, capsys):
     assert d["verdict"] in ("effect_found", "no_significant_effect", "inconclusive")
 
 
+def test_visibility_is_the_gap_a_perfect_model_would_close_on_both_parts():
+    # one output; holdout_start(300) = 200.  Footprint 3 on the fit part and 4 on the
+    # held-out part over a residual of +-1 (sign alternating): the perfect model closes
+    # 1 - 1/sqrt(10) on the fit part and 1 - 1/sqrt(17) held out; the smaller counts
+    from pipeline.effect_trials import holdout_start
+    from tests.zoo.trial import ideal_gap_reduction
+
+    n = 300
+    assert holdout_start(n) == 200
+    d = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    f = np.where(np.arange(n) < 200, 3.0, 4.0)
+    nominal = {"y": np.zeros(n)}
+    got = ideal_gap_reduction({"y": d + f}, {"y": d}, nominal)
+    assert got == pytest.approx(1.0 - 1.0 / np.sqrt(10.0), rel=1e-12)
+    # an effect only in the held-out part is not visible where the workflow fits
+    g = np.where(np.arange(n) < 200, 0.0, 4.0)
+    assert ideal_gap_reduction({"y": d + g}, {"y": d}, nominal) == pytest.approx(0.0, abs=1e-12)
+
+
 def test_valve_backlash_is_named_with_its_width(tmp_path, capsys):
     """Valve play that travels with the valve, simulated by the zoo's own integrator
     (the stem's memory in ``tests.zoo.sim``), is named ``backlash`` at the valve by

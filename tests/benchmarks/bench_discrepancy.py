@@ -300,11 +300,12 @@ def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None
             if jsonl:
                 with open(jsonl, "a", encoding="utf-8") as fh:
                     fh.write(json.dumps(res) + "\n")
-            mark = "ok " if res["correct"] else "BAD"
+            mark = "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
             print(f"{mark} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
                   f"{res['label']:>20} {res.get('time_s', float('nan')):5.0f}s | truth "
                   f"{res['truth']} | found {res['found']} | chain {res.get('chain')} | "
-                  f"noise {res['noise']:.3f}", flush=True)
+                  f"noise {res['noise']:.3f} | ideal gap reduction "
+                  f"{res.get('ideal_gap_reduction', float('nan')):.3f}", flush=True)
     return results
 
 
@@ -342,7 +343,7 @@ def run_jobs(jobs: list[tuple], *, workers: int = 2, verbose: bool = True,
             results.append(res)
             tick(len(results), len(jobs))
             if verbose:
-                mark = "ok " if res["correct"] else "BAD"
+                mark = "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
                 print(f"{mark} {res['suite']:>8} {res['effect']:>28} seed {res['seed']} "
                       f"{res['model']:>15} -> {res['label']:>20} {res['time_s']:5.1f}s | "
                       f"truth {res['truth']} | found {res['found']} | "

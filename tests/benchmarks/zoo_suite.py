@@ -6,7 +6,9 @@ to a scratch folder and the job is run exactly as a user would,
 ``plantdyn discrepancy job.yaml --no-prefect`` (in-process ``flows.cli.main``); the
 result is read back from the run directory's ``discrepancy.json``.
 
-Tabulated per family: the confusion table (true effect × named effect, ``none`` =
+Trials are visible effects (:mod:`tests.zoo.trial`: a model with the effect exactly
+shrinks the held-out gap by at least 7.5 %); one that stays below after every redraw is
+not run and is listed apart.  Tabulated per family: the confusion table (true effect × named effect, ``none`` =
 ``no_significant_effect``), the nulls' verdicts (``no_significant_effect`` /
 ``inconclusive`` / ``effect_found``), correct name and location per effect (the found
 location or one of its ``equivalent_locations``), the median parameter error of the
@@ -42,6 +44,9 @@ from tests.zoo.trial import make_trial, write_trial
 ZOO_SEED0 = 3_000_000
 #: Row/column label of "nothing named" / "nothing injected".
 NONE = "none"
+#: Label of a trial whose effect stayed below the visibility bar after every redraw
+#: (:mod:`tests.zoo.trial`): not run, left out of the rates and counted apart.
+INVISIBLE = "invisible"
 #: Catalogue names the workflow can report (columns of the confusion tables).
 NAMED = ("gain", "dead_time", "extra_lag", "inverse_response", "sensor_bias_drift",
          "operating_point_gain", "deadband", "saturation", "unmodelled_input", "backlash",
@@ -88,10 +93,14 @@ def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | Non
 
     trial = make_trial(FAMILIES[family], effect, seed, hours=hours)
     truth = None if trial.effect is None else trial.effect.to_dict()
-    root = Path(tempfile.mkdtemp(prefix=f"zoo_{family}_"))
     row: dict[str, Any] = {"family": family, "effect": effect or NONE, "seed": seed,
                            "truth": trial.effect.describe() if trial.effect else None,
-                           "noise": trial.rel_noise}
+                           "noise": trial.rel_noise, "redraws": trial.redraws,
+                           "ideal_gap_reduction": trial.gap_reduction}
+    if not trial.visible:  # not a finding by definition: not run, counted apart
+        return {**row, "label": INVISIBLE, "verdict": INVISIBLE, "found": None,
+                "correct": False, "param_error": float("nan")}
+    root = Path(tempfile.mkdtemp(prefix=f"zoo_{family}_"))
     try:
         job = write_trial(trial, root)
         out = io.StringIO()
@@ -142,7 +151,9 @@ def summarise_zoo(results: list[dict[str, Any]]) -> str:
     """Per-family confusion tables, null verdicts, per-effect rates, errors and times."""
     lines = []
     for family in dict.fromkeys(r["family"] for r in results):
-        sub = [r for r in results if r["family"] == family]
+        hidden = Counter(r["effect"] for r in results
+                         if r["family"] == family and r["label"] == INVISIBLE)
+        sub = [r for r in results if r["family"] == family and r["label"] != INVISIBLE]
         cols = [c for c in (*NAMED, "inconclusive", NONE, "error")
                 if c in ("inconclusive", NONE) or any(r["label"] == c for r in sub)]
         counts = Counter((r["effect"], r["label"]) for r in sub)
@@ -169,6 +180,9 @@ def summarise_zoo(results: list[dict[str, Any]]) -> str:
                   + (f"{np.median(pe):.3f}" if pe else "-")
                   + f"; median time per run {np.median([r.get('time_s', np.nan) for r in sub]):.0f} s",
                   ""]
+        if hidden:
+            lines += ["not visible after every redraw (left out): "
+                      + ", ".join(f"{e} {k}" for e, k in sorted(hidden.items())), ""]
     return "\n".join(lines)
 
 
