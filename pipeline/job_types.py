@@ -93,9 +93,6 @@ class LongTable:
     def __iter__(self) -> Iterator[pl.DataFrame]:
         return iter(self.make(self.chunk_rows))
 
-    def to_frame(self) -> pl.DataFrame:
-        """The whole table as one frame (small records and tests)."""
-        return pl.concat(list(self))
 
 
 @dataclass(frozen=True)

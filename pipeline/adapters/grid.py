@@ -162,12 +162,6 @@ class Grid:
         """
         return self.values[:, self.column(name)]
 
-    def to_frame(self) -> pl.DataFrame:
-        """Wide polars frame: ``time`` plus one Float64 column per signal (null where masked)."""
-        data: dict[str, Any] = {"time": pl.Series(self.time).dt.replace_time_zone("UTC")}
-        for j, name in enumerate(self.names):
-            data[name] = pl.Series(self.values[:, j]).fill_nan(None)
-        return pl.DataFrame(data)
 
 
 def _spec(

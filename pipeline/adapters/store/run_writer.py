@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import io
 import math
 import os
 import re
-import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -363,18 +361,3 @@ class RunWriter:
         """
         self.timings_s[stage] = self.timings_s.get(stage, 0.0) + float(seconds)
 
-    @contextlib.contextmanager
-    def timed(self, stage: str) -> Iterator[None]:
-        """Context manager that records the wall time of its body under ``stage``.
-
-        Parameters
-        ----------
-        stage : str
-            Stage name (key in ``timings_s``); the time is added with
-            :meth:`record_timing`, also when the body raises.
-        """
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.record_timing(stage, time.perf_counter() - start)
