@@ -98,7 +98,7 @@ from pipeline.settledness import (TAIL_FRACTION, tail_lags, TRUNCATION_ALPHA, le
 
 __all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
            "default_n_p_max", "TAIL_FRACTION", "TAIL_BAND", "N_P_MAX_CAP",
-           "OBS_PER_UNKNOWN"]
+           "OBS_PER_UNKNOWN", "FIRST_WINDOW_PER_LAG"]
 
 N_P_MAX_CAP = 300
 """Longest default horizon in lags (the search's cost grows with the square of N_p;
@@ -106,6 +106,9 @@ raise ``search.n_p_max`` or the sample period beyond it)."""
 OBS_PER_UNKNOWN = 5
 """The default longest horizon keeps at least this many observations per unknown of an
 output (``N // (5 * n_x)`` lags): residual degrees of freedom >= 80 % of N."""
+FIRST_WINDOW_PER_LAG = 10
+"""Stage 2's first window holds this many observations per lag of the longest horizon
+(``N_d = 10 N_p``, method.md's starting point); it doubles from there."""
 WINDOW_MIN_OBS_PER_UNKNOWN = 2
 """A disjoint window is estimated only with at least this many observations per unknown
 of its largest output (half its degrees of freedom left for the residual); fewer, and the
@@ -486,7 +489,8 @@ def search(
     # progress: stage 1 counts its fits (a noise model: one at n_p_max and ~16
     # candidates and ~16 refinements; white: one nested solve), stage 2 its window
     # lengths (doublings)
-    stage2 = _window_trials(n, 10 * max(n_p_min, 1), max(n_p_min, 1), extra)  # a guess
+    stage2 = _window_trials(n, FIRST_WINDOW_PER_LAG * max(n_p_min, 1), max(n_p_min, 1),
+                            extra)  # a guess
     steps = _Steps(tick, (1 if fixed is not None or order == 0 else 34) + stage2)
     ctx, est_max, fb = None, None, []
     if order != 0 or feedback != "off":
@@ -659,7 +663,7 @@ def _stage2(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *, n_
     n = x.shape[0]
     P = int(npm.max())
     # the largest two windows that fit when two of 10 N_p observations do not
-    n_d = min(int(n_d_start or 10 * P), n // 2 - (P - 1 + extra))
+    n_d = min(int(n_d_start or FIRST_WINDOW_PER_LAG * P), n // 2 - (P - 1 + extra))
     need = WINDOW_MIN_OBS_PER_UNKNOWN * int(npm.sum(axis=1).max())
     if n_d < need:
         return 0, 0, [{

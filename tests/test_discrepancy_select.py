@@ -205,3 +205,33 @@ def test_a_lag_like_inverse_response_has_its_lag_refitted_beside_it():
     assert _lag_like([lower, lag_like, wrong_way]) == []
     assert _lag_like([lag_like[:1] + (-700.0,) + lag_like[2:], wrong_way]) == []
     assert _lag_like([]) == []
+
+
+def test_a_level_on_the_held_out_part_is_not_an_effects_share():
+    # held-out errors of the nominal model: a shape s (a slow sine) on a level c that a
+    # slow disturbance set; a candidate that only removes the level closes a large
+    # share of the plain gap but none of the centred one, one that removes the shape
+    # closes it either way (sqrt((c^2 + s^2 - s^2)/(c^2 + s^2)) etc. by hand below)
+    from pipeline.discrepancy.select import PRACTICAL_ALPHA, centred, holdout_rms_evidence
+
+    m = 2000
+    s = np.sin(2 * np.pi * np.arange(m) / 200.0)[:, None]  # mean 0 over whole periods
+    noise = 0.1 * np.random.default_rng(5).standard_normal((m, 1))
+    nominal = 1.5 + s + noise
+    level_only = s + noise
+    shape_only = 1.5 + noise
+    plain, _, _ = holdout_rms_evidence(nominal, level_only, seed=1, alpha=PRACTICAL_ALPHA)
+    c0, c1 = float(np.sum(nominal**2)), float(np.sum(level_only**2))
+    assert abs(plain - (1.0 - np.sqrt(c1 / c0))) < 1e-12 and plain > 0.5  # 0.57
+    r, _, low = holdout_rms_evidence(centred(nominal, [0]), centred(level_only, [0]),
+                                     seed=1,
+                                     alpha=PRACTICAL_ALPHA)
+    assert abs(r) < 1e-12 and low <= 1e-12
+    r, _, low = holdout_rms_evidence(centred(nominal, [0]), centred(shape_only, [0]),
+                                     seed=1,
+                                     alpha=PRACTICAL_ALPHA)
+    e0, e1 = centred(nominal, [0]), centred(shape_only, [0])
+    # an output not listed keeps its level (a given operating point)
+    np.testing.assert_array_equal(centred(nominal, []), nominal)
+    assert abs(r - (1.0 - np.sqrt(float(np.sum(e1**2)) / float(np.sum(e0**2))))) < 1e-12
+    assert low > 0.8

@@ -63,7 +63,8 @@ workflow"):
    and (b) while the prediction an engineer looks at gets worse -- found on the steam
    generator, where such a clip of O2 passed (a) and (b) and raised its held-out RMS
    by 70 %).  A finding must also close ``min_gap_reduction`` of the gap at the lower
-   confidence bound of the share it closes (``gap_reduction_low``).  Accepted
+   confidence bound of the share it closes, each output's held-out level left out
+   (``gap_reduction_low``).  Accepted
    candidates of different classes within ``lookalike_margin`` of the best BIC are a
    tie: the simplest is named, the others are its ``equivalent_effects``.
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the

@@ -27,6 +27,7 @@ from pipeline.discrepancy.select import (
     criteria,
     holdout_gap,
     PRACTICAL_ALPHA,
+    centred,
     holdout_rms_evidence,
     holdout_z_score,
     pooled_rms,
@@ -603,8 +604,11 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         whitened = bool(dbic >= config.bic_margin and t_hold >= config.holdout_z_min
                         and gap_c < gap_nom)
         e_cand = (y[hold_slice] - fit.y_pred[hold_slice]) / np.array(hold_std)
-        _, p_rms, low = holdout_rms_evidence(e_nom, e_cand, seed=seed + k,
-                                             alpha=PRACTICAL_ALPHA)
+        _, p_rms, _ = holdout_rms_evidence(e_nom, e_cand, seed=seed + k, alpha=PRACTICAL_ALPHA)
+        # practical size on shapes: the held-out level of each output whose constant is
+        # profiled (P.free) left out of both (select.centred)
+        _, _, low = holdout_rms_evidence(centred(e_nom, P.free), centred(e_cand, P.free),
+                                         seed=seed + k, alpha=PRACTICAL_ALPHA)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,

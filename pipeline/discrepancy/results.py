@@ -55,8 +55,10 @@ class Candidate:
     passed_by : str
         Which acceptance passed: ``"whitened"``, ``"held-out RMS"``, ``"both"`` or ``""``.
     gap_reduction_low : float
-        One-sided 95 % lower confidence bound of :attr:`gap_reduction` (the held-out RMS
-        test's block bootstrap): what practical significance is judged on
+        One-sided 95 % lower confidence bound of the share of the held-out gap the
+        candidate closes, each output's held-out level left out
+        (:func:`pipeline.discrepancy.select.centred`; the held-out RMS test's block
+        bootstrap): what practical significance is judged on
         (:func:`pipeline.discrepancy.select.holdout_rms_evidence`).
     """
 
