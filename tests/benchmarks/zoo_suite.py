@@ -13,7 +13,8 @@ not run and is listed apart.  Tabulated per family: the confusion table (true ef
 ``inconclusive`` / ``effect_found``), correct name and location per effect (the found
 location or one of its ``equivalent_locations``), the median parameter error of the
 correct trials (largest relative error over the truth's non-zero numeric parameters;
-a saturation's infinite limit is not scored) and the median wall time per run.
+a saturation's infinite limit is not scored), the median and longest wall time per run and
+the runs the time budget stopped (a "time budget" note in discrepancy.json).
 
 Seeds: trial ``k`` of effect ``e`` uses ``ZOO_SEED0 + 1000 * index(e) + k`` (nulls: the
 index after the last effect); each family draws from ``default_rng([seed,
@@ -136,6 +137,7 @@ def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | Non
                     f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                     for k, v in found["parameters"].items())),
             "chain": [f"{e['name']}@{e['location']}" for e in d.get("effects", [])],
+            "notes": list(d.get("notes", [])),
             "lookalikes": [f"{e['name']}@{e['location']}" for e in d.get("lookalikes", [])
                            if isinstance(e, dict) and "name" in e],
             "param_error": parameter_error(truth, found) if correct and truth else float("nan")}
@@ -185,7 +187,11 @@ def summarise_zoo(results: list[dict[str, Any]]) -> str:
                   + f" (of {len(nulls)}); effects named with location: "
                   f"{sum(r['correct'] for r in eff)}/{len(eff)}; median parameter error "
                   + (f"{np.median(pe):.3f}" if pe else "-")
-                  + f"; median time per run {np.median([r.get('time_s', np.nan) for r in sub]):.0f} s",
+                  + f"; median time per run {np.median([r.get('time_s', np.nan) for r in sub]):.0f} s"
+                  + f", longest {np.nanmax([r.get('time_s', np.nan) for r in sub] + [0.0]):.0f} s"
+                  + ", runs stopped by the time budget (discrepancy.max_time_s): "
+                  + str(sum(any(n.startswith("time budget") for n in r.get("notes") or [])
+                            for r in sub)),
                   ""]
         if hidden:
             lines += ["not visible after every redraw (left out): "
