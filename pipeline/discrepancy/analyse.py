@@ -29,6 +29,7 @@ from pipeline.discrepancy.select import (
     PRACTICAL_ALPHA,
     centred,
     holdout_rms_evidence,
+    holdout_rms_test,
     holdout_z_score,
     pooled_rms,
     rms_of,
@@ -596,6 +597,10 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     hold_std = [float(np.std(y[hold_slice, i])) or 1.0 for i in range(len(outputs))]
     gap_nom = pooled_rms([rms_of(resid[hold_slice, i]) for i in range(len(outputs))], hold_std)
     e_nom = resid[hold_slice] / np.array(hold_std)
+    # practical size on shapes: the held-out level of each output whose constant is
+    # profiled (P.free) left out of the model's and every candidate's errors
+    # (select.centred)
+    c_nom = centred(e_nom, P.free)
     for k, (fit, bic, t_hold, _) in enumerate(fitted):
         dbic = bic_nom - bic
         rms = {o: rms_of(y[hold_slice, i] - fit.y_pred[hold_slice, i])
@@ -604,11 +609,9 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         whitened = bool(dbic >= config.bic_margin and t_hold >= config.holdout_z_min
                         and gap_c < gap_nom)
         e_cand = (y[hold_slice] - fit.y_pred[hold_slice]) / np.array(hold_std)
-        _, p_rms, _ = holdout_rms_evidence(e_nom, e_cand, seed=seed + k, alpha=PRACTICAL_ALPHA)
-        # practical size on shapes: the held-out level of each output whose constant is
-        # profiled (P.free) left out of both (select.centred)
-        _, _, low = holdout_rms_evidence(centred(e_nom, P.free), centred(e_cand, P.free),
-                                         seed=seed + k, alpha=PRACTICAL_ALPHA)
+        _, p_rms = holdout_rms_test(e_nom, e_cand, seed=seed + k)
+        _, _, low = holdout_rms_evidence(c_nom, centred(e_cand, P.free), seed=seed + k,
+                                         alpha=PRACTICAL_ALPHA)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,

@@ -191,12 +191,13 @@ def centred(e: np.ndarray, columns: Sequence[int]) -> np.ndarray:
     constant every prediction has profiled on the fit part:
     :attr:`pipeline.discrepancy.problem.Problem.free`) the level is a nuisance of the
     comparison -- a constant is not an effect the workflow names there -- and on the
-    held-out part it is what the record's slowest disturbance sets.  A slow unmeasured disturbance (30 min correlation on a
-    4 h record) persists across the split, so anything that moves the held-out level
-    toward where the fit part ended wins on level alone: on zoo nulls a line fitted to a
-    heat exchanger's OP residual on the fit part cut its held-out error by 57 % (p =
-    0.001 with 20, 10, 5 or 3 bootstrap blocks: not a matter of block length), and two
-    sensor drifts, a slow unmodelled input and a sensor drift on a blend were named so.
+    held-out part it is what the record's slowest disturbance sets.  A slow unmeasured
+    disturbance (30 min correlation on a 4 h record) persists across the split, so
+    anything that moves the held-out level toward where the fit part ended wins on level
+    alone: on zoo nulls a line fitted to a heat exchanger's OP residual on the fit part
+    cut its held-out error by 57 % (p = 0.001 with 20, 10, 5 or 3 bootstrap blocks: not a
+    matter of block length), and two sensor drifts, a slow unmodelled input and a sensor
+    drift on a blend were named so.
     Centred, those closed -33 % to +5 %, while saturations that closed 24-71 % kept it
     to within 0.02.  An output with a given operating point keeps its level: there a
     constant sensor bias is an effect (the drum level's 22.45 of hidden-effect trial

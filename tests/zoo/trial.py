@@ -331,7 +331,7 @@ def make_trial(family: Family, effect: str | None, seed: int, *,
         inputs[name] = v
     return ZooTrial(family=family, seed=seed, effect=truth_effect, record=record,
                     inputs=inputs, rel_noise=rel_noise, gap_reduction=reduction,
-                    redraws=redraws, clamped=truth_effect is not None and clamped)
+                    redraws=redraws, clamped=clamped)
 
 
 def job_dict(trial: ZooTrial, *, discrepancy: dict[str, Any] | None = None) -> dict[str, Any]:
