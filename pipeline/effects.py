@@ -83,6 +83,8 @@ __all__ = [
     "Effect",
     "apply_effect",
     "applicable_locations",
+    "degenerate_forms",
+    "is_degenerate_form",
     "original_location",
     "output_offsets",
     "predict_outputs",
@@ -127,11 +129,14 @@ _TAU_AS_GAIN_FRACTION = 1e-3
 MIN_GAP_REDUCTION = 0.05
 #: An ``inverse_response`` whose magnitude is within this of 1 is delay-like: with
 #: ``tau_s ~ T/2`` it is the first-order Padé approximant of a dead time ``T``
-#: (``e^{-sT} ~ (1 - sT/2) / (1 + sT/2)``), and the workflow names the dead time when it
-#: predicts nearly as well (:func:`pipeline.discrepancy.analyse._pade_original`; the
-#: nuisance 10 s fuel delay's look-alike had magnitude 1.175: under misspecification
-#: the approximant overshoots).  Here with the catalogue because the hidden-effect
-#: trials draw no inverse response in that band (:mod:`pipeline.effect_trials`).
+#: (``e^{-sT} ~ (1 - sT/2) / (1 + sT/2)``), so the dead time is one of its degenerate
+#: forms (:func:`degenerate_forms`).  The band is the Padé form's own: its step response
+#: starts at ``-1``; within 0.2 of that the initial wrong-way jump differs from the
+#: approximant's by at most a fifth of the step, about the share a realistic
+#: misspecification moves it (the nuisance 10 s fuel delay's look-alike had magnitude
+#: 1.175: under misspecification the approximant overshoots).  Here with the catalogue
+#: because the hidden-effect trials draw no inverse response in that band
+#: (:mod:`pipeline.effect_trials`).
 PADE_MAGNITUDE = 0.2
 
 
@@ -206,6 +211,63 @@ class Effect:
             for k, v in self.parameters.items()
         )
         return f"{self.name} at {self.location}: {params}"
+
+
+def degenerate_forms(effect: Effect) -> tuple[Effect, ...]:
+    """The simpler catalogue effects `effect` becomes at a limit of its parameters.
+
+    The catalogue's nesting, declared once: the discrepancy workflow names the simpler
+    member whenever the richer one does not predict held-out data distinguishably
+    better (:func:`pipeline.discrepancy.analyse.analyse_discrepancy`, "Look-alikes"),
+    and refits these forms beside a best fit so the comparison always has them.  Each
+    form sits at the effect's location, started at the parameters the limit maps to:
+
+    - ``inverse_response`` (``tau_s``, ``magnitude``) -> ``extra_lag`` (``tau_s``):
+      magnitude 0 is the lag itself (exact nesting);
+    - ``inverse_response`` with ``|magnitude - 1| <= PADE_MAGNITUDE`` -> ``dead_time``
+      of ``tau_s (1 + magnitude)``: the first-order Padé approximant of a delay (the
+      delay with the same first moment -- mean time -- as the all-pass, ``2 tau_s`` at
+      magnitude 1).
+
+    Every other effect's limit is the nominal model itself (its null value,
+    :data:`EFFECT_PARAMETERS`), which the held-out tests against the nominal model
+    already cover.
+
+    Parameters
+    ----------
+    effect : Effect
+        A fitted effect.
+
+    Returns
+    -------
+    tuple of Effect
+        Its degenerate forms (empty for effects whose only limit is the null).
+    """
+    if effect.name != "inverse_response":
+        return ()
+    tau, magnitude = float(effect.parameters["tau_s"]), float(effect.parameters["magnitude"])
+    at = (effect.location, effect.equivalent_locations)
+    forms = [Effect("extra_lag", at[0], {"tau_s": tau}, at[1])]
+    if abs(magnitude - 1.0) <= PADE_MAGNITUDE:
+        forms.append(Effect("dead_time", at[0], {"delay_s": tau * (1.0 + magnitude)}, at[1]))
+    return tuple(forms)
+
+
+def is_degenerate_form(richer: Effect, simpler: Effect) -> bool:
+    """Whether `simpler` is of a class :func:`degenerate_forms` declares for `richer`
+    at a place they share.
+
+    Parameters
+    ----------
+    richer, simpler : Effect
+        Two fitted effects.
+
+    Returns
+    -------
+    bool
+    """
+    return any(f.name == simpler.name and bool(f.places & simpler.places)
+               for f in degenerate_forms(richer))
 
 
 def _json_number(value: Any) -> Any:

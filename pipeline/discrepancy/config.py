@@ -86,12 +86,15 @@ class DiscrepancyConfig:
         effect of engineering interest shrinks it by far more (controller gain +25 %:
         ~40 %).
     lookalike_gap : float
-        A candidate with fewer parameters whose remaining held-out gap is at most
-        ``1 + lookalike_gap`` times the best candidate's predicts as well and is
-        preferred (parsimony on held-out data: an inverse response of magnitude ~1 is a
-        delay's Padé approximant; under nuisance mismatch it left 29.1 % of the gap, the
-        exact 10 s dead time 30.4 %, 4.5 % more).  Relative to what remains, so a plant
-        that is its model (remaining gap ~ the noise) keeps the better candidate.
+        Equivalence margin of the catalogue's nesting: an effect is named over one of
+        its degenerate forms (:func:`pipeline.effects.degenerate_forms`: an inverse
+        response's extra lag, near magnitude 1 its Padé dead time) only when, at the
+        one-sided 95 % lower confidence bound, it removes more than this share of the
+        form's held-out error (:func:`pipeline.discrepancy.select.decide`); otherwise
+        the form is named and the richer effect listed as its equivalent.  Default 0.10:
+        under nuisance mismatch a delay's Padé look-alike left 29.1 % of the gap, the
+        exact 10 s dead time 30.4 % (4.3 % of the dead time's error), while a real
+        wrong-way response removes most of its lag's.
     max_time_s : float or None
         Time budget of the search chain, s: no search starts that would end after it
         (judged by the longest search so far; the first search always runs), and the

@@ -1,15 +1,16 @@
-"""Selection criteria: whitened BIC, held-out z, pooled RMS."""
+"""Selection criteria: whitened BIC, held-out z, pooled RMS, and the one rule that
+names a finding among look-alikes (:func:`decide`)."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
 from pipeline.discrepancy.problem import Problem
-from pipeline.effects import Effect
+from pipeline.effects import Effect, is_degenerate_form
 
 
 def criteria(P: Problem, y_pred: np.ndarray, k: int) -> tuple[float, list[np.ndarray]]:
@@ -293,3 +294,94 @@ def holdout_gap(y: np.ndarray, outputs: list[str], holdout_start: int, resid: np
            else "relative to each output's held-out std (RMS over outputs)"}
     gap["per_output"] = per_output
     return gap
+
+
+def distinguishable(richer: np.ndarray, simpler: np.ndarray, *, margin: float,
+                    seed: int) -> bool:
+    """Whether a richer candidate predicts held-out data distinguishably better than a
+    simpler one: the one-sided :data:`PRACTICAL_ALPHA` lower confidence bound of the
+    share of the simpler one's held-out error that the richer one removes
+    (:func:`holdout_rms_evidence`'s block bootstrap, which keeps the errors'
+    autocorrelation and their pairing) exceeds the equivalence margin.
+
+    Parameters
+    ----------
+    richer, simpler : ndarray (M, n_y)
+        Held-out errors of the two candidates, each output divided by its held-out std
+        (centred as for practical size: :func:`centred`).
+    margin : float
+        Equivalence margin, a share of the simpler candidate's held-out error
+        (``lookalike_gap``).
+    seed : int
+        Seeds the bootstrap.
+
+    Returns
+    -------
+    bool
+    """
+    _, _, low = holdout_rms_evidence(simpler, richer, seed=seed, alpha=PRACTICAL_ALPHA)
+    return low > margin
+
+
+def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_margin: float,
+           distinguishable: Callable[[Any, Any], bool]
+           ) -> tuple[str, Effect | None, tuple[Any, ...]]:
+    """The finding among practically significant candidates, by one rule from the
+    catalogue's nesting.
+
+    The best finding (BIC order) is compared with each finding that is one of its
+    degenerate forms (:func:`pipeline.effects.degenerate_forms`: an inverse response's
+    extra lag; near magnitude 1 its Padé dead time).  When it does not predict the
+    held-out data distinguishably better than such a form, the two are one explanation:
+    the simplest form (fewest parameters, then BIC) is named and the richer one listed
+    as its equivalent.  Misspecification scales BIC differences with the record, so BIC
+    alone would keep the richer shape: the Padé approximant of a delay beat the exact
+    dead time by 81 whitened BIC on a scale of 39 000 while both closed 85 % of the
+    held-out gap.  Then findings of another class within `lookalike_margin` of BIC are a
+    tie the data cannot break: the simplest member is named and the others are its
+    equivalent explanations.  Classes that do not nest are otherwise left to BIC
+    (``gain`` at the controller and at the drum of the demo predict within 3 % of each
+    other, yet BIC separates them by 168).  A better-BIC candidate that failed on
+    held-out data makes the verdict ``no_significant_effect``, with it returned as
+    rejected: what the fit part shows is not a stable plant effect (a slow candidate
+    tracking an unmeasured disturbance).
+
+    Parameters
+    ----------
+    candidates : sequence of Candidate
+        Every candidate, in BIC order (``criterion`` ascending).
+    findings : sequence of Candidate
+        The passed, practically significant ones, in BIC order (not empty).
+    lookalike_margin : float
+        BIC difference within which findings of different classes tie.
+    distinguishable : callable
+        ``distinguishable(richer, simpler)``: the held-out equivalence test
+        (:func:`distinguishable` on the two candidates' errors).
+
+    Returns
+    -------
+    verdict : str
+        ``effect_found`` or ``no_significant_effect``.
+    effect : Effect or None
+        The named effect.
+    others : tuple of Candidate
+        Its equivalent explanations, or (``no_significant_effect``) the rejected
+        candidate.
+    """
+    best = findings[0]
+    forms = [c for c in findings[1:] if is_degenerate_form(best.effect, c.effect)
+             and not distinguishable(best, c)]
+    nested = []
+    if forms:
+        nested = [best, *forms]
+        best = min(forms, key=lambda c: (c.n_parameters, c.criterion))
+    group = [best] + [c for c in findings if c is not best and c not in nested
+                      and not same_class(c.effect, best.effect)
+                      and abs(c.criterion - best.criterion) < lookalike_margin]
+    better = candidates[0]
+    if better is not best and not better.passed and better.criterion < best.criterion:
+        return "no_significant_effect", None, (better,)
+    k_min = min(c.n_parameters for c in group)
+    chosen = min((c for c in group if c.n_parameters == k_min), key=lambda c: c.criterion)
+    others = [c for c in group if c is not chosen] + [c for c in nested if c is not chosen]
+    return "effect_found", chosen.effect, tuple(others)
