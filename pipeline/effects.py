@@ -84,7 +84,7 @@ __all__ = [
     "apply_effect",
     "applicable_locations",
     "degenerate_forms",
-    "is_degenerate_form",
+    "degenerate_kind",
     "original_location",
     "output_offsets",
     "predict_outputs",
@@ -218,14 +218,16 @@ def degenerate_forms(effect: Effect) -> tuple[Effect, ...]:
 
     The catalogue's nesting, declared once: the discrepancy workflow names the simpler
     member whenever the richer one does not predict held-out data distinguishably
-    better (:func:`pipeline.discrepancy.analyse.analyse_discrepancy`, "Look-alikes"),
-    and refits these forms beside a best fit so the comparison always has them.  Each
-    form sits at the effect's location, started at the parameters the limit maps to:
+    better (:func:`pipeline.discrepancy.select.decide`), and refits these forms beside
+    a best fit so the comparison always has them.  Each form sits at the effect's
+    location, started at the parameters the limit maps to (:func:`degenerate_kind`
+    tells the two kinds apart):
 
     - ``inverse_response`` (``tau_s``, ``magnitude``) -> ``extra_lag`` (``tau_s``):
-      magnitude 0 is the lag itself (exact nesting);
+      magnitude 0 is the lag itself (``"exact"``: inside the richer class);
     - ``inverse_response`` with ``|magnitude - 1| <= PADE_MAGNITUDE`` -> ``dead_time``
-      of ``tau_s (1 + magnitude)``: the first-order Padé approximant of a delay (the
+      of ``tau_s (1 + magnitude)``: the first-order Padé approximant of a delay
+      (``"approximant"``: the richer effect approximates the simpler one there; the
       delay with the same first moment -- mean time -- as the all-pass, ``2 tau_s`` at
       magnitude 1).
 
@@ -253,9 +255,11 @@ def degenerate_forms(effect: Effect) -> tuple[Effect, ...]:
     return tuple(forms)
 
 
-def is_degenerate_form(richer: Effect, simpler: Effect) -> bool:
-    """Whether `simpler` is of a class :func:`degenerate_forms` declares for `richer`
-    at a place they share.
+def degenerate_kind(richer: Effect, simpler: Effect) -> str | None:
+    """How `simpler` is a degenerate form of `richer` (:func:`degenerate_forms`) at a
+    place they share: ``"exact"`` (a limit inside the richer class: the lag at
+    magnitude 0), ``"approximant"`` (the richer effect approximates the simpler one in
+    a declared band: the Padé form of a delay), or None.
 
     Parameters
     ----------
@@ -264,10 +268,12 @@ def is_degenerate_form(richer: Effect, simpler: Effect) -> bool:
 
     Returns
     -------
-    bool
+    str or None
     """
-    return any(f.name == simpler.name and bool(f.places & simpler.places)
-               for f in degenerate_forms(richer))
+    for form in degenerate_forms(richer):
+        if form.name == simpler.name and form.places & simpler.places:
+            return "approximant" if form.name == "dead_time" else "exact"
+    return None
 
 
 def _json_number(value: Any) -> Any:

@@ -93,7 +93,7 @@ def test_the_catalogue_declares_an_inverse_responses_degenerate_forms():
     """(1 - m tau s)/(tau s + 1) at m = 0 is the lag 1/(tau s + 1); at m = 1 it is the
     first-order Padé approximant of e^{-2 tau s}; its mean time (first moment,
     -d/ds at s = 0) is tau (1 + m), the delay the dead-time form starts at."""
-    from pipeline.effects import Effect, degenerate_forms, is_degenerate_form
+    from pipeline.effects import Effect, degenerate_forms, degenerate_kind
 
     ir = Effect("inverse_response", "fuel", {"tau_s": 5.0, "magnitude": 0.9}, ("controller",))
     forms = degenerate_forms(ir)
@@ -103,9 +103,10 @@ def test_the_catalogue_declares_an_inverse_responses_degenerate_forms():
     wrong_way = Effect("inverse_response", "fuel", {"tau_s": 5.0, "magnitude": 0.6})
     assert [f.name for f in degenerate_forms(wrong_way)] == ["extra_lag"]
     # a form counts at any shared place, not elsewhere; other effects nest only the null
-    assert is_degenerate_form(ir, Effect("extra_lag", "controller", {"tau_s": 1.0}))
-    assert not is_degenerate_form(ir, Effect("extra_lag", "drum", {"tau_s": 5.0}))
-    assert not is_degenerate_form(wrong_way, Effect("dead_time", "fuel", {"delay_s": 8.0}))
+    assert degenerate_kind(ir, Effect("extra_lag", "controller", {"tau_s": 1.0})) == "exact"
+    assert degenerate_kind(ir, Effect("dead_time", "fuel", {"delay_s": 8.0})) == "approximant"
+    assert degenerate_kind(ir, Effect("extra_lag", "drum", {"tau_s": 5.0})) is None
+    assert degenerate_kind(wrong_way, Effect("dead_time", "fuel", {"delay_s": 8.0})) is None
     assert degenerate_forms(Effect("extra_lag", "fuel", {"tau_s": 5.0})) == ()
 
 
@@ -121,62 +122,69 @@ def _cand(name, params, *, k, delta_bic, passed=True):
 
 def _errors(seed):
     """Held-out errors of a simpler form (coloured noise plus a wrong-way transient it
-    cannot follow), one richer fit that removes the transient (distinguishable) and one
-    that predicts the same within 2 % (equivalent)."""
+    cannot follow) and of three richer fits: one that removes the transient, one 2 %
+    better throughout, one that predicts the same up to independent noise."""
     rng = np.random.default_rng(seed)
     noise = _ar(rng)[:, None]
     transient = np.zeros((M, 1))
     for start in range(100, M - 60, 400):
         transient[start:start + 60, 0] = -8.0 * np.exp(-np.arange(60) / 15.0)
-    return noise + transient, noise, 0.98 * (noise + transient)
+    simple = noise + transient
+    return {"simple": simple, "removes": noise, "slightly": 0.98 * simple,
+            "same": simple + 0.05 * rng.standard_normal((M, 1))}
 
 
-def _named(best, other, seed=3):
+def _named(best, other, which, seed=3):
     from pipeline.discrepancy.select import decide, distinguishable
 
-    simple, removes, same = _errors(seed)
-    errors = {id(other): simple, id(best): removes if best.delta_bic > 1000 else same}
+    errors = _errors(seed)
+    by_id = {id(other): errors["simple"], id(best): errors[which]}
     verdict, effect, others = decide(
-        [best, other], [best, other], lookalike_margin=3.0,
-        distinguishable=lambda a, b: distinguishable(errors[id(a)], errors[id(b)],
-                                                     margin=0.10, seed=seed))
+        [best, other], [best, other], lookalike_margin=3.0, lookalike_gap=0.10,
+        distinguishable=lambda a, b, margin: distinguishable(by_id[id(a)], by_id[id(b)],
+                                                             margin=margin, seed=seed))
     assert verdict == "effect_found"
     return effect.name, [c.effect.name for c in others]
 
 
 def test_a_degenerate_form_is_named_unless_the_richer_effect_is_distinguishable():
     """The richer effect (more parameters, better BIC) keeps its name only when it
-    removes more than the equivalence margin of its degenerate form's held-out error at
-    the lower confidence bound; otherwise the form is named and the richer one listed
-    as its equivalent.  Classes that do not nest are left to BIC even when they predict
-    alike (a wrong-way response of magnitude 0.6 is no dead time)."""
-    def ir(m, dbic):
-        return _cand("inverse_response", {"tau_s": 5.0, "magnitude": m}, k=2, delta_bic=dbic)
+    predicts its degenerate form's held-out error better at the lower confidence bound
+    -- by any amount for an exact nesting (the lag inside the inverse response), by
+    more than the margin ``lookalike_gap`` for an approximant (the Padé form of a
+    delay); otherwise the form is named and the richer one listed as its equivalent.
+    Classes that do not nest are left to BIC even when they predict alike (a
+    wrong-way response of magnitude 0.6 is no dead time)."""
+    def ir(m):
+        return _cand("inverse_response", {"tau_s": 5.0, "magnitude": m}, k=2, delta_bic=637.0)
 
     lag = _cand("extra_lag", {"tau_s": 5.0}, k=1, delta_bic=600.0)
     dt = _cand("dead_time", {"delay_s": 10.0}, k=1, delta_bic=600.0)
-    assert _named(ir(0.6, 2000.0), lag) == ("inverse_response", [])
-    assert _named(ir(0.02, 637.0), lag) == ("extra_lag", ["inverse_response"])
-    assert _named(ir(1.0, 637.0), dt) == ("dead_time", ["inverse_response"])
-    assert _named(ir(1.0, 2000.0), dt) == ("inverse_response", [])
-    assert _named(ir(0.6, 637.0), dt) == ("inverse_response", [])
+    assert _named(ir(0.6), lag, "removes") == ("inverse_response", [])
+    assert _named(ir(0.5), lag, "slightly") == ("inverse_response", [])
+    assert _named(ir(0.02), lag, "same") == ("extra_lag", ["inverse_response"])
+    assert _named(ir(1.0), dt, "slightly") == ("dead_time", ["inverse_response"])
+    assert _named(ir(1.0), dt, "same") == ("dead_time", ["inverse_response"])
+    assert _named(ir(1.0), dt, "removes") == ("inverse_response", [])
+    assert _named(ir(0.6), dt, "same") == ("inverse_response", [])
 
 
 def test_a_best_fit_that_fails_on_held_out_data_is_rejected_and_ties_are_sets():
     from pipeline.discrepancy.select import decide
 
-    never = lambda a, b: False  # noqa: E731
+    never = lambda a, b, margin: False  # noqa: E731
     slow = _cand("unmodelled_input", {"k": 1.0, "tau_s": 200.0, "delay_s": 0.0}, k=3,
                  delta_bic=900.0, passed=False)
     gain = _cand("gain", {"factor": 1.1}, k=1, delta_bic=500.0)
     verdict, effect, others = decide([slow, gain], [gain], lookalike_margin=3.0,
-                                     distinguishable=never)
+                                     lookalike_gap=0.10, distinguishable=never)
     assert (verdict, effect, others) == ("no_significant_effect", None, (slow,))
     # BIC within the margin, different classes: the fewest parameters are named
     lag = _cand("extra_lag", {"tau_s": 5.0}, k=1, delta_bic=499.0)
     sat = _cand("saturation", {"low": 0.0, "high": 4.0}, k=2, delta_bic=501.0)
     verdict, effect, others = decide([sat, gain, lag], [sat, gain, lag],
-                                     lookalike_margin=3.0, distinguishable=never)
+                                     lookalike_margin=3.0, lookalike_gap=0.10,
+                                     distinguishable=never)
     assert (verdict, effect.name, [c.effect.name for c in others]) == (
         "effect_found", "gain", ["saturation", "extra_lag"])
 

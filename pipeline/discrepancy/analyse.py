@@ -41,7 +41,7 @@ from pipeline.effects import (
     Effect,
     apply_effect,
     degenerate_forms,
-    is_degenerate_form,
+    degenerate_kind,
     output_offsets,
 )
 from pipeline.errors import InsufficientDataError
@@ -349,14 +349,14 @@ def _fit_key(effect: Effect) -> tuple[str, str, Any]:
 
 def _nested_forms(fitted: list, chosen: list[int]) -> list[int]:
     """Indices of the fitted effects (not chosen themselves) that are degenerate forms
-    of a chosen one (:func:`pipeline.effects.is_degenerate_form`): refitted jointly
+    of a chosen one (:func:`pipeline.effects.degenerate_kind`): refitted jointly
     too, so that the nested pair is compared on equal terms.  Without this, a jointly
     refitted inverse response of magnitude 0.01-0.03 -- the extra lag itself -- beat
     the lag fitted with the earlier effects held fixed and was named (3 of 100
     published pair trials: a hidden lag reported as a wrong-way response)."""
     richer = [fitted[k][0].effect for k in chosen]
     return [k for k, (fit, *_) in enumerate(fitted)
-            if k not in chosen and any(is_degenerate_form(r, fit.effect) for r in richer)]
+            if k not in chosen and any(degenerate_kind(r, fit.effect) for r in richer)]
 
 
 def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
@@ -649,6 +649,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         return candidates, "no_significant_effect", None, (), minor
     verdict, effect, group = decide(
         candidates, findings, lookalike_margin=config.lookalike_margin,
-        distinguishable=lambda a, b: distinguishable(
-            shapes[id(a)], shapes[id(b)], margin=config.lookalike_gap, seed=seed))
+        lookalike_gap=config.lookalike_gap,
+        distinguishable=lambda a, b, margin: distinguishable(
+            shapes[id(a)], shapes[id(b)], margin=margin, seed=seed))
     return candidates, verdict, effect, group, minor

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.discrepancy.problem import Problem
-from pipeline.effects import Effect, is_degenerate_form
+from pipeline.effects import Effect, degenerate_kind
 
 
 def criteria(P: Problem, y_pred: np.ndarray, k: int) -> tuple[float, list[np.ndarray]]:
@@ -324,7 +324,7 @@ def distinguishable(richer: np.ndarray, simpler: np.ndarray, *, margin: float,
 
 
 def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_margin: float,
-           distinguishable: Callable[[Any, Any], bool]
+           distinguishable: Callable[[Any, Any, float], bool], lookalike_gap: float
            ) -> tuple[str, Effect | None, tuple[Any, ...]]:
     """The finding among practically significant candidates, by one rule from the
     catalogue's nesting.
@@ -334,7 +334,12 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
     extra lag; near magnitude 1 its Padé dead time).  When it does not predict the
     held-out data distinguishably better than such a form, the two are one explanation:
     the simplest form (fewest parameters, then BIC) is named and the richer one listed
-    as its equivalent.  Misspecification scales BIC differences with the record, so BIC
+    as its equivalent.  The equivalence margin is what the declared limit leaves room
+    for (:func:`pipeline.effects.degenerate_kind`): none for an exact nesting -- the
+    richer effect is kept when its extra parameter improves the held-out prediction at
+    all, at the confidence bound -- and `lookalike_gap` for an approximant, whose
+    approximation error is not an effect (under nuisance mismatch a delay's smooth Padé
+    form predicted 4.3 % of the error better than the delay itself).  Misspecification scales BIC differences with the record, so BIC
     alone would keep the richer shape: the Padé approximant of a delay beat the exact
     dead time by 81 whitened BIC on a scale of 39 000 while both closed 85 % of the
     held-out gap.  Then findings of another class within `lookalike_margin` of BIC are a
@@ -355,8 +360,10 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
     lookalike_margin : float
         BIC difference within which findings of different classes tie.
     distinguishable : callable
-        ``distinguishable(richer, simpler)``: the held-out equivalence test
+        ``distinguishable(richer, simpler, margin)``: the held-out equivalence test
         (:func:`distinguishable` on the two candidates' errors).
+    lookalike_gap : float
+        Equivalence margin of an approximant form.
 
     Returns
     -------
@@ -369,8 +376,10 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
         candidate.
     """
     best = findings[0]
-    forms = [c for c in findings[1:] if is_degenerate_form(best.effect, c.effect)
-             and not distinguishable(best, c)]
+    margins = {"exact": 0.0, "approximant": lookalike_gap}
+    forms = [c for c in findings[1:]
+             if (kind := degenerate_kind(best.effect, c.effect)) is not None
+             and not distinguishable(best, c, margins[kind])]
     nested = []
     if forms:
         nested = [best, *forms]
