@@ -61,7 +61,7 @@ from pipeline.recording import (
     longest_common_good,
 )
 from pipeline.stages import StageRunner
-from pipeline.sampling import resample_average_masked
+from pipeline.sampling import resample_average_masked, sample_period_s
 
 __all__ = [
     "DiscrepancyData",
@@ -214,8 +214,8 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
     from pipeline.stability import check_delays, check_simulable
 
     section = cfg.discrepancy
-    check_delays(model, record_s=rec.values.shape[0] * rec.dt_s)
-    factor = configured_decimation(cfg, rec.dt_s) or 1
+    check_delays(model, record_s=rec.values.shape[0] * rec.grid_dt_s)
+    factor = configured_decimation(cfg, rec.grid_dt_s) or 1
     vals, good = rec.values, rec.good
     if factor > 1:
         vals, good = resample_average_masked(np.nan_to_num(vals), good, factor)
@@ -224,7 +224,7 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
     good = good | filled
     a, b = longest_common_good(good)
     n_grid = vals.shape[0]
-    dt_s = float(factor * rec.dt_s)
+    dt_s = sample_period_s(factor, rec.grid_dt_s)
     if b - a < MIN_SAMPLES:
         bad = {n: int((~good[:, k]).sum()) for k, n in enumerate(rec.names)}
         raise InsufficientDataError(
@@ -261,7 +261,7 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
             measured[o] = measured[o] - shift
             op[o] += shift
     summary = {
-        "grid_dt_s": rec.dt_s, "dt_s": dt_s, "decimation": factor,
+        "grid_dt_s": rec.grid_dt_s, "dt_s": dt_s, "decimation": factor,
         "grid_samples": int(n_grid), "analysed_samples": int(b - a),
         "left_out_samples": int(n_grid - (b - a)),
         "filled_samples": {n: int(filled[a:b, k].sum()) for k, n in enumerate(rec.names)},

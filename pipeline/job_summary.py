@@ -271,7 +271,7 @@ def _checks(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate
                                for a, b, c in d.near_collinear],
         },
         "data_quality": {
-            "grid_dt_s": prep.recording.dt_s,
+            "grid_dt_s": prep.recording.grid_dt_s,
             "samples_at_dt": int(prep.good.shape[0]),
             "samples_used_all": int(all_est.n_d),
             "signals": prep.recording.quality,
@@ -417,7 +417,7 @@ def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
                                 "σ)"}[est["method"]]
     lines = [f"# plantdyn run: {cfg.job}", "",
              f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
-             f"(decimation {prep.decimation} from the {prep.recording.dt_s:g} s grid, "
+             f"(decimation {prep.decimation} from the {prep.recording.grid_dt_s:g} s grid, "
              f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
              f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
              f"Estimator: {method} — {est['method_choice']['reason']}.", "",

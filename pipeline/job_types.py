@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import polars as pl
 
+from pipeline.sampling import sample_period_s
+
 
 
 @dataclass(frozen=True)
@@ -22,7 +24,7 @@ class Recording:
     roles: tuple[str, ...]
     tags: tuple[str, ...]
     time: np.ndarray  # datetime64[us] UTC, (N,)
-    dt_s: float
+    grid_dt_s: float  # the grid period; the estimation period T is Prepared.dt_s
     values: np.ndarray  # (N, k), NaN where masked
     good: np.ndarray  # (N, k) bool
     files: tuple[str, ...]
@@ -49,7 +51,7 @@ class Prepared:
     @property
     def dt_s(self) -> float:
         """The estimation sample period ``T`` (s): ``decimation`` grid periods."""
-        return float(self.decimation * self.recording.dt_s)
+        return sample_period_s(self.decimation, self.recording.grid_dt_s)
 
     @property
     def inputs(self) -> list[str]:

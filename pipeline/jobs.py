@@ -40,12 +40,18 @@ from pipeline.errors import (
 )
 from pipeline.estimate import estimate_step_responses
 from pipeline.job_summary import summarise
-from pipeline.job_types import Prepared, Recording, RunReport, Summary, WindowFailure
+from pipeline.job_types import (
+    Prepared,
+    Recording,
+    RunReport,
+    Summary,
+    WindowFailure,
+)
 from pipeline.monitor import monitor_banner
 from pipeline.monitor_job import monitor_run
 from pipeline.progress import Progress, Tick, quiet, silent
 from pipeline.recording import configured_decimation, load_recording, longest_common_good
-from pipeline.sampling import choose_sample_period, resample_average_masked
+from pipeline.sampling import choose_sample_period, resample_average_masked, sample_period_s
 from pipeline.search import SearchResult, search
 from pipeline.stages import StageRunner
 
@@ -76,9 +82,9 @@ def prepare(cfg, rec: Recording) -> Prepared:
         The gridded signals from :func:`load_recording`.
     """
     a, b = longest_common_good(rec.good)
-    factor = configured_decimation(cfg, rec.dt_s)
+    factor = configured_decimation(cfg, rec.grid_dt_s)
     if factor is not None:
-        sampling = {"dt_s": factor * rec.dt_s, "decimation": factor, "source": "config"}
+        sampling = {"dt_s": sample_period_s(factor, rec.grid_dt_s), "decimation": factor, "source": "config"}
     else:
         if b - a < 200:
             raise InsufficientDataError(
@@ -92,7 +98,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
         # integrating outputs: α_T of the first difference (what eq. 3.15 regresses); the
         # search sees every sample where the model's signals are good, not just [a, b)
         choice = choose_sample_period(
-            {rec.names[k]: rec.values[a:b, k] for k in model}, dt_s=rec.dt_s,
+            {rec.names[k]: rec.values[a:b, k] for k in model}, grid_dt_s=rec.grid_dt_s,
             roles={rec.names[k]: rec.roles[k] for k in model},
             integrating={o: s.integrating for o, s in cfg.signals.outputs.items()},
             target_input=cfg.sampling.target_input, target_output=cfg.sampling.target_output,
@@ -103,7 +109,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
     vals, good = resample_average_masked(np.nan_to_num(rec.values), rec.good, factor)
     n = vals.shape[0]
     tgrid = rec.time[: n * factor : factor] if factor > 1 else rec.time[:n]
-    dt_s = factor * rec.dt_s
+    dt_s = sample_period_s(factor, rec.grid_dt_s)
     n_x = sum(r == "input" for r in rec.roles)
     n_y = sum(r == "output" for r in rec.roles)
     filled, _ = interpolate_gaps(vals, good)
@@ -416,7 +422,7 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     """
     stage = stage if stage is not None else StageRunner(progress)
     rec = stage("ingest", load_recording, cfg, files, bar=("MB", 1e-6))
-    progress("ingest", f"{rec.values.shape[0]} grid samples at {rec.dt_s:g} s, "
+    progress("ingest", f"{rec.values.shape[0]} grid samples at {rec.grid_dt_s:g} s, "
              f"{sum(q['masked'] for q in rec.quality.values())} masked")
     prep = stage("prepare", prepare, cfg, rec)
     progress("prepare", f"T = {prep.dt_s:g} s (decimation {prep.decimation}), "

@@ -95,6 +95,7 @@ __all__ = [
     "hold_period_s",
     "resample_average",
     "resample_average_masked",
+    "sample_period_s",
     "search_fits",
     "NOISE_RHO1",
     "SEARCH_N_P_MIN",
@@ -162,10 +163,10 @@ class SamplePeriodChoice:
     Attributes
     ----------
     dt_s : float
-        Chosen sample period ``T`` (s): ``decimation * record_dt_s``.
+        Chosen sample period ``T`` (s): ``decimation * grid_dt_s``.
     decimation : int
         Resampling factor from the record (average-then-decimate by this many samples).
-    record_dt_s : float
+    grid_dt_s : float
         Sample period of the record (s).
     alpha_t : dict[str, float]
         Per signal, α_T at the chosen ``T`` (half-period hold ``T/2``).
@@ -197,7 +198,7 @@ class SamplePeriodChoice:
 
     dt_s: float
     decimation: int
-    record_dt_s: float
+    grid_dt_s: float
     alpha_t: dict[str, float]
     preferred_dt_s: dict[str, float]
     targets: dict[str, float]
@@ -214,7 +215,7 @@ class SamplePeriodChoice:
         return {
             "dt_s": self.dt_s,
             "decimation": self.decimation,
-            "record_dt_s": self.record_dt_s,
+            "record_dt_s": self.grid_dt_s,  # the result-file key stays (issue 35)
             "alpha_t": dict(self.alpha_t),
             "preferred_dt_s": {
                 k: (v if np.isfinite(v) else None) for k, v in self.preferred_dt_s.items()
@@ -232,7 +233,7 @@ class SamplePeriodChoice:
     def __str__(self) -> str:
         lines = [
             f"sample period T = {self.dt_s:g} s (decimation {self.decimation} of "
-            f"{self.record_dt_s:g} s), limited by {self.limiting_signal}"
+            f"{self.grid_dt_s:g} s), limited by {self.limiting_signal}"
         ]
         if self.reduced_reason:
             lines.append(f"  shorter than the α_T choice: {self.reduced_reason}")
@@ -301,10 +302,28 @@ def _roles_dict(roles, names: Sequence[str]) -> dict[str, str]:
     return out
 
 
+def sample_period_s(decimation: int, grid_dt_s: float) -> float:
+    """The estimation sample period ``T`` (s): `decimation` grid periods -- where ``T``
+    is computed, for estimation and discrepancy jobs alike.
+
+    Parameters
+    ----------
+    decimation : int
+        Grid samples per estimation sample.
+    grid_dt_s : float
+        The grid period (s).
+
+    Returns
+    -------
+    float
+    """
+    return float(decimation * grid_dt_s)
+
+
 def choose_sample_period(
     signals,
     *,
-    dt_s: float,
+    grid_dt_s: float,
     roles,
     names: Sequence[str] | None = None,
     integrating: Mapping[str, bool] | None = None,
@@ -320,9 +339,9 @@ def choose_sample_period(
     Parameters
     ----------
     signals : dict[str, array (N,)] or array (N, k)
-        The record's signals, sampled every ``dt_s`` without gaps.
-    dt_s : float
-        Sample period of the record (s).
+        The record's signals, sampled every ``grid_dt_s`` without gaps.
+    grid_dt_s : float
+        Sample period of the record: its grid period (s).
     roles : dict[str, str] or sequence of str
         ``"input"`` or ``"output"`` per signal (by name, or in column order).
     names : sequence of str, optional
@@ -340,7 +359,7 @@ def choose_sample_period(
         Remove each analysed signal's mean and linear trend first (the criterion concerns
         the fluctuations; a trend would dominate mean(x²)).
     n_search_samples : int, optional
-        Samples (at ``dt_s``) the N_p search will have — the whole record's usable
+        Samples (at ``grid_dt_s``) the N_p search will have — the whole record's usable
         samples when α_T is measured on a clean stretch of it; default ``N``.
     n_p_min : int
         Shortest horizon the search must be able to try at ``T`` (:func:`search_fits`);
@@ -354,29 +373,29 @@ def choose_sample_period(
     -----
     Per signal, the hold ``T'`` at which α_T reaches its target is found by linear
     interpolation between integer hold lengths (a hold of ``m`` samples measures
-    ``T' = (m-1)·dt_s``, see the module notes); its preferred period is ``2 T'``.
+    ``T' = (m-1)·grid_dt_s``, see the module notes); its preferred period is ``2 T'``.
     The chosen ``T`` is the smallest preferred period of the signals that set ``T``
     (all but the step-wise ones, module notes), rounded **down** to an integer
-    multiple of ``dt_s`` (α_T rises with ``T``, so rounding down keeps every signal at or
-    below its target), and never below ``dt_s``: when a signal needs ``T < dt_s`` the
+    multiple of ``grid_dt_s`` (α_T rises with ``T``, so rounding down keeps every signal at or
+    below its target), and never below ``grid_dt_s``: when a signal needs ``T < grid_dt_s`` the
     record is sampled too slowly for its target (or the signal is noise-dominated — the
-    note tells which), ``T = dt_s`` and a note says so.  When a signal stays below target
+    note tells which), ``T = grid_dt_s`` and a note says so.  When a signal stays below target
     over every hold examined, its preferred period is ``inf`` and it does not limit
     ``T``; if no signal reaches its target, ``T`` is the longest period examined,
-    ``2 (max_hold_samples - 1) dt_s``, with a note.  Finally, when the record at ``T``
+    ``2 (max_hold_samples - 1) grid_dt_s``, with a note.  Finally, when the record at ``T``
     cannot hold the default N_p search (:func:`search_fits` with ``n_search_samples``
-    and the number of inputs), ``T`` is lowered to the largest multiple of ``dt_s`` at
+    and the number of inputs), ``T`` is lowered to the largest multiple of ``grid_dt_s`` at
     which it can, and ``reduced_reason`` says so.
 
     Raises
     ------
     ConfigError
-        Bad ``dt_s``, roles, targets, names or ``integrating``.
+        Bad ``grid_dt_s``, roles, targets, names or ``integrating``.
     DataQualityError
         A signal is non-finite, too short or constant after detrending (for an integrating
         output: its first difference is).
     """
-    _check_period_and_targets(dt_s, target_input, target_output)
+    _check_period_and_targets(grid_dt_s, target_input, target_output)
     sig = _signals_dict(signals, names)
     role = _roles_dict(roles, list(sig))
     diff = _integrating_dict(integrating, role)
@@ -384,19 +403,19 @@ def choose_sample_period(
     max_hold = _max_hold(n, max_hold_samples)
     targets = {k: (target_input if role[k] == "input" else target_output) for k in sig}
     notes: list[str] = []
-    measured, preferred = _measure(sig, diff, targets, max_hold, dt_s, detrend, notes)
-    stepwise, setting = _setting_signals(sig, preferred, dt_s, notes)
+    measured, preferred = _measure(sig, diff, targets, max_hold, grid_dt_s, detrend, notes)
+    stepwise, setting = _setting_signals(sig, preferred, grid_dt_s, notes)
     limiting, decimation = _decimation({k: preferred[k] for k in setting}, targets, max_hold,
-                                       dt_s, notes, measured)
+                                       grid_dt_s, notes, measured)
     n_inputs = sum(r == "input" for r in role.values())
     n_search = n if n_search_samples is None else int(n_search_samples)
-    final, reason = _search_decimation(decimation, n_search, n_inputs, n_p_min, dt_s)
+    final, reason = _search_decimation(decimation, n_search, n_inputs, n_p_min, grid_dt_s)
     return SamplePeriodChoice(
-        dt_s=final * float(dt_s), decimation=final, record_dt_s=float(dt_s),
+        dt_s=sample_period_s(final, grid_dt_s), decimation=final, grid_dt_s=float(grid_dt_s),
         alpha_t=_alpha_at_decimation(measured, final), preferred_dt_s=preferred,
         targets=targets, roles=role, limiting_signal=limiting, notes=tuple(notes),
         measured_on={k: m.measured_on for k, m in measured.items()}, stepwise=stepwise,
-        alpha_t_dt_s=decimation * float(dt_s), reduced_reason=reason)
+        alpha_t_dt_s=sample_period_s(decimation, grid_dt_s), reduced_reason=reason)
 
 
 def _max_hold(n: int, max_hold_samples: int | None) -> int:

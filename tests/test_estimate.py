@@ -153,7 +153,7 @@ def test_thesis_first_experiment_nd_twice_np_noise_free():
     G = ct.tf([1.0], [tau, 1.0])
     y = ct.forced_response(ct.sample_system(G, dt_f, "foh"), T=np.arange(n) * dt_f, U=x).outputs
     # the thesis chose T from the input's alpha_T
-    choice = choose_sample_period({"x": x}, dt_s=dt_f, roles={"x": "input"}, target_input=0.05)
+    choice = choose_sample_period({"x": x}, grid_dt_s=dt_f, roles={"x": "input"}, target_input=0.05)
     T = choice.dt_s
     assert 0.08 < w0 * T < 0.11  # alpha_T = 5 % <-> w0 T ~ 0.1 (method.md §3)
     xs = resample_average(x, choice.decimation)
@@ -168,7 +168,7 @@ def test_thesis_first_experiment_nd_twice_np_noise_free():
 
 
 # ------------------------------------------------- must-show 3: the variance formula
-@pytest.mark.slow
+@pytest.mark.statistical
 def test_noise_spread_matches_variance_formula_and_band_coverage():
     """200 seeded repetitions, sigma_n^2/sigma_x^2 = 0.01, AR(1) input with pole r.
 

@@ -35,7 +35,7 @@ def chain():
     signals = {**{n: x[:, i] for i, n in enumerate(INPUTS)},
                **{n: y[:, i] for i, n in enumerate(OUTPUTS)}}
     roles = {**{n: "input" for n in INPUTS}, **{n: "output" for n in OUTPUTS}}
-    choice = choose_sample_period(signals, dt_s=3.0, roles=roles)
+    choice = choose_sample_period(signals, grid_dt_s=3.0, roles=roles)
     xs = resample_average(x, choice.decimation)
     ys = resample_average(y, choice.decimation)
     cond = condition(xs, ys, method="detrend", dt_s=choice.dt_s)

@@ -175,7 +175,7 @@ def test_choose_sample_period_five_percent_gives_omega0_t_about_0_1():
     """
     omega0, dt = 2.0, 1e-3
     x = first_order_ou(2**22, omega0 * dt, np.random.default_rng(11))
-    choice = choose_sample_period({"u": x}, dt_s=dt, roles={"u": "input"})
+    choice = choose_sample_period({"u": x}, grid_dt_s=dt, roles={"u": "input"})
     t_true = scipy.optimize.brentq(lambda z: alpha_t_first_order(z) - 0.05, 1e-3, 1.0) / omega0
     assert choice.preferred_dt_s["u"] == pytest.approx(t_true, rel=0.06)
     assert -0.08 < choice.dt_s / t_true - 1 < 0.06
@@ -206,7 +206,7 @@ def test_choose_sample_period_takes_smallest_period_over_channels():
     }
     detrend_bias = {k: -4 / (w0 * n * dt) for k, w0 in omega0.items()}
     roles = {"u": "input", "y_slow": "output", "y_fast": "output"}
-    first = choose_sample_period(sig, dt_s=dt, roles=roles)
+    first = choose_sample_period(sig, grid_dt_s=dt, roles=roles)
     assert first.limiting_signal == "u"
     assert first.targets == {"u": 0.05, "y_slow": 0.01}
     for k in sig:
@@ -214,7 +214,7 @@ def test_choose_sample_period_takes_smallest_period_over_channels():
     assert first.decimation == int(np.floor(first.preferred_dt_s["u"] / dt))
 
     sig["y_fast"] = first_order_multisine(n, omega0["y_fast"] * dt, rng)
-    second = choose_sample_period(sig, dt_s=dt, roles=roles)
+    second = choose_sample_period(sig, grid_dt_s=dt, roles=roles)
     assert second.limiting_signal == "y_fast"
     rel = second.preferred_dt_s["y_fast"] / closed["y_fast"] - 1
     assert abs(rel - detrend_bias["y_fast"]) < 0.025
@@ -233,10 +233,10 @@ def test_choose_sample_period_array_input_and_trend_removal():
     x = first_order_ou(100_000, 2.0 * dt, rng)
     y = first_order_ou(100_000, 0.5 * dt, rng)
     t = np.arange(x.size) * dt
-    base = choose_sample_period({"x": x, "y": y}, dt_s=dt, roles=["input", "output"])
+    base = choose_sample_period({"x": x, "y": y}, grid_dt_s=dt, roles=["input", "output"])
     trended = choose_sample_period(
         np.column_stack([x + 50 + 0.3 * t, y - 2 * t]),
-        dt_s=dt,
+        grid_dt_s=dt,
         roles=["input", "output"],
         names=["x", "y"],
     )
@@ -249,7 +249,7 @@ def test_choose_sample_period_array_input_and_trend_removal():
 def test_choose_sample_period_record_too_slow_uses_record_dt():
     """White noise: α_T ≈ 1 for any hold (far above 1 %), so T = record dt with a note."""
     x = np.random.default_rng(2).standard_normal(10_000)
-    choice = choose_sample_period({"y": x}, dt_s=0.5, roles={"y": "output"})
+    choice = choose_sample_period({"y": x}, grid_dt_s=0.5, roles={"y": "output"})
     assert choice.dt_s == 0.5 and choice.decimation == 1
     assert any("sampled too slowly" in note for note in choice.notes)
     # α at the hold T/2 = dt/2 is half-way between hold 1 (α=0) and hold 2 (α≈1).
@@ -259,7 +259,7 @@ def test_choose_sample_period_record_too_slow_uses_record_dt():
 def test_choose_sample_period_target_not_reached():
     """A very slow signal stays below target over the holds examined."""
     x = first_order_ou(4000, 1e-5, np.random.default_rng(4)) + np.sin(np.arange(4000) * 1e-3)
-    choice = choose_sample_period({"u": x}, dt_s=1.0, roles={"u": "input"}, max_hold_samples=10)
+    choice = choose_sample_period({"u": x}, grid_dt_s=1.0, roles={"u": "input"}, max_hold_samples=10)
     assert np.isinf(choice.preferred_dt_s["u"])
     assert choice.decimation == 18  # 2 (max_hold - 1)
     assert any("no signal reaches" in note for note in choice.notes)
@@ -269,19 +269,19 @@ def test_choose_sample_period_target_not_reached():
 def test_choose_sample_period_errors():
     x = np.random.default_rng(0).standard_normal(1000)
     with pytest.raises(ConfigError, match="unknown role.*'sensor'"):
-        choose_sample_period({"x": x}, dt_s=1.0, roles={"x": "sensor"})
+        choose_sample_period({"x": x}, grid_dt_s=1.0, roles={"x": "sensor"})
     with pytest.raises(ConfigError, match="roles has no entry for signal"):
-        choose_sample_period({"x": x}, dt_s=1.0, roles={})
+        choose_sample_period({"x": x}, grid_dt_s=1.0, roles={})
     with pytest.raises(ConfigError, match="dt_s must be a positive number"):
-        choose_sample_period({"x": x}, dt_s=0.0, roles=["input"])
+        choose_sample_period({"x": x}, grid_dt_s=0.0, roles=["input"])
     with pytest.raises(ConfigError, match="target_output must lie in"):
-        choose_sample_period({"x": x}, dt_s=1.0, roles=["input"], target_output=5)
+        choose_sample_period({"x": x}, grid_dt_s=1.0, roles=["input"], target_output=5)
     with pytest.raises(ConfigError, match="needs names="):
-        choose_sample_period(np.column_stack([x, x]), dt_s=1.0, roles=["input", "output"])
+        choose_sample_period(np.column_stack([x, x]), grid_dt_s=1.0, roles=["input", "output"])
     with pytest.raises(DataQualityError, match="signal 'c' is constant"):
-        choose_sample_period({"x": x, "c": np.full(1000, 3.0)}, dt_s=1.0, roles=["input"] * 2)
+        choose_sample_period({"x": x, "c": np.full(1000, 3.0)}, grid_dt_s=1.0, roles=["input"] * 2)
     with pytest.raises(DataQualityError, match="same length"):
-        choose_sample_period({"x": x, "y": x[:500]}, dt_s=1.0, roles=["input"] * 2)
+        choose_sample_period({"x": x, "y": x[:500]}, grid_dt_s=1.0, roles=["input"] * 2)
 
 
 # ----------------------------------------------------------------------- resampling

@@ -134,20 +134,20 @@ def test_first_difference_of_an_integrating_output_sets_t(t_noise_free_s):
     down), well under TAU/3; measured on the level itself it would be over 20 s."""
     sig = simulate_drum(seed=6_400_001, noise_cm=0.0)
     assert 3.0 < t_noise_free_s < T_BOUND_S
-    choice = choose_sample_period(sig, dt_s=1.0, roles=ROLES, integrating={"level": True})
+    choice = choose_sample_period(sig, grid_dt_s=1.0, roles=ROLES, integrating={"level": True})
     assert choice.limiting_signal == "level"
     assert choice.measured_on["level"] == "first difference"
     assert choice.preferred_dt_s["level"] == pytest.approx(t_noise_free_s, rel=0.02)
     assert choice.dt_s == np.floor(t_noise_free_s)
     assert choice.to_dict()["measured_on"]["level"] == "first difference"
-    old = choose_sample_period(sig, dt_s=1.0, roles=ROLES)  # the level as a plain signal
+    old = choose_sample_period(sig, grid_dt_s=1.0, roles=ROLES)  # the level as a plain signal
     assert old.dt_s > 20.0 and old.measured_on["level"] == "signal"
 
 
 def test_sensor_noise_neither_pins_t_to_the_record_nor_hides_the_swell(drum, t_noise_free_s):
     """With 2 mm of level noise α_T of Δy is the noise's (T far below 1 s); measured above
     the noise floor T stays between the noise-free answer (rounded down) and TAU/3."""
-    choice = choose_sample_period(drum, dt_s=1.0, roles=ROLES, integrating={"level": True})
+    choice = choose_sample_period(drum, grid_dt_s=1.0, roles=ROLES, integrating={"level": True})
     assert choice.measured_on["level"] == "first difference above the noise floor"
     assert np.floor(t_noise_free_s) <= choice.dt_s <= T_BOUND_S
     assert any("above that floor" in n for n in choice.notes)
@@ -157,7 +157,7 @@ def test_a_random_walk_level_is_not_mistaken_for_noise():
     """A level whose rate is white (a random walk, no sensor noise) needs T < dt: the
     record period with a 'too slowly' note, not a long T invented by the noise floor."""
     lvl = np.cumsum(np.random.default_rng(3).standard_normal(20_000))
-    choice = choose_sample_period({"level": lvl}, dt_s=1.0, roles={"level": "output"},
+    choice = choose_sample_period({"level": lvl}, grid_dt_s=1.0, roles={"level": "output"},
                                   integrating={"level": True})
     assert choice.decimation == 1
     assert any("too slowly" in n for n in choice.notes)
@@ -165,9 +165,9 @@ def test_a_random_walk_level_is_not_mistaken_for_noise():
 
 def test_integrating_applies_to_named_outputs_only(drum):
     with pytest.raises(ConfigError, match="only outputs integrate"):
-        choose_sample_period(drum, dt_s=1.0, roles=ROLES, integrating={"steam_flow": True})
+        choose_sample_period(drum, grid_dt_s=1.0, roles=ROLES, integrating={"steam_flow": True})
     with pytest.raises(ConfigError, match="not among the signals.*allowed: level"):
-        choose_sample_period(drum, dt_s=1.0, roles=ROLES, integrating={"drum": True})
+        choose_sample_period(drum, grid_dt_s=1.0, roles=ROLES, integrating={"drum": True})
 
 
 # ------------------------------------------------------------------ step-wise signals
@@ -189,7 +189,7 @@ def test_a_held_setpoint_does_not_set_t():
     n = 2**17
     sig = {"u": first_order_multisine(n, 0.01, rng), "sp": _setpoint(n, 20, rng)}
     assert np.mean(np.diff(sig["sp"]) == 0) > 0.9  # held: most samples unchanged
-    choice = choose_sample_period(sig, dt_s=1.0, roles={"u": "input", "sp": "input"})
+    choice = choose_sample_period(sig, grid_dt_s=1.0, roles={"u": "input", "sp": "input"})
     assert choice.stepwise == ("sp",)
     assert choice.preferred_dt_s["sp"] < 2.0  # it would have forced T to the record's
     assert choice.limiting_signal == "u"
@@ -198,7 +198,7 @@ def test_a_held_setpoint_does_not_set_t():
     assert any("do not set T" in n for n in choice.notes)
     assert choice.to_dict()["stepwise"] == ["sp"]
     # nothing continuous: the step-wise signals set T, and a note says what that means
-    alone = choose_sample_period({"sp": sig["sp"]}, dt_s=1.0, roles={"sp": "input"})
+    alone = choose_sample_period({"sp": sig["sp"]}, grid_dt_s=1.0, roles={"sp": "input"})
     assert alone.limiting_signal == "sp" and alone.decimation == 1
     assert any("every signal is step-wise" in n for n in alone.notes)
 
@@ -220,7 +220,7 @@ def test_a_record_too_short_for_the_search_gets_a_shorter_t():
     rng = np.random.default_rng(8)
     sig = {k: first_order_multisine(1000, 0.005, rng) for k in ("u1", "u2")}
     roles = {"u1": "input", "u2": "input"}
-    choice = choose_sample_period(sig, dt_s=2.0, roles=roles)
+    choice = choose_sample_period(sig, grid_dt_s=2.0, roles=roles)
     assert choice.alpha_t_dt_s >= 2.0 * 9  # the α_T choice did not fit
     assert choice.decimation == 8 and choice.dt_s == 16.0
     assert "fewer than the 123 the N_p search needs" in choice.reduced_reason
@@ -229,10 +229,10 @@ def test_a_record_too_short_for_the_search_gets_a_shorter_t():
     assert d["reduced_reason"] == choice.reduced_reason and d["alpha_t_dt_s"] > d["dt_s"]
     assert "shorter than the α_T choice" in str(choice)
     # the whole record the search sees is longer than the stretch α_T was measured on
-    roomy = choose_sample_period(sig, dt_s=2.0, roles=roles, n_search_samples=10_000)
+    roomy = choose_sample_period(sig, grid_dt_s=2.0, roles=roles, n_search_samples=10_000)
     assert roomy.reduced_reason is None and roomy.dt_s == roomy.alpha_t_dt_s
     # not even the record period fits: T = dt and the reason says so
-    short = choose_sample_period({k: v[:100] for k, v in sig.items()}, dt_s=2.0,
+    short = choose_sample_period({k: v[:100] for k, v in sig.items()}, grid_dt_s=2.0,
                                  roles=roles, max_hold_samples=5)
     assert short.decimation == 1 and "even the record period" in short.reduced_reason
 
