@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import binom
 
 from pipeline.conditioning import condition
 from pipeline.estimate import estimate_step_responses
@@ -32,6 +33,7 @@ from tests.plants import (LEVEL_NOISES, open_level_record, open_loop_record,
 
 N = 20_000
 RECORDS = 40  # module notes
+SEARCH_RECORDS = 20  # the search test's records (its notes)
 N_P = 60  # 0.9^59 < 0.2 %: the plant has settled
 TRUTH = pi_loop_truth(N_P)
 
@@ -42,7 +44,7 @@ def _gain_error_and_coverage(est) -> tuple[float, float, bool]:
             bool(abs(s[-1] - TRUTH[-1]) <= 2 * sd[-1]))
 
 
-@pytest.mark.slow
+@pytest.mark.statistical
 def test_direct_estimate_with_noise_model_and_known_delay_is_consistent():
     rows = {"white": [], "auto": [], "iv": []}
     for k in range(RECORDS):
@@ -67,11 +69,13 @@ def test_direct_estimate_with_noise_model_and_known_delay_is_consistent():
     assert stats["iv"][1] >= 0.85 and stats["iv"][2] >= 0.85
 
 
-@pytest.mark.slow
+@pytest.mark.statistical
 def test_search_detects_the_loop_and_fixes_the_same_sample_term():
-    """Through the search a job runs: feedback detected, n_k = 1 set, gain right."""
+    """Through the search a job runs: feedback detected, n_k = 1 set, gain right.
+    ``SEARCH_RECORDS`` records: at a true detection rate of 99 % fewer than 18 of 20 is
+    a 0.1 % event (binomial)."""
     detected, errors, n_k = [], [], []
-    for k in range(RECORDS):
+    for k in range(SEARCH_RECORDS):
         u, y, _ = pi_loop_record(N, 0.9, 3_200_000 + k)
         sr = search(u, y, dt=1.0, noise="auto", feedback="auto", n_p=N_P)
         fb = sr.feedback[0][0]
@@ -80,7 +84,7 @@ def test_search_detects_the_loop_and_fixes_the_same_sample_term():
         est = estimate_step_responses(u, y, n_p=sr.n_p, dt=1.0, noise="auto", n_k=sr.n_k)
         errors.append(abs(est.step[0, 0, -1] - 1.0))
     print(f"detected {np.mean(detected):.0%}, median gain error {np.median(errors):.1%}")
-    assert np.mean(detected) >= 0.95
+    assert sum(detected) >= binom.ppf(0.01, SEARCH_RECORDS, 0.99)  # 18 of 20
     assert all(nk == 1 for nk, d in zip(n_k, detected) if d)
     assert np.median(errors) <= 0.05
 

@@ -23,9 +23,11 @@ so roughly 40 independent draws) has a standard error of about 3.5 %, so the CI 
 checks the side users are hurt by — bands too narrow — at 88 %: a calibrated ±2σ band
 (95.4 %) fails it with probability 2 % per pole, a band at 85 % fails it with probability
 ~80 %; the upper side (bands too wide, 98 %) is the benchmark's, whose 80 records resolve it.
-The false-fail rate is at most 5 % by construction (1 % lag-wise Wald test + 4 % on the
-windows' gains, Bonferroni; issue 32 added the gain part) — binomial at 5 %: P(more than
-7 of 40) < 0.3 %.  The gain-change detection needs 90 % and the agreement test is built
+The CI sample runs the two strongly coloured poles (0.9, 0.97) for the bands and the
+most coloured one for the gain change, where the white estimate fails and detection is
+hardest; the benchmark runs 0.5 as well.  The false-fail rate is at most 5 % by
+construction (1 % lag-wise Wald test + 4 % on the windows' gains, Bonferroni; issue 32
+added the gain part) — binomial at 5 %: P(more than 7 of 40) < 0.3 %.  The gain-change detection needs 90 % and the agreement test is built
 for 90 % power at the chosen N_d (measured 100 % on 80 records; at a power of 0.99,
 P(fewer than 18 of 20) < 0.2 %).
 """
@@ -89,8 +91,8 @@ def _run(phi: float, seed0: int, records: int = RECORDS) -> dict:
             "err_arx": float(np.median(err_arx))}
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("phi,seed0", [(0.5, 2_100_000), (0.9, 2_200_000), (0.97, 2_300_000)])
+@pytest.mark.statistical
+@pytest.mark.parametrize("phi,seed0", [(0.9, 2_200_000), (0.97, 2_300_000)])
 def test_auto_bands_cover_the_truth_and_windows_agree(phi, seed0):
     r = _run(phi, seed0)
     print(f"phi={phi}: {r}")
@@ -103,8 +105,8 @@ def test_auto_bands_cover_the_truth_and_windows_agree(phi, seed0):
     assert r["ratio_arx"] <= 1.2
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("phi,seed0", [(0.5, 2_400_000), (0.9, 2_500_000), (0.97, 2_600_000)])
+@pytest.mark.statistical
+@pytest.mark.parametrize("phi,seed0", [(0.97, 2_600_000)])
 def test_a_30_percent_gain_change_fails_the_window_agreement(phi, seed0):
     rate = change_detection(phi, seed0)
     assert rate >= 0.90

@@ -16,6 +16,7 @@ are ~0.4 %, so 3 % is many σ — the tolerance is the must-show's).
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 
 from pipeline.characteristics import integrating_characteristics
@@ -29,6 +30,7 @@ H_STEAM, H_FEED = drum_truth(N_P)
 PEAK = float(H_STEAM.max())
 
 
+@pytest.mark.statistical
 def test_auto_recovers_the_wrong_way_peak_and_the_rates_with_calibrated_bands():
     peak_ok, rate_ok, cover, rate_cover, forms, sd_white = [], [], [], [], set(), []
     for k in range(RECORDS):

@@ -169,6 +169,7 @@ def _record(seed: int):
     return u, y, np.cumsum(h)
 
 
+@pytest.mark.statistical
 def test_long_horizon_with_coloured_noise_is_closer_than_least_squares_and_calibrated():
     """First-order plant, gain 2, tau = 40 samples, dead time 3 (unknown to the
     estimator), white unit input, AR(1) 0.9 noise of s.d. 0.69 (the plant's output has

@@ -15,6 +15,7 @@ Binomial bounds on 60 records: false fails ≤ 8 (the 99 % bound at 5 %), detect
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.signal as ss
 
 from pipeline.checks import window_agreement
@@ -40,6 +41,7 @@ def _verdict(seed: int, gain_b: float):
     return a.verdict, sd
 
 
+@pytest.mark.statistical
 def test_window_gain_check_false_fail_rate_and_power():
     null = [_verdict(10_000 + s, 1.0) for s in range(RECORDS)]
     fails = sum(v == "fail" for v, _ in null)
