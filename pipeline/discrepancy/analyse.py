@@ -651,5 +651,5 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         candidates, findings, lookalike_margin=config.lookalike_margin,
         lookalike_gap=config.lookalike_gap,
         distinguishable=lambda a, b, margin: distinguishable(
-            shapes[id(a)], shapes[id(b)], margin=margin, seed=seed))
+            shapes[id(a)], shapes[id(b)], c_nom, margin=margin, seed=seed + 7919))
     return candidates, verdict, effect, group, minor
