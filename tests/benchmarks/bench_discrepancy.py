@@ -494,7 +494,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--keep", default=None, help="zoo: keep every trial's folder here")
     parser.add_argument("--jsonl", default=None, help="zoo: append each trial's row here")
     parser.add_argument("--seed0", type=int, default=None,
-                        help="zoo: first seed (default ZOO_SEED0; fresh seeds for a new run)")
+                        help="first seed (default: the suite's SUITE_SEED0 or ZOO_SEED0; "
+                        "fresh seeds for a new run)")
     args = parser.parse_args(argv)
     defaults = {"clean": (50, 50), "nuisance": (50, 100), "pairs": (100, 0)}
     for suite in ([] if args.timing_only else SUITES if args.suite == "all" else [args.suite]):
@@ -504,7 +505,8 @@ def main(argv: list[str] | None = None) -> int:
         trials, nulls = defaults[suite]
         trials = trials if args.trials is None else args.trials
         nulls = nulls if args.nulls is None else args.nulls
-        seed0 = (TUNE_SEED0 if args.tune else SUITE_SEED0)[suite]
+        seed0 = (args.seed0 if args.seed0 is not None
+                 else (TUNE_SEED0 if args.tune else SUITE_SEED0)[suite])
         start = time.perf_counter()
         jobs = suite_jobs(suite, trials, nulls, seed0, tuple(args.effects))
         results = run_jobs(jobs, workers=args.workers, label=f"{suite} suite")
