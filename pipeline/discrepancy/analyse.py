@@ -38,6 +38,7 @@ from pipeline.discrepancy.select import (
     same_class,
 )
 from pipeline.effects import (
+    EFFECT_PARAMETERS,
     Effect,
     apply_effect,
     degenerate_forms,
@@ -333,7 +334,8 @@ def _degenerate_refits(fitted: list) -> list[Fit]:
     if not fitted:
         return []
     fit = min(fitted, key=lambda f: f[1])[0]
-    return [Fit(form, 1, fit.screening_score, None) for form in degenerate_forms(fit.effect)]
+    return [Fit(form, len(EFFECT_PARAMETERS[form.name]), fit.screening_score, None)
+            for form in degenerate_forms(fit.effect)]
 
 
 #: Classes screened orthogonally to the prior effects' sensitivities that a later search
