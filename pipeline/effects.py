@@ -245,14 +245,21 @@ def degenerate_forms(effect: Effect) -> tuple[Effect, ...]:
     tuple of Effect
         Its degenerate forms (empty for effects whose only limit is the null).
     """
+    return tuple(form for form, _ in _declared_forms(effect))
+
+
+def _declared_forms(effect: Effect) -> list[tuple[Effect, str]]:
+    """:func:`degenerate_forms` with each form's kind (:func:`degenerate_kind`): the one
+    place the nesting is declared."""
     if effect.name != "inverse_response":
-        return ()
+        return []
     tau, magnitude = float(effect.parameters["tau_s"]), float(effect.parameters["magnitude"])
     at = (effect.location, effect.equivalent_locations)
-    forms = [Effect("extra_lag", at[0], {"tau_s": tau}, at[1])]
+    forms = [(Effect("extra_lag", at[0], {"tau_s": tau}, at[1]), "exact")]
     if abs(magnitude - 1.0) <= PADE_MAGNITUDE:
-        forms.append(Effect("dead_time", at[0], {"delay_s": tau * (1.0 + magnitude)}, at[1]))
-    return tuple(forms)
+        forms.append((Effect("dead_time", at[0], {"delay_s": tau * (1.0 + magnitude)}, at[1]),
+                      "approximant"))
+    return forms
 
 
 def degenerate_kind(richer: Effect, simpler: Effect) -> str | None:
@@ -270,9 +277,9 @@ def degenerate_kind(richer: Effect, simpler: Effect) -> str | None:
     -------
     str or None
     """
-    for form in degenerate_forms(richer):
+    for form, kind in _declared_forms(richer):
         if form.name == simpler.name and form.places & simpler.places:
-            return "approximant" if form.name == "dead_time" else "exact"
+            return kind
     return None
 
 
