@@ -15,8 +15,8 @@ sense of Hastie and Tibshirani's additive models: each term refitted to the part
 residual of the others).  Later searches also refit jointly the first search's best
 candidates at other locations (:data:`N_CARRIED`); a chain that stays at one effect while
 some of those remain significant but minor tries them as the first of a confirmed pair
-(:data:`N_REPLACED`); a first search that accepts nothing tries its strong candidates that
-failed on held-out data the same way (:data:`N_MASKED`).
+(:data:`N_REPLACED`); a first search that accepts nothing tries its strong candidates --
+failed on held-out data, or too small alone -- the same way (:data:`N_MASKED`).
 
 Effects are kept with locations in the NOMINAL model's names
 (:func:`pipeline.effects.original_location`) and applied to it in order; a later
@@ -48,16 +48,21 @@ StepFn = Callable[[tuple[Effect, ...], Model, Mapping[str, np.ndarray], tuple[Ca
                   DiscrepancyResult]
 
 
-#: Masked pairs: when the first search finds nothing, its best candidates (at most this
-#: many, criterion order) that fit the fit part significantly (``bic_margin``) but fail on
-#: held-out data are each tried as a provisional first effect.  Two effects can mask each
-#: other on held-out data -- a hidden saturation fitted to its true limits left 9 % MORE of
-#: the held-out gap while the hidden operating-point gain beside it was not in the model
-#: (their errors cancel where the record ends).  The provisional effect is kept only when
-#: the search on the model with it accepts an effect of another class AND the search on
-#: the model with that one alone accepts the provisional class again: each of the two then
-#: passed every held-out test given the other, and together they must close
-#: ``min_gap_reduction`` of the nominal model's held-out gap.
+#: Masked pairs: when the first search names nothing, its best candidates (at most this
+#: many, criterion order) that fit the fit part significantly (``bic_margin``) are each
+#: tried as a provisional first effect -- whether they failed on held-out data, passed but
+#: closed too little of the gap to be named, or passed behind a better fit that failed.
+#: Two effects can mask each other on held-out data -- a hidden saturation fitted to its
+#: true limits left 9 % MORE of the held-out gap while the hidden operating-point gain
+#: beside it was not in the model (their errors cancel where the record ends) -- and each
+#: of two effects can be too small alone: on a noisy pair trial (pairs seed 2 000 012) the
+#: hidden controller gain closed 10.4 % of the gap with a lower bound of 4.7 % (below the
+#: 5 % bar), the hidden operating-point gain 7.7 % (3.7 %), yet given the gain the
+#: operating-point gain closed 19 % (13 %).  The provisional effect is kept only when the
+#: search on the model with it accepts an effect of another class AND the search on the
+#: model with that one alone accepts the provisional class again: each of the two then
+#: passed every held-out test, at its practical size, given the other, and together they
+#: must close ``min_gap_reduction`` of the nominal model's held-out gap.
 N_MASKED = 2
 
 #: Carried candidates: a later search also refits jointly (with the chain's effects) the
@@ -516,14 +521,15 @@ class Chain:
 
     def _masked(self, first: DiscrepancyResult, budget: int
                 ) -> tuple[list[Link], DiscrepancyResult, int]:
-        """Two effects that mask each other on held-out data (see :data:`N_MASKED`): the
+        """Two effects that mask each other or are too small alone (see
+        :data:`N_MASKED`): the
         confirmed pair as links (none: ``[]``), the search that ended and the budget
         left.  Together they must close ``min_gap_reduction`` of the nominal gap."""
         ref = first.gap["holdout_rms_before"]
-        masked = [c for c in first.candidates if not c.passed
-                  and c.delta_bic >= self.config.bic_margin][:N_MASKED]
+        masked = [c for c in first.candidates
+                  if c.delta_bic >= self.config.bic_margin][:N_MASKED]
         for cand in masked:
-            self.say("chain", f"{cand.effect.describe()} fits but fails on held-out data: "
+            self.say("chain", f"{cand.effect.describe()} fits but is not named alone: "
                      "searching for an effect that masks it")
             pair, budget = self._pair(cand, budget,
                                       (1.0 - self.config.min_gap_reduction) * ref)
