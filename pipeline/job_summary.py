@@ -153,6 +153,7 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
            agreement: list, n_windows: int, x0: np.ndarray, innov: np.ndarray):
     """Per pair its results, warnings and metric rows; per output the whiteness of its
     prediction errors; per pair the input cross-correlation check."""
+    from pipeline.lti_fit import model_record, reported_model
     from pipeline.verdicts import end_jump_z, pair_warnings
 
     ins, outs = prep.inputs, prep.outputs
@@ -200,6 +201,12 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
                     "peak": None if integ else float(np.max(np.abs(all_est.step[i, j, :n]))),
                     "method": all_est.method,
                     "agreement": agr, "feedback": fbd, "characteristics": chars}
+            # the transfer function the export writes, fitted once here (one rule:
+            # lti_fit.reported_model; the export and report.html read this record)
+            pair["transfer_function"] = model_record(reported_model(
+                all_est.step[i, j, :n], dt_s=all_est.dt, step_std=all_est.step_std[i, j, :n],
+                integrating=integ, value=final, std=final_std,
+                label=f"{o}<-{u} ({st.verdict or 'not judged'} at its horizon of {n} lags)"))
             if chars.get("gain") is not None and not integ:
                 # characteristics read the curve at the horizon; the reported gain (and
                 # its σ) is the settledness verdict's — one number everywhere

@@ -24,22 +24,22 @@ response together with ``θ`` (coefficients of ``σ = s/ω_ref``, ``ω_ref`` tha
 fit).  Every fit minimises the plain sum of squared step errors over the lags — the
 quantity reported as its error.
 
-Choice rule.  ``noise_rms`` is the RMS of ``step_std`` over the lags; the tolerance is
-``2·noise_rms``.  Candidates are tried in the order above and the first whose RMS misfit
-is within the tolerance is taken: it reproduces the estimate within its own uncertainty, and
-a model with more parameters would fit the noise.  When none is, the simplest candidate
-whose misfit is within 20 % of the smallest is taken (a more complex model must buy a
-clear improvement).  Rational fits with a pole in the closed right half plane are never
-taken for a self-regulating pair.  Integrating pairs (outputs declared ``integrating``)
-get the one model of :func:`pipeline.characteristics.integrating_characteristics`,
-``K (1 - T_a s) e^{-T_d s} / (s (1 + T_1 s)(1 + T_2 s))`` (its time axis shifted by
-``dt/2``; time constants under ``1e-3·dt`` set to 0).
+Choice rule. ``noise_rms`` is the RMS of ``step_std`` over the lags; the tolerance is
+``2·noise_rms``. Candidates are tried in the order above and the first whose RMS misfit is
+within the tolerance is taken: it reproduces the estimate within its own uncertainty, and a
+model with more parameters would fit the noise. When none is, the simplest candidate whose
+misfit is within 20 % of the smallest is taken (a more complex model must buy a clear
+improvement). Rational fits with a pole in the closed right half plane are never taken for a
+self-regulating pair. Integrating pairs (outputs declared ``integrating``) get the one model
+of :func:`pipeline.characteristics.integrating_characteristics`, ``K (1 - T_a s) e^{-T_d s}
+/ (s (1 + T_1 s)(1 + T_2 s))`` (its time axis shifted by ``dt/2``; time constants under
+``1e-3·dt`` set to 0).
 
-Error of a fit: ``fit_rms = sqrt(mean((model - step)²))`` over the stored lags (output
-units per input unit), evaluated by the exact sampled form below, and ``fit_rms_rel =
-fit_rms / max|step|`` — relative to the largest value of the response rather than its
-final value, which is zero for a response that returns (a controlled pressure's response to
-a load) and equals it for a monotone response.
+Error of a fit: ``fit_rms = sqrt(mean((model - step)²))`` over the stored lags (output units
+per input unit), evaluated by the exact sampled form below, and ``fit_rms_rel = fit_rms /
+max|step|`` — relative to the largest value of the response rather than its final value,
+which is zero for a response that returns (a controlled pressure's response to a load) and
+equals it for a monotone response.
 
 Exact sampled form (:func:`zoh_with_delay`).  For a piecewise-constant input the
 zero-order-hold discretisation of ``N/D·e^{-θs}`` is exact at the sample instants also for a
@@ -70,18 +70,9 @@ from pipeline.characteristics import finite_or_none, integrating_characteristics
 from pipeline.errors import ConfigError, DataQualityError, PipelineError
 from pipeline.frequency import fit_transfer_function, frequency_response_from_step
 
-__all__ = [
-    "RATIONAL_DEGREES",
-    "StepModelFit",
-    "fit_step_model",
-    "gain_mismatch",
-    "reported_model",
-    "fopdt_step",
-    "sopdt_step",
-    "rational_step",
-    "zoh_with_delay",
-    "sampled_step",
-]
+__all__ = ["RATIONAL_DEGREES", "StepModelFit", "fit_step_model", "gain_mismatch",
+           "reported_model", "model_record", "fopdt_step", "sopdt_step", "rational_step",
+           "zoh_with_delay", "sampled_step"]
 
 RATIONAL_DEGREES = ((2, 1), (3, 0), (2, 2), (3, 1), (3, 2), (3, 3))
 """(n, m) of the rational candidates, in the order they are tried."""
@@ -147,6 +138,22 @@ class StepModelFit:
             "within_noise": bool(self.within_noise), "rule": self.rule,
             "trials": list(self.trials),
         }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> StepModelFit:
+        """The fit :meth:`to_dict` wrote (None read as NaN).
+
+        Parameters
+        ----------
+        d : dict
+        """
+        nan = {k: math.nan if d.get(k) is None else float(d[k])
+               for k in ("fit_rms", "fit_rms_rel", "noise_rms")}
+        return cls(kind=str(d["kind"]), num=np.asarray(d["num"], dtype=float),
+                   den=np.asarray(d["den"], dtype=float), delay_s=float(d["delay_s"]),
+                   parameters=dict(d["parameters"]), tolerance=float(d["tolerance"]),
+                   within_noise=bool(d["within_noise"]), rule=str(d["rule"]),
+                   trials=tuple(d.get("trials") or ()), **nan)
 
     def __str__(self) -> str:
         extra = "" if self.kind != "rational" else \
@@ -742,11 +749,13 @@ def gain_mismatch(fit: StepModelFit, *, value: float | None, std: float | None,
 
 
 def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = False,
-                   value: float | None, std: float | None, label: str = "the pair"
-                   ) -> StepModelFit | str:
+                   value: float | None, std: float | None, label: str = "the pair",
+                   stored: dict | None = None) -> StepModelFit | str:
     """The transfer function ``plantdyn export`` writes for a pair: :func:`fit_step_model`
     when it is the reported model (:func:`gain_mismatch`), else why not (the fit's error
-    or the mismatch) — one rule for the export and report.html's overlay.
+    or the mismatch) — one rule, fitted once by the run and stored in ``checks.json``
+    (:func:`model_record`); the export and report.html's overlay pass that record as
+    `stored` (runs written before it was stored are fitted here).
 
     Parameters
     ----------
@@ -760,9 +769,13 @@ def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = Fals
         The reported gain (rate) and its σ.
     label : str
         The pair in the message.
+    stored : dict, optional
+        The run's record (:func:`model_record`), when it has one.
     """
     from pipeline.errors import PipelineError
 
+    if stored is not None:
+        return stored["left_out"] if "left_out" in stored else StepModelFit.from_dict(stored)
     try:
         fit = fit_step_model(step, dt_s=dt_s, step_std=step_std, integrating=integrating,
                              rate=value if integrating else None)
@@ -770,3 +783,14 @@ def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = Fals
         return f"no transfer function: {exc}"
     why = gain_mismatch(fit, value=value, std=std, integrating=integrating, label=label)
     return fit if why is None else f"left out: {why}"
+
+
+def model_record(fit: StepModelFit | str) -> dict:
+    """What a run stores of :func:`reported_model`'s answer (``checks.json``
+    ``pairs[].transfer_function``): :meth:`StepModelFit.to_dict` or ``{"left_out": why}``.
+
+    Parameters
+    ----------
+    fit : StepModelFit or str
+    """
+    return {"left_out": fit} if isinstance(fit, str) else fit.to_dict()

@@ -223,6 +223,30 @@ def test_json_holds_everything_in_its_schema(demo):
             (p["output"], p["input"])]
         assert set(p["transfer_function"]) >= {"kind", "num", "den", "delay_s", "fit_rms",
                                                "fit_rms_rel", "discrete", "trials", "rule"}
+        # the model the run stored, as it stored it: the report's overlay reads the same
+        stored = checks[(p["output"], p["input"])]["transfer_function"]
+        assert {k: v for k, v in p["transfer_function"].items() if k != "discrete"} == stored
+
+
+def test_a_run_written_before_runs_stored_their_model_is_fitted_on_export(demo, tmp_path):
+    """Runs of earlier versions have no ``checks.json`` ``pairs[].transfer_function``:
+    the export fits the model by the same rule and writes the same file."""
+    import hashlib
+
+    run_dir, files = demo
+    old = tmp_path / "store" / run_dir.name
+    shutil.copytree(run_dir, old)
+    checks = json.loads((old / "checks.json").read_text())
+    for p in checks["pairs"]:
+        del p["transfer_function"]
+    (old / "checks.json").write_text(json.dumps(checks))
+    manifest = json.loads((old / "manifest.json").read_text())
+    for f in manifest["files"]:
+        if f["name"] == "checks.json":
+            f["sha256"] = hashlib.sha256((old / "checks.json").read_bytes()).hexdigest()
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    refitted = _export(old, "control", tmp_path / "old.control")
+    assert _control_doc(refitted) == _control_doc(files["control"])
 
 
 # ------------------------------------------------------------------------- control

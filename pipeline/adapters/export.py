@@ -136,6 +136,9 @@ class PairData:
         ``checks.json`` ``pairs[].gain_note``.
     gain_extrapolated : dict or None
         ``checks.json`` ``pairs[].gain_extrapolated`` (``rate_extrapolated``).
+    transfer_function : dict or None
+        ``checks.json`` ``pairs[].transfer_function``: the reported model as the run
+        fitted it (None: a run written before runs stored it).
     """
 
     output: str
@@ -156,6 +159,7 @@ class PairData:
     grade: str | None = None
     gain_note: str = ""
     gain_extrapolated: dict | None = None
+    transfer_function: dict | None = None
 
     @property
     def label(self) -> str:
@@ -361,7 +365,8 @@ def read_run(run_dir: str | os.PathLike) -> RunData:
             grade=grade_from_checks(c, checks).grade if c else None,
             gain_note=str(c.get("gain_note") or ""),
             gain_extrapolated=c.get("rate_extrapolated" if c.get("integrating")
-                                    else "gain_extrapolated"))
+                                    else "gain_extrapolated"),
+            transfer_function=c.get("transfer_function"))
     outputs += tuple(o for o, _ in pairs if o not in outputs)
     inputs += tuple(u for _, u in pairs if u not in inputs)
     signals = (manifest.get("config") or {}).get("signals") or {}
@@ -448,8 +453,8 @@ def _text(v: float | None) -> str:
 
 # ----------------------------------------------------------------------------- fits
 def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) -> dict:
-    """Fit a transfer function with dead time to every pair
-    (:func:`pipeline.lti_fit.fit_step_model`).
+    """Every pair's transfer function with dead time: as the run stored it, or fitted
+    for a run written before runs stored it (:func:`pipeline.lti_fit.reported_model`).
 
     Parameters
     ----------
@@ -470,7 +475,7 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
         value, std = (p.rate, p.rate_std) if p.integrating else (p.gain, p.gain_std)
         fits[(p.output, p.input)] = reported_model(
             p.step, dt_s=run.dt_s, step_std=p.step_std, integrating=p.integrating,
-            value=value, std=std,
+            value=value, std=std, stored=p.transfer_function,
             label=f"{p.label} ({p.settled or 'not judged'} at its horizon of {p.n_p} lags)")
         msg = str(fits[(p.output, p.input)])
         if progress is not None:

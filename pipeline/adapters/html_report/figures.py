@@ -74,7 +74,8 @@ def _exported_step(pair: dict, step: np.ndarray, std: np.ndarray, dt_s: float):
 
     key = "rate" if pair.get("integrating") else "gain"
     fit = reported_model(step, dt_s=dt_s, step_std=std, integrating=key == "rate",
-                         value=pair.get(key), std=pair.get(f"{key}_std"))
+                         value=pair.get(key), std=pair.get(f"{key}_std"),
+                         stored=pair.get("transfer_function"))
     if isinstance(fit, str):
         return None
     return sampled_step(fit.num, fit.den, delay_s=fit.delay_s, dt_s=dt_s,
