@@ -69,8 +69,9 @@ def _per_sample_program(model: Model, blocks: Sequence[DiscreteBlock]) -> tuple[
     """Python source of ``run(rows, states, queues, consts)`` for `model`, and constants.
 
     Hand-written code generation because CPython executes straight-line arithmetic on
-    local floats far faster than small numpy operations per block and sample, and no
-    JIT (numba) is available.  Constants are passed in (not printed) so ±inf and every
+    local floats far faster than small numpy operations per block and sample.  (numba
+    is a dependency since the compiled saturation pass, but a program compiled per model
+    structure -- the search simulates hundreds -- has not been tried.)  Constants are passed in (not printed) so ±inf and every
     bit of a float survive.  Per sample: phase 1 computes every block output in
     feedthrough order (delayed and strictly proper blocks from their state only);
     phase 2 updates states and dead-time queues once all inputs are known.
@@ -216,4 +217,5 @@ def per_sample_response(
     # list per sample and took 3x as long on 1e5 samples
     rows = zip(*(col.tolist() for col in u.T)) if u.shape[1] else [()] * u.shape[0]
     out = namespace["run"](rows, states, queues, consts)
-    return np.array(out, dtype=float).reshape(u.shape[0], len(blocks))
+    # fromiter with its count reads a flat list of floats 2.7x faster than np.array
+    return np.fromiter(out, dtype=float, count=len(out)).reshape(u.shape[0], len(blocks))

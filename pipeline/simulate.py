@@ -41,6 +41,7 @@ Initial condition
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -182,7 +183,19 @@ def _delay_samples(model: Model, dt_s: float) -> dict[str, int]:
     return counts
 
 
+# Cached: the discrepancy search simulates a model thousands of times with all but one
+# block unchanged, and each linear block's ZOH discretisation (tf2ss + expm) cost more
+# than the per-sample loop itself.  Blocks are frozen (hashable by value); the cached
+# arrays are read-only.
+@functools.lru_cache(maxsize=4096)
 def _discretise_block(block: Block, dt_s: float, n_delay: int) -> DiscreteBlock:
+    db = _discretised(block, dt_s, n_delay)
+    for arr in (db.a, db.b, db.c):
+        arr.flags.writeable = False
+    return db
+
+
+def _discretised(block: Block, dt_s: float, n_delay: int) -> DiscreteBlock:
     if not block.LINEAR:
         empty = np.zeros((0, 0))
         return DiscreteBlock(block, empty, np.zeros(0), np.zeros(0), 0.0, 0)
