@@ -27,8 +27,8 @@ Two exact paths
     interconnection is assembled into ONE discrete state-space system
     (:func:`discrete_state_space`) and simulated in lifted form, ``chunk`` samples per
     matrix product (see :func:`_lifted_response`), which is vectorised.
-    ``"per_sample"`` (any model): straight-line Python code over plain floats is
-    generated for the model and run once per sample.  ``"auto"`` picks ``"linear"``
+    ``"per_sample"`` (any model): one compiled kernel runs the blocks sample by sample
+    (:mod:`pipeline.sample_program`).  ``"auto"`` picks ``"linear"``
     when possible.  Both give the same numbers to rounding (tests check 1e-9).
 
 Initial condition
@@ -533,7 +533,7 @@ def simulate(
         An array: the state in the layout of :func:`state_names`.
     method : {"auto", "linear", "per_sample"}
         ``"linear"``: one assembled state-space system, lifted (vectorised) simulation;
-        linear models only.  ``"per_sample"``: generated per-sample code (:mod:`pipeline.sample_program`); any model.
+        linear models only.  ``"per_sample"``: the compiled per-sample kernel (:mod:`pipeline.sample_program`); any model.
         ``"auto"``: ``"linear"`` for linear models with at most
         :data:`MAX_LIFTED_STATES` states, else ``"per_sample"``.
 
