@@ -781,6 +781,9 @@ def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = Fals
                              rate=value if integrating else None)
     except PipelineError as exc:
         return f"no transfer function: {exc}"
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+        # a numeric failure of this auxiliary fit must not stop the run that stores it
+        return f"no transfer function: the fit failed ({type(exc).__name__}: {exc})"
     why = gain_mismatch(fit, value=value, std=std, integrating=integrating, label=label)
     return fit if why is None else f"left out: {why}"
 

@@ -182,3 +182,38 @@ def test_bad_responses_are_refused_with_the_reason():
         fit_step_model(np.ones(5), dt_s=1.0, step_std=np.ones(4))
     with pytest.raises(ConfigError, match="dt_s must be a positive"):
         fit_step_model(np.ones(5), dt_s=0.0)
+
+
+def test_a_numeric_failure_of_the_fit_leaves_the_model_out_with_the_reason(monkeypatch):
+    """The run fits the reported model in its summary (checks.json); a numeric failure
+    inside the fit must leave the pair's transfer function out, not stop the run."""
+    import pipeline.lti_fit as lti
+
+    def broken(*_args, **_kwargs):
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+
+    monkeypatch.setattr(lti, "fit_step_model", broken)
+    why = lti.reported_model(fopdt_step(T, gain=2.0, time_constant_s=20.0, delay_s=3.0),
+                             dt_s=DT, value=2.0, std=0.01)
+    assert why == ("no transfer function: the fit failed (LinAlgError: Eigenvalues did not "
+                   "converge)")
+    assert lti.model_record(why) == {"left_out": why}
+    assert lti.reported_model(None, dt_s=DT, value=2.0, std=0.01,
+                              stored=lti.model_record(why)) == why
+
+
+def test_a_stored_fit_reads_back_as_the_fit():
+    """What the run stores (model_record, through JSON) is the fit the export uses."""
+    import json
+
+    from pipeline.lti_fit import model_record, reported_model
+
+    h = fopdt_step(T, gain=2.0, time_constant_s=20.0, delay_s=3.0)
+    fit = reported_model(h, dt_s=DT, value=2.0, std=0.01)
+    back = reported_model(None, dt_s=DT, value=2.0, std=0.01,
+                          stored=json.loads(json.dumps(model_record(fit))))
+    assert (back.kind, back.delay_s, back.parameters, back.rule) == \
+        (fit.kind, fit.delay_s, fit.parameters, fit.rule)
+    np.testing.assert_array_equal(back.num, fit.num)
+    np.testing.assert_array_equal(back.den, fit.den)
+    assert back.fit_rms == fit.fit_rms and back.tolerance == fit.tolerance
