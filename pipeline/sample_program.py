@@ -14,8 +14,9 @@ dead times sample by sample, and the loop cannot be vectorised over time (the bl
 feed back).  One kernel for every model, compiled once and cached on disk: the
 discrepancy search simulates ~75 model structures thousands of times, so a program
 compiled per structure would spend more on compiling than it saves.  It replaced
-straight-line Python generated per model (bit for bit the same results; the loop was
-~80 % of a discrepancy search's time, and the kernel runs it about twice as fast).
+straight-line Python generated per model: bit for bit the same results, and the loop,
+~80 % of a discrepancy search's time, runs 7x faster (1e4 samples of a 9-block loop with
+a saturation: 11.2 ms in Python, 1.6 ms here, best of 5 interleaved under load).
 """
 
 from __future__ import annotations
@@ -137,33 +138,10 @@ def per_sample_response(
     return _run(np.ascontiguousarray(u, dtype=float), *_pack(model, blocks, order, x0))
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
-def _weighted_inputs(i, sig, t_ptr, t_sig, t_k):  # pragma: no cover - compiled
-    """``sum k * signal`` over block i's terms, left to right (0.0 for none)."""
-    if t_ptr[i] == t_ptr[i + 1]:
-        return 0.0
-    acc = t_k[t_ptr[i]] * sig[t_sig[t_ptr[i]]]
-    for t in range(t_ptr[i] + 1, t_ptr[i + 1]):
-        acc = acc + t_k[t] * sig[t_sig[t]]
-    return acc
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
-def _output(i, x, u, x_off, c_ptr, c_idx, c_val, d, with_u):  # pragma: no cover
-    """``c x (+ d u)``: the nonzero terms left to right, then ``d u`` (0.0 for none)."""
-    first = True
-    acc = 0.0
-    for t in range(c_ptr[i], c_ptr[i + 1]):
-        term = c_val[t] * x[x_off[i] + c_idx[t]]
-        acc = term if first else acc + term
-        first = False
-    if with_u:
-        term = d * u
-        acc = term if first else acc + term
-    return acc
-
-
-# C901: a compiled kernel, one loop nest that numba compiles as a unit (lure.py likewise)
+# C901: a compiled kernel, one loop nest that numba compiles as a unit (lure.py likewise).
+# The sums are written out where they are needed rather than called: a compiled helper
+# taking arrays costs reference counting on every call, and that (and iterating `order`
+# directly) made the loop four times slower.
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _run(u, n_in, order, kind, par, x_off, x_n, q_off, q_n, t_ptr, t_sig,  # noqa: C901
          c_ptr, c_idx, a_ptr, a_idx, t_k, c_val, a_val, b_val, states,
@@ -180,45 +158,72 @@ def _run(u, n_in, order, kind, par, x_off, x_n, q_off, q_n, t_ptr, t_sig,  # noq
     for k in range(n):
         for j in range(n_in):
             sig[j] = u[k, j]
-        # phase 1: outputs in evaluation order
-        for i in order:
+        for oi in range(order.size):
+            i = order[oi]
             s = n_in + i
-            if kind[i] == LINEAR:
-                d = par[i, 0]
-                if q_n[i] > 0:
-                    sig[s] = q[q_off[i] + head[i]]
-                elif d != 0.0:
-                    uu[i] = _weighted_inputs(i, sig, t_ptr, t_sig, t_k)
-                    sig[s] = _output(i, x, uu[i], x_off, c_ptr, c_idx, c_val, d, True)
-                else:
-                    sig[s] = _output(i, x, 0.0, x_off, c_ptr, c_idx, c_val, d, False)
+            d = par[i, 0]
+            linear = kind[i] == LINEAR
+            if linear and q_n[i] > 0:
+                sig[s] = q[q_off[i] + head[i]]
                 continue
-            v = _weighted_inputs(i, sig, t_ptr, t_sig, t_k)
-            if kind[i] == DEADBAND:
-                h = par[i, 0]
-                sig[s] = v - h if v > h else (v + h if v < -h else 0.0)
+            v = 0.0
+            if not linear or d != 0.0:
+                # sum k * signal over the block's terms, left to right
+                t0, t1 = t_ptr[i], t_ptr[i + 1]
+                if t1 > t0:
+                    v = t_k[t0] * sig[t_sig[t0]]
+                    for t in range(t0 + 1, t1):
+                        v = v + t_k[t] * sig[t_sig[t]]
+            if linear:
+                uu[i] = v
+                # c x (+ d u): nonzero terms left to right
+                first = True
+                acc = 0.0
+                for t in range(c_ptr[i], c_ptr[i + 1]):
+                    term = c_val[t] * x[x_off[i] + c_idx[t]]
+                    acc = term if first else acc + term
+                    first = False
+                if d != 0.0:
+                    term = d * v
+                    acc = term if first else acc + term
+                sig[s] = acc
+            elif kind[i] == DEADBAND:
+                sig[s] = v - d if v > d else (v + d if v < -d else 0.0)
             elif kind[i] == BACKLASH:
-                h = par[i, 0]
                 m = mem[i]
-                mem[i] = v - h if v > m + h else (v + h if v < m - h else m)
+                mem[i] = v - d if v > m + d else (v + d if v < m - d else m)
                 sig[s] = mem[i]
             elif kind[i] == SATURATION:
                 lo, hi = par[i, 0], par[i, 1]
                 sig[s] = lo if v < lo else (hi if v > hi else v)
             else:
                 sig[s] = v * (1.0 + par[i, 0] * sig[int(par[i, 1])])
-        # phase 2: dead-time queues and states, in evaluation order
-        for i in order:
+        for oi in range(order.size):
+            i = order[oi]
             if kind[i] != LINEAR:
                 continue
             d = par[i, 0]
             if q_n[i] > 0 or (d == 0.0 and x_n[i] > 0):
-                uu[i] = _weighted_inputs(i, sig, t_ptr, t_sig, t_k)
-            if q_n[i] > 0:
-                q[q_off[i] + head[i]] = _output(i, x, uu[i], x_off, c_ptr, c_idx, c_val, d,
-                                                d != 0.0)
-                head[i] = head[i] + 1 if head[i] + 1 < q_n[i] else 0
+                t0, t1 = t_ptr[i], t_ptr[i + 1]
+                v = 0.0
+                if t1 > t0:
+                    v = t_k[t0] * sig[t_sig[t0]]
+                    for t in range(t0 + 1, t1):
+                        v = v + t_k[t] * sig[t_sig[t]]
+                uu[i] = v
             o = x_off[i]
+            if q_n[i] > 0:
+                first = True
+                acc = 0.0
+                for t in range(c_ptr[i], c_ptr[i + 1]):
+                    term = c_val[t] * x[o + c_idx[t]]
+                    acc = term if first else acc + term
+                    first = False
+                if d != 0.0:
+                    term = d * uu[i]
+                    acc = term if first else acc + term
+                q[q_off[i] + head[i]] = acc
+                head[i] = head[i] + 1 if head[i] + 1 < q_n[i] else 0
             for j in range(x_n[i]):
                 r = o + j
                 first = True
