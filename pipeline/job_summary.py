@@ -205,8 +205,8 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
             # lti_fit.reported_model; the export and report.html read this record)
             pair["transfer_function"] = model_record(reported_model(
                 all_est.step[i, j, :n], dt_s=all_est.dt, step_std=all_est.step_std[i, j, :n],
-                integrating=integ, value=final, std=final_std,
-                label=f"{o}<-{u} ({st.verdict or 'not judged'} at its horizon of {n} lags)"))
+                integrating=integ, value=final, std=final_std, pair=f"{o}<-{u}",
+                settled=st.verdict))
             if chars.get("gain") is not None and not integ:
                 # characteristics read the curve at the horizon; the reported gain (and
                 # its σ) is the settledness verdict's — one number everywhere

@@ -749,8 +749,9 @@ def gain_mismatch(fit: StepModelFit, *, value: float | None, std: float | None,
 
 
 def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = False,
-                   value: float | None, std: float | None, label: str = "the pair",
-                   stored: dict | None = None) -> StepModelFit | str:
+                   value: float | None, std: float | None, pair: str = "the pair",
+                   settled: str | None = None, stored: dict | None = None
+                   ) -> StepModelFit | str:
     """The transfer function ``plantdyn export`` writes for a pair: :func:`fit_step_model`
     when it is the reported model (:func:`gain_mismatch`), else why not (the fit's error
     or the mismatch) — one rule, fitted once by the run and stored in ``checks.json``
@@ -767,13 +768,11 @@ def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = Fals
         The output is integrating (``value`` is its rate).
     value, std : float or None
         The reported gain (rate) and its σ.
-    label : str
-        The pair in the message.
+    pair, settled : str
+        The pair (``output<-input``) and its settledness verdict, for the message.
     stored : dict, optional
         The run's record (:func:`model_record`), when it has one.
     """
-    from pipeline.errors import PipelineError
-
     if stored is not None:
         return stored["left_out"] if "left_out" in stored else StepModelFit.from_dict(stored)
     try:
@@ -784,6 +783,7 @@ def reported_model(step, *, dt_s: float, step_std=None, integrating: bool = Fals
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
         # a numeric failure of this auxiliary fit must not stop the run that stores it
         return f"no transfer function: the fit failed ({type(exc).__name__}: {exc})"
+    label = f"{pair} ({settled or 'not judged'} at its horizon of {np.size(step)} lags)"
     why = gain_mismatch(fit, value=value, std=std, integrating=integrating, label=label)
     return fit if why is None else f"left out: {why}"
 

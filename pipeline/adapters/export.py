@@ -475,8 +475,8 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
         value, std = (p.rate, p.rate_std) if p.integrating else (p.gain, p.gain_std)
         fits[(p.output, p.input)] = reported_model(
             p.step, dt_s=run.dt_s, step_std=p.step_std, integrating=p.integrating,
-            value=value, std=std, stored=p.transfer_function,
-            label=f"{p.label} ({p.settled or 'not judged'} at its horizon of {p.n_p} lags)")
+            value=value, std=std, stored=p.transfer_function, pair=p.label,
+            settled=p.settled)
         msg = str(fits[(p.output, p.input)])
         if progress is not None:
             progress("export", f"{p.label}: {msg}")
