@@ -142,7 +142,7 @@ def per_sample_response(
 # The sums are written out where they are needed rather than called: a compiled helper
 # taking arrays costs reference counting on every call, and that (and iterating `order`
 # directly) made the loop four times slower.
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True)
 def _run(u, n_in, order, kind, par, x_off, x_n, q_off, q_n, t_ptr, t_sig,  # noqa: C901
          c_ptr, c_idx, a_ptr, a_idx, t_k, c_val, a_val, b_val, states,
          queue):  # pragma: no cover - compiled
