@@ -367,6 +367,7 @@ def test_a_sensor_bias_and_an_effect_behind_it_through_the_cli(tmp_path, capsys)
                                                               *m["equivalent_locations"])]
     [gain] = behind[:1]
     assert gain["name"] == "operating_point_gain"
+    assert "feedwater_demand" in (gain["location"], *gain["equivalent_locations"])
     assert gain["parameters"]["signal"] == "steam_flow"
     assert gain["parameters"]["slope"] == pytest.approx(BIAS_RECORD_TRUTH.parameters["slope"],
                                                         rel=0.10)

@@ -522,9 +522,9 @@ class Chain:
     def _masked(self, first: DiscrepancyResult, budget: int
                 ) -> tuple[list[Link], DiscrepancyResult, int]:
         """Two effects that mask each other or are too small alone (see
-        :data:`N_MASKED`): the
-        confirmed pair as links (none: ``[]``), the search that ended and the budget
-        left.  Together they must close ``min_gap_reduction`` of the nominal gap."""
+        :data:`N_MASKED`): the confirmed pair as links (none: ``[]``), the search that
+        ended and the budget left.  Together they must close ``min_gap_reduction`` of the
+        nominal gap."""
         ref = first.gap["holdout_rms_before"]
         masked = [c for c in first.candidates
                   if c.delta_bic >= self.config.bic_margin][:N_MASKED]
