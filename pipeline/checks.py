@@ -181,6 +181,38 @@ def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA) ->
     return AgreementResult(stat, verdict, spread, detect, k, p, df, alpha, g_stat, g_p)
 
 
+def windows_agree(agreement: list[list[AgreementResult]]) -> bool:
+    """Whether disjoint windows agree on the whole plant: the search's stage-2 question.
+
+    One question about all ``m`` pairs, so each pair's tests are judged at ``1/m`` of their
+    false-alarm rates (Bonferroni; for "does any pair fail" Holm's procedure gives the
+    same answer): a time-invariant plant then passes with probability at least
+    ``1 - AGREEMENT_ALPHA - GAIN_AGREEMENT_ALPHA`` whatever its size.  At the per-pair
+    rates a 20 x 20 plant's 400 pairs fail about 20 by chance and a 4 x 4 plant's 16 fail
+    one in more than half of its records, so "every pair passes" would be a question of
+    the plant's size, not of N_d.  A pair must also be informative (not
+    ``insufficient_data``; a pair that fails at its own rate counts as informative only
+    when its windows could detect :data:`DETECTABLE_GAIN_CHANGE`).  The per-pair verdicts
+    stay at their own rates: they are what a person reads.
+
+    Parameters
+    ----------
+    agreement : list of list of AgreementResult
+        ``[output][input]``, as :func:`window_agreement` returns; an empty list gives False.
+    """
+    pairs = [a for row in agreement for a in row]
+    m = len(pairs)
+    if m == 0:
+        return False
+    for a in pairs:
+        if a.verdict == "insufficient_data" or (
+                a.verdict == "fail" and not a.detectable_change <= DETECTABLE_GAIN_CHANGE):
+            return False
+        if a.p_value < a.alpha / m or a.gain_p_value < GAIN_AGREEMENT_ALPHA / m:
+            return False
+    return True
+
+
 def _gain_homogeneity(steps, covs) -> tuple[float, float]:
     """chi^2 of the windows' final values against their precision-weighted mean and its
     p-value (``windows - 1`` df); ``(nan, 1)`` when a final value has no variance."""

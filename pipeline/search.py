@@ -26,12 +26,18 @@ settling time, its last coefficient absorbing the rest; the report flags that ju
 
 Stage 2 — N_d, by disjoint-window agreement (method.md §5, §11):
   the window check runs at the orders stage 1 chose — it never shortens them.  It starts
-  at ``N_d = 10 * N_p_max`` observations per window, or at the largest two disjoint
-  windows the record holds when that is less; while any pair is not ``pass`` and two
-  windows of twice the size fit, N_d doubles.  When not even two windows of
+  at ``N_d = 10 * N_p_max`` observations per window, or at the
+  :data:`WINDOW_MIN_OBS_PER_UNKNOWN` observations per unknown a window needs when that is
+  more (an output of a 20-input plant at N_p 60 has up to 1,200 unknowns), or at the
+  largest two disjoint windows the record holds when that is less; while the windows do
+  not agree (:func:`pipeline.checks.windows_agree`: one question about the whole plant,
+  each pair at ``1/m`` of its false-alarm rate, every pair informative) and two windows of
+  twice the size fit, N_d doubles.  When not even two windows of
   :data:`WINDOW_MIN_OBS_PER_UNKNOWN` observations per unknown fit, there is no window
   check (every pair's agreement is ``insufficient_data``) and the all-data estimate
-  stands on its own.
+  stands on its own.  (Until 2026-12-06 a first window of ``10 * N_p`` too small for its
+  unknowns ended the check even where longer windows fit, and N_d doubled while any one
+  pair failed at its own rate, which a plant of many pairs does by chance.)
 
 With a noise model (``noise="auto"`` or an AR order, method.md §10) the search runs on the
 lag Gram: the noise model of each output is fitted once at ``n_p_max`` (where the FIR is
@@ -74,7 +80,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.checks import window_agreement
+from pipeline.checks import window_agreement, windows_agree
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
 from pipeline.estimate import estimate_from_normal_equations, estimate_step_responses
 from pipeline.gram_estimate import (
@@ -662,9 +668,10 @@ def _stage2(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *, n_
     when no two windows can be estimated (module doc)."""
     n = x.shape[0]
     P = int(npm.max())
-    # the largest two windows that fit when two of 10 N_p observations do not
-    n_d = min(int(n_d_start or FIRST_WINDOW_PER_LAG * P), n // 2 - (P - 1 + extra))
+    # 10 N_p observations, at least the 2 per unknown a window needs, at most the
+    # largest two disjoint windows hold
     need = WINDOW_MIN_OBS_PER_UNKNOWN * int(npm.sum(axis=1).max())
+    n_d = min(max(int(n_d_start or FIRST_WINDOW_PER_LAG * P), need), n // 2 - (P - 1 + extra))
     if n_d < need:
         return 0, 0, [{
             "n_d": max(n_d, 0), "window_samples": max(n_d + P - 1 + extra, 0),
@@ -716,17 +723,17 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
             n_d = min(2 * n_d, most)
             continue
         agr = window_agreement(ests)
-        verdicts = [[a.verdict for a in row] for row in agr]
         nd_trace.append({
             "n_d": n_d,
             "window_samples": length,
             "n_windows": 2,
+            "windows_agree": windows_agree(agr),
             "pairs": [{"output": i, "input": j, "statistic": agr[i][j].statistic,
                        "p_value": agr[i][j].p_value, "verdict": agr[i][j].verdict}
                       for i in range(n_y) for j in range(n_x)],
         })
         chosen = (n_d, length)
-        if all(v == "pass" for row in verdicts for v in row):
+        if nd_trace[-1]["windows_agree"]:
             break
         if n_d >= most:
             break

@@ -6,7 +6,13 @@ import control as ct
 import numpy as np
 import pytest
 
-from pipeline.checks import cross_correlation_check, ljung_box, pair_agreement
+from pipeline.checks import (
+    AgreementResult,
+    cross_correlation_check,
+    ljung_box,
+    pair_agreement,
+    windows_agree,
+)
 from pipeline.errors import InsufficientDataError
 from pipeline.search import search, split_windows_by_length
 from tests.test_estimate import ar1, simulate
@@ -81,6 +87,51 @@ def test_nd_grows_until_noisy_windows_become_informative():
     assert verdicts[0] == "insufficient_data"
     assert verdicts[-1] == "pass"
     assert res.n_d > 250
+
+
+def _agreeing(p_value=0.5, gain_p=0.5, verdict="pass", detect=0.1):
+    return AgreementResult(1.0, verdict, 0.0, detect, 2, p_value, 8, 0.01, 1.0, gain_p)
+
+
+def test_windows_agree_is_one_question_about_the_whole_plant():
+    """Stage 2's stopping rule: each of the m pairs at 1/m of its false-alarm rates
+    (Wald 1 %, gain 4 %), every pair informative.  Answers set by hand."""
+    m = 400  # a 20 x 20 plant
+    grid = [[_agreeing() for _ in range(20)] for _ in range(20)]
+    assert windows_agree(grid)
+    # a pair failing at its own 1 % (p = 0.005) is what 400 pairs give by chance ...
+    grid[3][7] = _agreeing(p_value=0.005, verdict="fail")
+    assert windows_agree(grid)
+    # ... one below 1 % / 400 is not, nor a gain below 4 % / 400
+    grid[3][7] = _agreeing(p_value=0.9 * 0.01 / m, verdict="fail")
+    assert not windows_agree(grid)
+    grid[3][7] = _agreeing(gain_p=0.9 * 0.04 / m, verdict="fail")
+    assert not windows_agree(grid)
+    # a failing pair whose windows could not see a 30 % change is not informative
+    grid[3][7] = _agreeing(p_value=0.005, verdict="fail", detect=0.31)
+    assert not windows_agree(grid)
+    grid[3][7] = _agreeing(verdict="insufficient_data", detect=0.5)
+    assert not windows_agree(grid)
+    # one pair: the pair's own rates
+    assert not windows_agree([[_agreeing(p_value=0.009, verdict="fail")]])
+    assert windows_agree([[_agreeing(p_value=0.011)]])
+    assert not windows_agree([])
+
+
+def test_window_check_starts_where_a_window_holds_two_observations_per_unknown():
+    """8 inputs at N_p 20: 160 unknowns per output, so a window needs 2 x 160 = 320
+    observations, more than 10 N_p = 200.  Two such windows fit in 3,000 samples, so the
+    check runs and starts there (it used to stop at the first, too small, window)."""
+    rng = np.random.default_rng(7)
+    n, n_x, P = 3000, 8, 20
+    u = np.column_stack([ar1(n, 0.5, rng) for _ in range(n_x)])
+    G = ct.tf([1.0], [3.0, 1.0])
+    y = sum((0.5 + 0.1 * j) * simulate(G, u[:, j], 1.0) for j in range(n_x))
+    y = y + 0.2 * rng.standard_normal(n)
+    res = search(u, y, dt=1.0, n_p=P)
+    assert res.nd_trace[0]["n_d"] == 2 * n_x * P
+    assert "error" not in res.nd_trace[0] and res.agreement
+    assert res.n_d >= 2 * n_x * P
 
 
 def test_pair_agreement_statistic_is_the_wald_test_of_the_difference():
