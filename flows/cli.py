@@ -34,7 +34,7 @@ def _check_job(path: str, *, files: bool = True):
         from pipeline.adapters.store import check_catalog
 
         check_catalog(root)  # a catalog that is not ours: exit 2 now, not after the work
-    from pipeline.monitor_job import check_baseline
+    from pipeline.jobs.monitoring import check_baseline
 
     check_baseline(cfg)  # a pinned baseline run must exist (exit 2 naming the runs)
     return cfg
@@ -71,7 +71,7 @@ def _run_workflow(args, direct, flow_name: str, run_flow, check=None) -> int:
 
 
 def _cmd_run(args) -> int:
-    from pipeline.jobs import run_job
+    from pipeline.jobs.estimation import run_job
 
     def flow():
         from flows.estimate import run_estimate
@@ -84,7 +84,7 @@ def _cmd_run(args) -> int:
 def _cmd_nightly(args) -> int:
     cfg = _check_job(args.job, files=False)  # an empty drop folder is a normal night
     if args.no_prefect:
-        from pipeline.nightly import run_nightly_direct
+        from pipeline.jobs.nightly import run_nightly_direct
 
         rows = run_nightly_direct(cfg, retry_failed=args.retry_failed,
                                   say=lambda line: print(line, file=sys.stderr, flush=True))
@@ -219,7 +219,7 @@ def _cmd_server(args) -> int:
 
 
 def _cmd_discrepancy(args) -> int:
-    from pipeline.discrepancy_job import check_job, run_discrepancy
+    from pipeline.jobs.discrepancy import check_job, run_discrepancy
 
     def flow():
         from flows.discrepancy import run_discrepancy_flow

@@ -11,7 +11,7 @@ import threading
 import time
 
 from pipeline.errors import UserInputError
-from pipeline.stages import StageRunner
+from pipeline.jobs.stages import StageRunner
 
 #: Longest wait for Prefect's embedded (ephemeral) server, s, when a flow is called from
 #: Python with no API configured (the CLI uses the project server, :mod:`flows.server`).
@@ -218,15 +218,15 @@ IO_RETRIES = {"retries": 2, "retry_delay_seconds": 1, "retry_condition_fn": retr
 
 class TaskStages(StageRunner):
     """A workflow's stage list run as Prefect tasks.  The flows hand this to the same
-    composition function the ``--no-prefect`` path calls (:func:`pipeline.jobs.run_job`,
-    :func:`pipeline.discrepancy_job.run_discrepancy`), so the stage order lives in one
+    composition function the ``--no-prefect`` path calls (:func:`pipeline.jobs.estimation.run_job`,
+    :func:`pipeline.jobs.discrepancy.run_discrepancy`), so the stage order lives in one
     place: each stage function becomes ``task(fn, name=stage)``, a mapped stage
     ``task(fn).map(...)`` on the flow's task runner (threads, or a Dask cluster).
 
     Parameters
     ----------
     progress : callable (stage, message)
-        As :class:`~pipeline.stages.StageRunner`'s.
+        As :class:`~pipeline.jobs.stages.StageRunner`'s.
     options : dict of str to dict, optional
         Task options per stage name (e.g. :data:`IO_RETRIES` for ``ingest`` and ``store``).
     on_done : callable (stage), optional

@@ -1,4 +1,4 @@
-"""``plantdyn demo``: write the demo export and job (``pipeline.demo``), run them through
+"""``plantdyn demo``: write the demo export and job (``pipeline.jobs.demo``), run them through
 the Prefect flow or directly, and print where the results are and how to view them."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from pipeline.adapters.config import load_job
-from pipeline.demo import prepare_demo, prepare_discrepancy_demo
+from pipeline.jobs.demo import prepare_demo, prepare_discrepancy_demo
 from pipeline.progress import quiet
 
 
@@ -35,9 +35,9 @@ def _run(job: Path, *, no_prefect: bool, progress, discrepancy: bool):
     """Run ``job`` directly (the composition function) or through its Prefect flow."""
     if no_prefect:
         if discrepancy:
-            from pipeline.discrepancy_job import run_discrepancy as direct
+            from pipeline.jobs.discrepancy import run_discrepancy as direct
         else:
-            from pipeline.jobs import run_job as direct
+            from pipeline.jobs.estimation import run_job as direct
         return direct(load_job(job), progress=progress or quiet)
     from flows.server import project_prefect
 
@@ -55,7 +55,7 @@ def run_demo(folder: Path, *, no_prefect: bool = False, progress=None) -> int:
     Parameters
     ----------
     folder : Path
-        Where the export and the job are written (:func:`pipeline.demo.prepare_demo`).
+        Where the export and the job are written (:func:`pipeline.jobs.demo.prepare_demo`).
     no_prefect : bool
         Call the pipeline directly instead of through the Prefect flow.
     progress : callable (stage, message), optional
@@ -74,7 +74,7 @@ def run_discrepancy_demo(folder: Path, *, no_prefect: bool = False, progress=Non
     ----------
     folder : Path
         Where the export, model and job are written
-        (:func:`pipeline.demo.prepare_discrepancy_demo`).
+        (:func:`pipeline.jobs.demo.prepare_discrepancy_demo`).
     no_prefect : bool
         Call the pipeline directly instead of through the Prefect flow.
     progress : callable (stage, message), optional

@@ -1,5 +1,5 @@
 """The ``discrepancy`` flow: the discrepancy workflow's one stage list
-(:func:`pipeline.discrepancy_job.run_discrepancy`: ingest -> model -> prepare -> analyse
+(:func:`pipeline.jobs.discrepancy.run_discrepancy`: ingest -> model -> prepare -> analyse
 -> store), each stage a Prefect task wrapping its library function
 (:class:`flows.common.TaskStages`), plus the flow's artifacts."""
 
@@ -16,7 +16,7 @@ from flows.common import (
     flow_started,
     flow_stages,
 )
-from pipeline import discrepancy_job as dj
+from pipeline.jobs import discrepancy as dj
 from pipeline.adapters.config import load_job
 
 #: The progress artifact's percentage when each stage has ended.

@@ -1,5 +1,5 @@
 """The ``estimate`` flow: the estimation workflow's one stage list
-(:func:`pipeline.jobs.run_job`: ingest -> prepare -> search -> estimate (mapped over the
+(:func:`pipeline.jobs.estimation.run_job`: ingest -> prepare -> search -> estimate (mapped over the
 windows) -> summarise -> [monitor] -> store), each stage a Prefect task wrapping its
 library function (:class:`flows.common.TaskStages`), plus the flow's artifacts."""
 
@@ -18,9 +18,9 @@ from flows.common import (
     flow_stages,
     task_runner_for,
 )
-from pipeline import jobs
+from pipeline.jobs import estimation as jobs
 from pipeline.adapters.config import load_job
-from pipeline.monitor import monitor_markdown
+from pipeline.readouts.monitor import monitor_markdown
 
 #: The progress artifact's percentage when each stage has ended.
 PROGRESS_PERCENT = {"ingest": 15.0, "prepare": 25.0, "search": 50.0, "estimate": 80.0,

@@ -1,6 +1,6 @@
 """The ``nightly`` flow: process every new export in a job's drop folder exactly once —
 complete files only, in data-time order, at most ``max_parallel`` at a time, one baseline
-per job (:mod:`pipeline.nightly`)."""
+per job (:mod:`pipeline.jobs.nightly`)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from flows.common import (
 )
 from pipeline.adapters.config import load_job
 from pipeline.adapters.progress import bar as progress_bar
-from pipeline.nightly import drive, plan_header, plan_night, process_planned
+from pipeline.jobs.nightly import drive, plan_header, plan_night, process_planned
 
 #: ``plan_night`` and ``process_planned`` as tasks: each one call into ``pipeline``.
 plan_task = task(plan_night, name="plan", cache_policy=NO_CACHE, persist_result=False)

@@ -1,6 +1,6 @@
 """Hidden-effect trials whose plant is NOT the model: nuisance mismatch (issue 12).
 
-The clean hidden-effect trials (:func:`pipeline.effect_trials.make_hidden_effects_trial`)
+The clean hidden-effect trials (:func:`pipeline.simulated.effect_trials.make_hidden_effects_trial`)
 simulate the plant with the same simulator and block structure as the nominal model, so
 the only difference between plant and model is the hidden effect.  Here the same trial
 (same seed: same inputs, same hidden effects, same sensor-noise kind and size) is
@@ -8,7 +8,7 @@ re-simulated as a real plant differs from its model:
 
 * **another simulator**: :func:`tests.plant_sim.simulate_plant` -- continuous time, Heun
   at ``dt_s / 10``, inputs linearly interpolated between samples, outputs snapshotted at
-  the sample instants as a historian does -- not ``pipeline.simulate`` (exact ZOH at
+  the sample instants as a historian does -- not ``pipeline.models.simulate`` (exact ZOH at
   ``dt_s``);
 * **a DCS**: every ``pi``/``pid`` block scans every :data:`DCS_SCAN_S` s and acts on the
   previous scan's measurement (a one-scan controller delay);
@@ -21,13 +21,13 @@ re-simulated as a real plant differs from its model:
   besides the sensor noise of the outputs (the clean trial's kind and relative size).
 
 The plant's blocks are the nominal model with the hidden effects added by the
-catalogue's :func:`pipeline.effects.apply_effect` -- that is the *definition* of each
+catalogue's :func:`pipeline.discrepancy.effects.apply_effect` -- that is the *definition* of each
 effect -- so what is independent of the code under test is the simulation, the
 nuisances and the noise.
 
 A hidden effect can drown in the nuisances: the trial is kept only when the effect,
 added to the model with its true parameters, still shrinks the held-out gap of the
-nuisance record by :data:`pipeline.effect_trials.TRIAL_GAP_REDUCTION` (each effect on
+nuisance record by :data:`pipeline.simulated.effect_trials.TRIAL_GAP_REDUCTION` (each effect on
 top of the others); otherwise the next derived seed is drawn (``redraws`` counts them).
 """
 
@@ -39,17 +39,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pipeline.effect_trials import (
+from pipeline.simulated.effect_trials import (
     TRIAL_GAP_REDUCTION,
     HiddenEffectTrial,
     holdout_start,
     make_hidden_effects_trial,
     unit_ar1,
 )
-from pipeline.effects import Effect, apply_effect, output_offsets
+from pipeline.discrepancy.effects import Effect, apply_effect, output_offsets
 from pipeline.errors import ConfigError
-from pipeline.model import Model
-from pipeline.simulate import simulate
+from pipeline.models.model import Model
+from pipeline.models.simulate import simulate
 from tests.plant_sim import simulate_plant
 
 DCS_SCAN_S = 1.0

@@ -2,8 +2,8 @@
 in continuous time, with nuisances a real plant has and the model does not.
 
 Test truths must not come from the code under test, so nothing here imports or copies
-``pipeline.simulate``, ``pipeline.effects.predict_outputs`` or the pipeline's
-discretisation: :mod:`pipeline.model` / :mod:`pipeline.blocks` are only *read* (a model's
+``pipeline.models.simulate``, ``pipeline.discrepancy.effects.predict_outputs`` or the pipeline's
+discretisation: :mod:`pipeline.models.model` / :mod:`pipeline.models.blocks` are only *read* (a model's
 inputs and blocks, each block's ``TYPE``, terms and parameter fields).  Each block's
 transfer function is rebuilt here from its parameters.
 
@@ -430,7 +430,7 @@ def simulate_plant(model, inputs: Mapping[str, np.ndarray], *, dt_s: float,
 
     Parameters
     ----------
-    model : pipeline.model.Model
+    model : pipeline.models.model.Model
         Read only (inputs, blocks and their parameters).
     inputs : mapping of str to array, shape (N,)
         The true value of every model input at ``t_k = k dt_s``; linearly interpolated

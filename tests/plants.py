@@ -3,7 +3,7 @@
 Every record here is simulated independently of the code under test: python-control's
 exact zero-order-hold discretisation (``control.sample_system``) or scipy's
 ``cont2discrete`` at a fine step, explicit loops for controllers — never
-``pipeline.simulate`` and never the estimator's own model structure.  Noise is seeded.
+``pipeline.models.simulate`` and never the estimator's own model structure.  Noise is seeded.
 The true step responses come from the same independent discretisations.
 """
 
@@ -312,7 +312,7 @@ def boiler_nuisance_record(hours: float, seed: int, *, kp_factor: float = 1.0,
                            extra_fuel_delay_s: float = 0.0, extra_fuel_lag_s: float = 0.0,
                            sensor_frac: float = 0.05, input_frac: float = 0.02,
                            fine_dt: float = 0.05) -> tuple[dict, dict]:
-    """The boiler loop as a plant, not as the model: independent of ``pipeline.simulate``.
+    """The boiler loop as a plant, not as the model: independent of ``pipeline.models.simulate``.
 
     Nuisances a real plant has and the nominal model does not: Euler integration of the
     drum at ``fine_dt`` with the fuel path's dead time and lag in continuous time; a DCS

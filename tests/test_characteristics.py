@@ -1,4 +1,4 @@
-"""Tests of pipeline.characteristics against analytic step responses."""
+"""Tests of pipeline.readouts.characteristics against analytic step responses."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.characteristics import (
+from pipeline.readouts.characteristics import (
     integrating_characteristics,
     integrating_model_step,
     self_regulating_characteristics,

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from pipeline.conditioning import condition
-from pipeline.estimate import estimate_step_responses
-from pipeline.gram_estimate import estimate_from_context, lag_gram_context, lags_needed
-from pipeline.feedback import FEEDBACK_ALPHA, FEEDBACK_LEADS, feedback_test
-from pipeline.search import default_n_p_max, search
+from pipeline.identification.conditioning import condition
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.estimation.gram_estimate import estimate_from_context, lag_gram_context, lags_needed
+from pipeline.identification.feedback import FEEDBACK_ALPHA, FEEDBACK_LEADS, feedback_test
+from pipeline.identification.search import default_n_p_max, search
 from tests.plants import (LEVEL_NOISES, open_level_record, open_loop_record,
                           pi_controlled_record, pi_loop_record, pi_loop_truth)
 

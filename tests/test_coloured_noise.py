@@ -37,8 +37,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.estimate import estimate_step_responses
-from pipeline.search import search
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.identification.search import search
 from tests.plants import arx_bic_step, open_loop_record, open_loop_truth
 
 N = 10_000

@@ -1,4 +1,4 @@
-"""Tests of pipeline.conditioning: known answers and the same-transform-on-both property."""
+"""Tests of pipeline.identification.conditioning: known answers and the same-transform-on-both property."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline.conditioning import (
+from pipeline.identification.conditioning import (
     METHODS,
     Conditioning,
     condition,

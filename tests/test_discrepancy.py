@@ -20,10 +20,10 @@ import scipy.signal
 import yaml
 
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
-from pipeline.synthetic import make_discrepancy_demo
+from pipeline.simulated.synthetic import make_discrepancy_demo
 from pipeline.discrepancy.localise import _input_relevance
 from pipeline.discrepancy.problem import Problem
-from pipeline.effects import (
+from pipeline.discrepancy.effects import (
     EFFECT_NAMES,
     EFFECT_PARAMETERS,
     Effect,
@@ -31,10 +31,10 @@ from pipeline.effects import (
     output_offsets,
     predict_outputs,
 )
-from pipeline.effect_trials import make_hidden_effect_trial
+from pipeline.simulated.effect_trials import make_hidden_effect_trial
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError, ModelError
-from pipeline.model import model_from_dict, model_to_dict
-from pipeline.simulate import simulate
+from pipeline.models.model import model_from_dict, model_to_dict
+from pipeline.models.simulate import simulate
 
 MODELS = Path(__file__).resolve().parents[1] / "configs" / "models"
 
@@ -285,7 +285,7 @@ def test_hidden_effects_are_visible_in_the_held_out_third(boiler):
     third): no held-out selection can judge that.  The generator redraws such effects;
     the drawn effect must shrink the last third's gap (noise + effect against noise alone,
     recomputed here from the truth) by at least TRIAL_GAP_REDUCTION."""
-    from pipeline.effect_trials import HOLDOUT_FRACTION, TRIAL_GAP_REDUCTION
+    from pipeline.simulated.effect_trials import HOLDOUT_FRACTION, TRIAL_GAP_REDUCTION
 
     trial = make_hidden_effect_trial(boiler, "deadband", seed=106010, n=10_000)
     nominal = simulate(boiler, {k: trial.inputs[k] for k in boiler.inputs}, dt_s=trial.dt_s)
@@ -306,7 +306,7 @@ def test_each_effect_of_a_pair_trial_is_a_finding_by_the_chains_rule(boiler):
     minor effect, so no trial.  The generator redraws such pairs: recomputed here from
     the truth (expected held-out gaps, noise of the drawn std), every effect left out
     opens the gap by at least TRIAL_GAP_REDUCTION of that reference."""
-    from pipeline.effect_trials import HOLDOUT_FRACTION, TRIAL_GAP_REDUCTION, \
+    from pipeline.simulated.effect_trials import HOLDOUT_FRACTION, TRIAL_GAP_REDUCTION, \
         make_hidden_effects_trial
 
     trial = make_hidden_effects_trial(boiler, ("deadband", "sensor_bias_drift"),
@@ -345,7 +345,7 @@ def test_a_pair_one_effect_absorbs_when_refitted_is_no_pair_trial(drum):
     expected gap by far more than the bar.  The generator refits the remaining effect
     before it judges (``_refitted``) and rejects the pair; a pair whose effects do not
     stand in for each other (a gain on the demand, a lag on the swell) stays."""
-    from pipeline.effect_trials import (TRIAL_GAP_REDUCTION, _each_needed, _expected_gap,
+    from pipeline.simulated.effect_trials import (TRIAL_GAP_REDUCTION, _each_needed, _expected_gap,
                                         _plant_outputs, trial_inputs)
 
     n, dt = 6_000, 2.0
@@ -381,8 +381,8 @@ def test_drawn_limits_are_met_where_the_workflow_fits_and_no_inverse_response_is
     to estimate it from), and no inverse response in the Padé band around magnitude 1
     (a dead time's degenerate form, named as the dead time by design).  Counted here on
     the nominal simulation of each trial's own inputs."""
-    from pipeline.effect_trials import HOLDOUT_FRACTION, make_hidden_effect_trial as make
-    from pipeline.effects import PADE_MAGNITUDE
+    from pipeline.simulated.effect_trials import HOLDOUT_FRACTION, make_hidden_effect_trial as make
+    from pipeline.discrepancy.effects import PADE_MAGNITUDE
 
     n = 6_000
     fit = slice(0, n - round(HOLDOUT_FRACTION * n))

@@ -17,12 +17,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from pipeline.demo import boiler_model
+from pipeline.jobs.demo import boiler_model
 from pipeline.discrepancy.analyse import _gap_reference
 from pipeline.discrepancy.chain import Chain, Link, prune
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.results import Candidate
-from pipeline.effects import Effect
+from pipeline.discrepancy.effects import Effect
 
 N = 600
 

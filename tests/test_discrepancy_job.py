@@ -25,8 +25,8 @@ import yaml
 
 from flows.cli import main
 from pipeline.discrepancy import DiscrepancyConfig
-from pipeline.model import model_from_dict
-from pipeline.simulate import simulate
+from pipeline.models.model import model_from_dict
+from pipeline.models.simulate import simulate
 from tests.conftest import (
     INPUT_TAG,
     OUTPUT_TAG,
@@ -264,7 +264,7 @@ def test_discrepancy_section_keys_match_the_core_config():
 def test_flow_equals_direct_run(prefect_harness, make_job):
     from flows.discrepancy import run_discrepancy_flow
     from pipeline.adapters.config import load_job
-    from pipeline.discrepancy_job import run_discrepancy
+    from pipeline.jobs.discrepancy import run_discrepancy
 
     job = make_job(1, hours=1.0, model=_model(0.8 * PLANT_GAIN))
     a = run_discrepancy_flow(job, run_id="flow")
@@ -414,7 +414,7 @@ def test_the_default_time_budget_and_a_bad_one():
 
 def test_an_op_exported_as_a_fraction_is_named_with_its_factor(tmp_path, capsys):
     """Issue 34, build 6: the zoo's heat exchanger (its own simulator, not
-    ``pipeline.simulate``) with the controller output exported as a fraction 0-1 where
+    ``pipeline.models.simulate``) with the controller output exported as a fraction 0-1 where
     the model works in %.  Before: a controller saturation closing 98 % of the gap, a
     confident wrong answer.  Now: exit 2, one message naming the output and the factor
     100 and the fix in YAML terms; with that fix (``scale: 100``) the run goes through

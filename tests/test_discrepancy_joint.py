@@ -1,5 +1,5 @@
 """Joint refits of the chain (pipeline.discrepancy.joint) on an independently simulated
-plant (tests/plant_sim.py: continuous time, Heun at dt/10 -- not pipeline.simulate)."""
+plant (tests/plant_sim.py: continuous time, Heun at dt/10 -- not pipeline.models.simulate)."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ from pipeline.discrepancy.analyse import _problem
 from pipeline.discrepancy.config import DiscrepancyConfig
 import pipeline.discrepancy.joint as joint_module
 from pipeline.discrepancy.joint import joint_refit
-from pipeline.effect_trials import trial_inputs
-from pipeline.effects import Effect, apply_effect
+from pipeline.simulated.effect_trials import trial_inputs
+from pipeline.discrepancy.effects import Effect, apply_effect
 from pipeline.progress import quiet
-from pipeline.simulate import simulate
-from pipeline.synthetic import make_discrepancy_demo
+from pipeline.models.simulate import simulate
+from pipeline.simulated.synthetic import make_discrepancy_demo
 from tests.benchmarks.bench_discrepancy import load_model
 from tests.plant_sim import simulate_plant
 
@@ -114,7 +114,7 @@ def test_prior_basis_spans_the_earlier_effects_sensitivities():
     """The directions a later candidate is screened orthogonally to are the whitened
     output changes the earlier effects' refitted parameters make: here a controller
     gain's factor and a fuel lag's tau, recomputed by central differences of the
-    outputs with a step 100 times smaller (pipeline.simulate on the model with the
+    outputs with a step 100 times smaller (pipeline.models.simulate on the model with the
     effects).  Each must lie in the basis' span (cosine with its projection ~1)."""
     model = load_model("boiler_pressure")
     truth = [Effect("gain", "controller", {"factor": 1.2})]

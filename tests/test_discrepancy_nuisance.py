@@ -2,7 +2,7 @@
 
 The plant is ``tests/plants.boiler_nuisance_record``: the design.md boiler loop written
 out as equations and integrated at 0.05 s (Euler, dead time and lag in continuous time)
-— not ``pipeline.simulate`` — with a DCS that acts on the previous second's measurement,
+— not ``pipeline.models.simulate`` — with a DCS that acts on the previous second's measurement,
 quantised fuel demand, a slow unmeasured disturbance, 5 % sensor noise and 2 % noise on
 the measured steam flow; 4 h at 1 s.  The nominal model is the shipped
 ``configs/models/boiler_pressure.yaml``.  Seeds 301–303 were never used for tuning
@@ -24,7 +24,7 @@ import pytest
 import yaml
 
 from flows.cli import main
-from pipeline.demo import BOILER_MODEL, boiler_model
+from pipeline.jobs.demo import BOILER_MODEL, boiler_model
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
 from pipeline.discrepancy.select import same_class
 from tests.plants import boiler_nuisance_record

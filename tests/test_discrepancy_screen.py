@@ -1,14 +1,14 @@
 """Screening on a model that is already nonlinear (pipeline.discrepancy.screen), on data
 from an independently simulated plant (tests/plant_sim.py: continuous time, Heun at
-dt/10 -- not pipeline.simulate)."""
+dt/10 -- not pipeline.models.simulate)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from pipeline.discrepancy.analyse import analyse_discrepancy
-from pipeline.effect_trials import trial_inputs
-from pipeline.effects import Effect, apply_effect
+from pipeline.simulated.effect_trials import trial_inputs
+from pipeline.discrepancy.effects import Effect, apply_effect
 from tests.benchmarks.bench_discrepancy import load_model
 from tests.plant_sim import simulate_plant
 

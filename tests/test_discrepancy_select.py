@@ -93,7 +93,7 @@ def test_the_catalogue_declares_an_inverse_responses_degenerate_forms():
     """(1 - m tau s)/(tau s + 1) at m = 0 is the lag 1/(tau s + 1); at m = 1 it is the
     first-order Padé approximant of e^{-2 tau s}; its mean time (first moment,
     -d/ds at s = 0) is tau (1 + m), the delay the dead-time form starts at."""
-    from pipeline.effects import Effect, degenerate_forms, degenerate_kind
+    from pipeline.discrepancy.effects import Effect, degenerate_forms, degenerate_kind
 
     ir = Effect("inverse_response", "fuel", {"tau_s": 5.0, "magnitude": 0.9}, ("controller",))
     forms = degenerate_forms(ir)
@@ -112,7 +112,7 @@ def test_the_catalogue_declares_an_inverse_responses_degenerate_forms():
 
 def _cand(name, params, *, k, delta_bic, passed=True):
     from pipeline.discrepancy.results import Candidate
-    from pipeline.effects import Effect
+    from pipeline.discrepancy.effects import Effect
 
     return Candidate(effect=Effect(name, "fuel", params), criterion=-delta_bic,
                      delta_bic=delta_bic, n_parameters=k, holdout_rms={"y": 1.0},

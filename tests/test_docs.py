@@ -174,7 +174,7 @@ def test_every_public_parameter_is_in_the_api_reference(site):
 def test_the_fixed_core_api_is_documented_with_every_parameter(site):
     """The design's fixed core API, parameter by parameter (design.md "Python core API")."""
     page = (site / "reference" / "estimation" / "index.html").read_text()
-    params = _rendered_parameters(page)["pipeline.estimate.estimate_step_responses"]
+    params = _rendered_parameters(page)["pipeline.estimation.estimate.estimate_step_responses"]
     assert {"x", "y", "n_p", "dt", "integrating", "noise", "n_k", "instruments"} <= params
 
 

@@ -17,12 +17,12 @@ from pipeline.errors import (
     InsufficientDataError,
     SingularSystemError,
 )
-from pipeline.alt_estimates import estimate_correlation_method, estimate_regularized
-from pipeline.estimate import estimate_merged, estimate_step_responses
-from pipeline.normal_equations import normal_equations
-from pipeline.orders import residual_ss_by_order
-from pipeline.prediction import residuals
-from pipeline.step_result import lag_times
+from pipeline.estimation.alt_estimates import estimate_correlation_method, estimate_regularized
+from pipeline.estimation.estimate import estimate_merged, estimate_step_responses
+from pipeline.estimation.normal_equations import normal_equations
+from pipeline.estimation.orders import residual_ss_by_order
+from pipeline.estimation.prediction import residuals
+from pipeline.estimation.step_result import lag_times
 
 
 def ar1(n: int, r: float, rng) -> np.ndarray:
@@ -144,7 +144,7 @@ def test_thesis_first_experiment_nd_twice_np_noise_free():
     (method.md §3) and the estimate from N_d = 2 N_p observations is compared with the
     continuous step response at (l - 1/2) T.
     """
-    from pipeline.sampling import choose_sample_period, resample_average
+    from pipeline.identification.sampling import choose_sample_period, resample_average
 
     rng = np.random.default_rng(15)
     tau, dt_f, w0 = 10.0, 0.01, 0.1
@@ -367,7 +367,7 @@ def test_errors_are_specific():
 
 
 def test_sweep_orders_equals_separate_fits():
-    from pipeline.orders import sweep_orders
+    from pipeline.estimation.orders import sweep_orders
 
     rng = np.random.default_rng(26)
     n, P = 2000, 12

@@ -3,7 +3,7 @@ on a historian export through ``plantdyn run``, results read back from the run d
 
 The plant is the suite's first-order one (tests/conftest.py: ``2/(20 s + 1)`` driven by
 AR(1) noise, discretised exactly by zero-order hold with scipy's ``lfilter`` — not by
-``pipeline.simulate``), written as an exception-reported PI-style long CSV.  The true step
+``pipeline.models.simulate``), written as an exception-reported PI-style long CSV.  The true step
 response ``s[l] = K (1 - a^l)``, ``a = exp(-1/20)``, is the known answer.
 """
 

@@ -29,7 +29,13 @@ from polars.testing import assert_frame_equal
 from pipeline.adapters.config import load_job
 from pipeline.adapters.store import ResultStore, file_sha256
 from pipeline.errors import ConfigError, DataQualityError
-from pipeline.nightly import LEASE_ENV, claim_lease_s, discover_files, nightly_run_id, process_file
+from pipeline.jobs.nightly import (
+    LEASE_ENV,
+    claim_lease_s,
+    discover_files,
+    nightly_run_id,
+    process_file,
+)
 from tests.conftest import (
     INPUT_TAG,
     OUTPUT_TAG,
@@ -78,7 +84,7 @@ def assert_plausible_plant(sr: pl.DataFrame) -> None:
 # --------------------------------------------------------------- estimate flow
 def test_estimate_flow_equals_direct_run_job(prefect_harness, make_job):
     from flows.estimate import run_estimate
-    from pipeline.jobs import run_job
+    from pipeline.jobs.estimation import run_job
 
     job = make_job(1, rerun={"enabled": True})  # the whole path, Rerun sink included
     direct = run_job(load_job(job), run_id="direct")
@@ -135,7 +141,7 @@ def test_estimate_on_dask_cluster_equals_default_runner(prefect_harness, tmp_pat
                 lambda dask_scheduler: {name: tp.state_counts.get("memory", 0) for name, tp
                                         in dask_scheduler.task_prefixes.items()})
     n_windows = step_responses(dsk.run_dir)["window"].n_unique()  # "all" + w0, w1, ...
-    # (dask names a task by its function: the task wraps pipeline.jobs.estimate_window)
+    # (dask names a task by its function: the task wraps pipeline.jobs.estimation.estimate_window)
     assert finished.get("estimate_window") == n_windows, finished
     a, b = step_responses(ref.run_dir), step_responses(dsk.run_dir)
     assert_plausible_plant(a)

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from pipeline.adapters.config import load_job
-from pipeline.jobs import run_job
+from pipeline.jobs.estimation import run_job
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 INPUTS = ["FIC-2001", "FIC-2002", "FIC-2004", "TIC-2003", "FIC-2100", "FI-2005"]

@@ -1,4 +1,4 @@
-"""Tests of pipeline.frequency: DTFT of step responses vs python-control, and the
+"""Tests of pipeline.readouts.frequency: DTFT of step responses vs python-control, and the
 least-squares-distance transfer-function fit."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.adapters.control_lti import transfer_function
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
-from pipeline.frequency import (
+from pipeline.readouts.frequency import (
     fit_transfer_function,
     fit_transfer_function_search,
     frequency_response_from_step,

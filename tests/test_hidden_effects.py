@@ -4,7 +4,7 @@
 design; 1e4 samples at 2 s; ``boiler_pressure`` for even seeds, ``drum_level`` for odd;
 seeds from ``CI_SEED0``, apart from the tuning seeds ``TUNE_SEED0`` and the published
 suites' ``SUITE_SEED0``.  The CI sample is ``clean``: one hidden effect (or none)
-simulated by ``pipeline.simulate`` with the model's own structure -- ``N_CLEAN`` per
+simulated by ``pipeline.models.simulate`` with the model's own structure -- ``N_CLEAN`` per
 effect, ``N_CLEAN_NULL`` nulls.
 
 The ``pairs`` suite (two hidden effects at different locations) is the benchmark's only
@@ -48,7 +48,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from pipeline.effect_trials import HIDDEN_EFFECTS
+from pipeline.simulated.effect_trials import HIDDEN_EFFECTS
 from tests.benchmarks.bench_discrepancy import (
     CI_SEED0,
     NONE,

@@ -199,8 +199,8 @@ def test_gain_sigma_holds_the_truncation_bias_not_the_reference_fits_noise():
     E[L²] = b² + σ_L², so a left-out change L within its own noise adds nothing, and one
     beyond it adds the excess.  A first-order plant simulated here (numpy only), fitted at
     a horizon past its settling; L and σ_L are given as the search would pass them."""
-    from pipeline.estimate import estimate_step_responses
-    from pipeline.settledness import settledness
+    from pipeline.estimation.estimate import estimate_step_responses
+    from pipeline.identification.settledness import settledness
 
     rng = np.random.default_rng(11)
     n = 4000

@@ -31,7 +31,7 @@ import yaml
 
 from flows.cli import main
 from pipeline.discrepancy.report import fmt_number
-from pipeline.quality import GRADE_RULE, grade_from_checks
+from pipeline.identification.quality import GRADE_RULE, grade_from_checks
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

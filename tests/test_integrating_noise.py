@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 
-from pipeline.characteristics import integrating_characteristics
-from pipeline.estimate import estimate_step_responses
+from pipeline.readouts.characteristics import integrating_characteristics
+from pipeline.estimation.estimate import estimate_step_responses
 from tests.plants import DRUM_RATES, ar1, drum_plant, drum_record, drum_truth, zoh_response
 
 N = 20_000

@@ -7,7 +7,14 @@ import dataclasses
 import numpy as np
 
 from pipeline.adapters.config import load_job
-from pipeline.jobs import WindowFailure, estimate_window, load_recording, prepare, search_orders, summarise
+from pipeline.jobs.estimation import (
+    WindowFailure,
+    estimate_window,
+    load_recording,
+    prepare,
+    search_orders,
+    summarise,
+)
 from tests.conftest import write_job, write_plant_csv
 
 

@@ -1,4 +1,4 @@
-"""Kernel-regularised FIR with the per-output noise model (pipeline/kernel_fir.py, method.md §11).
+"""Kernel-regularised FIR with the per-output noise model (pipeline/estimation/kernel_fir.py, method.md §11).
 
 Truths come from independent simulation (``scipy.signal.lfilter`` of first-order plants,
 AR(1) noise) and from the marginal likelihood written out on the explicit regressor matrix
@@ -13,10 +13,10 @@ import scipy.optimize
 import scipy.signal as ss
 from threadpoolctl import threadpool_limits
 
-from pipeline.alt_estimates import estimate_regularized
+from pipeline.estimation.alt_estimates import estimate_regularized
 from pipeline.errors import ConfigError
-from pipeline.estimate import estimate_step_responses
-from pipeline.kernel_fir import estimate_kernel, kernel_posterior, neg2_log_likelihood
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.estimation.kernel_fir import estimate_kernel, kernel_posterior, neg2_log_likelihood
 
 
 # ------------------------------------------------------------------ helpers

@@ -1,10 +1,13 @@
-"""The layers of design.md, checked on the source (AST, every import at any depth):
+"""The layers of design.md, checked on the source (AST, every import at any depth), with
+the layers read from the folders (``pipeline/__init__.py`` names them):
 
-* core modules (``pipeline/*.py`` except the composition modules) import only numpy,
-  scipy, threadpoolctl, pure standard-library modules and other core modules — no files,
-  clock, network, Prefect, Rerun, YAML, polars or python-control;
+* core: the modules of the core folders (:data:`CORE_FOLDERS`) and the shared
+  ``pipeline/*.py`` modules import only numpy, scipy, threadpoolctl, numba, pure
+  standard-library modules and other core modules — no files, clock, network, Prefect,
+  Rerun, YAML, polars or python-control;
 * nothing under ``pipeline/`` imports ``flows`` (the library never depends on its
-  orchestration), and adapters do not import the composition modules;
+  orchestration), and the adapters (``pipeline/adapters/``) do not import the
+  composition (``pipeline/jobs/``);
 * no module imports a private (``_name``) name of another module, from ``pipeline`` or
   ``flows``, whether by ``from m import _x`` or ``m._x``.
 """
@@ -18,30 +21,42 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINE = ROOT / "pipeline"
-COMPOSITION = {"jobs", "job_types", "job_summary", "discrepancy_job", "nightly", "demo",
-               "monitor_job",
-               "recording", "stages"}
-"""``pipeline`` modules that compose adapters and core (design.md layer 3)."""
-CORE_PACKAGES = ("discrepancy",)
-"""Subpackages of ``pipeline`` that belong to the core."""
-CORE = sorted([p.stem for p in PIPELINE.glob("*.py")
-               if p.stem not in COMPOSITION and p.stem != "__init__"]
-              + [pkg if p.stem == "__init__" else f"{pkg}.{p.stem}"
-                 for pkg in CORE_PACKAGES for p in (PIPELINE / pkg).glob("*.py")])
-"""Core modules as dotted names under ``pipeline`` (``estimate``, ``discrepancy.fit``)."""
+ADAPTERS, COMPOSITION_FOLDER = "adapters", "jobs"
+"""The folders of design.md's layers 2 and 3."""
+CORE_FOLDERS = tuple(sorted(p.name for p in PIPELINE.iterdir()
+                            if p.is_dir() and (p / "__init__.py").exists()
+                            and p.name not in (ADAPTERS, COMPOSITION_FOLDER)))
+"""Every other package of ``pipeline`` is core (estimation, identification, readouts,
+models, discrepancy, simulated)."""
+FOLDER_LAYER = {**{f: "core" for f in CORE_FOLDERS}, ADAPTERS: "adapters",
+                COMPOSITION_FOLDER: "composition"}
+
+
+def _dotted(path: Path) -> str:
+    rel = path.relative_to(PIPELINE).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+CORE = sorted(_dotted(p) for p in PIPELINE.rglob("*.py")
+              if _dotted(p) and (len(p.relative_to(PIPELINE).parts) == 1
+                                 or p.relative_to(PIPELINE).parts[0] in CORE_FOLDERS))
+"""Core modules as dotted names under ``pipeline`` (``errors``, ``estimation.estimate``,
+``discrepancy.fit``, ``discrepancy`` for its ``__init__``)."""
 
 
 def _path(name: str) -> Path:
     p = PIPELINE / (name.replace(".", "/") + ".py")
-    return p if p.exists() else PIPELINE / name / "__init__.py"
-# numba compiles pure numeric kernels (pipeline/discrepancy/lure.py); its on-disk cache
-# of compiled code is the interpreter-level kind, like __pycache__, not the core's I/O
+    return p if p.exists() else PIPELINE / name.replace(".", "/") / "__init__.py"
+# numba compiles pure numeric kernels (pipeline/models/sample_program.py); its on-disk
+# cache of compiled code is the interpreter-level kind, like __pycache__, not the core's I/O
 THIRD_PARTY_CORE = {"numpy", "scipy", "threadpoolctl", "numba"}
 PURE_STDLIB = {"__future__", "abc", "bisect", "collections", "contextlib", "copy",
                "dataclasses", "difflib", "enum", "fractions", "functools", "graphlib",
-               "heapq", "itertools", "math", "numbers", "operator", "re", "statistics",
-               "types", "typing", "warnings"}
-"""Standard-library modules without I/O, clock or global state the core may use."""
+               "heapq", "importlib", "itertools", "math", "numbers", "operator", "re",
+               "statistics", "types", "typing", "warnings"}
+"""Standard-library modules without I/O, clock or global state the core may use
+(``importlib``: the lazy public names of ``pipeline/__init__.py``)."""
 
 
 def _imports(path: Path) -> list[tuple[int, str, list[str]]]:
@@ -72,10 +87,9 @@ def test_core_module_imports_only_numpy_scipy_and_core(name):
         if top in THIRD_PARTY_CORE or top in PURE_STDLIB:
             continue
         inner = mod.split(".", 1)[1] if "." in mod else ""
-        if mod == "pipeline" or inner in CORE_PACKAGES:  # `from pipeline import x`
-            if all(n in CORE or f"{inner}.{n}" in CORE for n in names):
-                continue
-        elif top == "pipeline" and inner in CORE:
+        if top == "pipeline" and (inner in CORE or (
+                (mod == "pipeline" or inner in CORE_FOLDERS)  # `from pipeline.x import m`
+                and all(n in CORE or f"{inner}.{n}" in CORE for n in names))):
             continue
         bad.append(f"{name}.py:{line}: {mod} {names or ''}")
     assert not bad, "core modules import outside the core:\n" + "\n".join(bad)
@@ -88,8 +102,8 @@ def test_the_library_never_imports_flows_and_adapters_not_composition():
         for line, mod, _ in _imports(path):
             if mod.split(".")[0] == "flows":
                 bad.append(f"{rel}:{line}: imports {mod}")
-            if rel.parts[1] == "adapters" and mod.startswith("pipeline.") and \
-                    mod.split(".")[1] in COMPOSITION:
+            if rel.parts[1] == ADAPTERS and mod.startswith("pipeline.") and \
+                    mod.split(".")[1] == COMPOSITION_FOLDER:
                 bad.append(f"{rel}:{line}: adapter imports composition module {mod}")
     assert not bad, "\n".join(bad)
 
@@ -122,8 +136,16 @@ def test_no_module_imports_a_private_name_of_another():
 
 def test_the_checks_see_the_project():
     """The lists above are not empty by accident (a moved folder would pass vacuously)."""
-    assert {"estimate", "search", "checks", "frequency", "discrepancy",
-            "discrepancy.fit"} <= set(CORE)
+    assert {"estimation.estimate", "identification.search", "identification.checks",
+            "readouts.frequency", "models.simulate", "discrepancy", "discrepancy.fit",
+            "errors"} <= set(CORE)
+    assert set(CORE_FOLDERS) == {"estimation", "identification", "readouts", "models",
+                                 "discrepancy", "simulated"}
+    assert not any(c.startswith(("jobs", "adapters")) for c in CORE)
+    # every module of pipeline/ is in one layer: a shared top-level module or a folder's
+    for p in PIPELINE.rglob("*.py"):
+        rel = p.relative_to(PIPELINE)
+        assert len(rel.parts) == 1 or rel.parts[0] in FOLDER_LAYER, rel
     assert len(_sources("pipeline")) >= 30 and len(_sources("flows")) >= 6
 
 

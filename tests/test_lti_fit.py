@@ -1,5 +1,5 @@
 """Transfer functions with dead time fitted to step responses, and their exact sampled
-form (pipeline/lti_fit.py).
+form (pipeline/readouts/lti_fit.py).
 
 Oracles are analytic step responses and python-control's own zero-order-hold
 discretisation, never the code under test; the lag times are ``(l - 1/2)·dt``.
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import ConfigError, DataQualityError
-from pipeline.lti_fit import (
+from pipeline.readouts.lti_fit import (
     fit_step_model,
     fopdt_step,
     rational_step,
@@ -87,7 +87,7 @@ def test_a_delay_below_the_resolution_is_zero_and_its_pade_form_stays_finite(del
     pressure<-steam pair once got 3e-4 s, whose Padé(6) form stepped to NaN); the stated
     fit error is then that of the zero-delay model, still tiny (slope·delay)."""
     from pipeline.adapters.control_lti import pade_transfer_function
-    from pipeline.lti_fit import DELAY_RESOLUTION
+    from pipeline.readouts.lti_fit import DELAY_RESOLUTION
 
     h = fopdt_step(T, gain=2.0, time_constant_s=3.0, delay_s=delay)
     fit = fit_step_model(h, dt_s=DT)
@@ -187,7 +187,7 @@ def test_bad_responses_are_refused_with_the_reason():
 def test_a_numeric_failure_of_the_fit_leaves_the_model_out_with_the_reason(monkeypatch):
     """The run fits the reported model in its summary (checks.json); a numeric failure
     inside the fit must leave the pair's transfer function out, not stop the run."""
-    import pipeline.lti_fit as lti
+    import pipeline.readouts.lti_fit as lti
 
     def broken(*_args, **_kwargs):
         raise np.linalg.LinAlgError("Eigenvalues did not converge")
@@ -206,7 +206,7 @@ def test_a_stored_fit_reads_back_as_the_fit():
     """What the run stores (model_record, through JSON) is the fit the export uses."""
     import json
 
-    from pipeline.lti_fit import model_record, reported_model
+    from pipeline.readouts.lti_fit import model_record, reported_model
 
     h = fopdt_step(T, gain=2.0, time_constant_s=20.0, delay_s=3.0)
     fit = reported_model(h, dt_s=DT, value=2.0, std=0.01)

@@ -11,10 +11,10 @@ import pytest
 from pipeline.discrepancy.analyse import _problem
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.lure import StaticMapPath, first_crossing
-from pipeline.effects import Effect, predict_outputs
+from pipeline.discrepancy.effects import Effect, predict_outputs
 from tests.benchmarks.bench_discrepancy import load_model
 from pipeline.progress import quiet
-from pipeline.synthetic import make_discrepancy_demo
+from pipeline.simulated.synthetic import make_discrepancy_demo
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from pipeline.errors import ConfigError, ModelError
-from pipeline.blocks import (
+from pipeline.models.blocks import (
     BLOCK_TYPES,
     PI,
     PID,
@@ -24,7 +24,7 @@ from pipeline.blocks import (
     Term,
     Transfer,
 )
-from pipeline.model import (
+from pipeline.models.model import (
     Model,
     insert_after,
     insert_before,

@@ -22,9 +22,9 @@ import pytest
 
 from flows.cli import main
 from pipeline.errors import DivergenceError, ModelError
-from pipeline.model import MAX_BLOCKS, model_from_dict
-from pipeline.simulate import discrete_state_space, simulate
-from pipeline.stability import GROWTH_LIMIT, check_simulable, unstable_parts
+from pipeline.models.model import MAX_BLOCKS, model_from_dict
+from pipeline.models.simulate import discrete_state_space, simulate
+from pipeline.models.stability import GROWTH_LIMIT, check_simulable, unstable_parts
 from tests.conftest import PLANT_GAIN, PLANT_TAU_S
 
 
@@ -122,7 +122,7 @@ def test_positive_feedback_loop_is_named_with_its_pole_and_gain(make_job):
 
 
 def test_stable_models_and_slow_growth_pass():
-    from pipeline.demo import boiler_model
+    from pipeline.jobs.demo import boiler_model
 
     check_simulable(boiler_model(), dt_s=1.0, n_samples=86_400)  # PI loop round an integrator
     # a pole at +1e-5 1/s grows e^0.036 over an hour: a drift, not an instability
@@ -158,9 +158,9 @@ def test_a_candidate_that_diverges_is_named_with_the_scale_hint():
     """The OP-as-fraction case: the search fits ``gain`` with a factor near 100 in the
     boiler's pressure loop (PI kp -0.554 x 100 through 8 s of dead time): the augmented
     model overflows, and the message names the effect and the likely unit mismatch."""
-    from pipeline.demo import boiler_model
+    from pipeline.jobs.demo import boiler_model
     from pipeline.discrepancy.chain import build, simulate_with
-    from pipeline.effects import Effect
+    from pipeline.discrepancy.effects import Effect
 
     model = boiler_model()
     check_simulable(model, dt_s=1.0, n_samples=20_000)  # the nominal model is stable

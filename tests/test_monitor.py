@@ -1,6 +1,6 @@
 """Nightly monitoring against a baseline run (issue 13, must-show 4).
 
-* The statistics (:mod:`pipeline.monitor`) against their definitions, and the config
+* The statistics (:mod:`pipeline.readouts.monitor`) against their definitions, and the config
   section's errors in YAML terms.
 * Calibration on the core API: a plant that does not change, simulated independently of
   the estimator (python-control's exact ZOH discretisation of two continuous transfer
@@ -37,7 +37,7 @@ import pytest
 import scipy.signal as ss
 
 from pipeline.errors import ConfigError
-from pipeline.monitor import (
+from pipeline.readouts.monitor import (
     PairResponse,
     compare_pair,
     compare_runs,
@@ -178,8 +178,8 @@ def simulate_night(seed: int, gain1: float = 1.0) -> tuple[np.ndarray, np.ndarra
 
 def night_pairs(seed: int, gain1: float = 1.0) -> list[PairResponse]:
     """A night estimated as a job does (noise model chosen from the data), as stored."""
-    from pipeline.characteristics import self_regulating_characteristics
-    from pipeline.estimate import estimate_step_responses
+    from pipeline.readouts.characteristics import self_regulating_characteristics
+    from pipeline.estimation.estimate import estimate_step_responses
 
     est = estimate_step_responses(*simulate_night(seed, gain1), n_p=N_P, dt=1.0,
                                   noise="auto")

@@ -5,7 +5,7 @@ the output and every input by the output's ``D(q)`` sample by sample, build the
 regressor of the filtered inputs explicitly and solve it with ``numpy.linalg.lstsq``;
 the covariance is ``sigma^2 (Phi' Phi)^-1``.  The estimator never builds that regressor:
 it combines lag products, shares the inputs' factor across outputs
-(:mod:`pipeline.structured_gls`) or factors each output's filtered system, and the
+(:mod:`pipeline.estimation.structured_gls`) or factors each output's filtered system, and the
 search nests every candidate order in one factor.  All of them must give the
 reference's numbers.
 """
@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 import scipy.signal as ss
 
-import pipeline.prediction_error as pe
-from pipeline.estimate import estimate_step_responses
-from pipeline.gram_estimate import (
+import pipeline.estimation.prediction_error as pe
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.estimation.gram_estimate import (
     estimate_from_context,
     lag_gram_context,
     lags_needed,
     nested_fixed_noise,
 )
-from pipeline.structured_gls import StructuredFactor
+from pipeline.estimation.structured_gls import StructuredFactor
 
 N_X, N_Y, P, N = 3, 2, 8, 3000
 
@@ -143,7 +143,7 @@ def _explicit_lag_gram(segments, L: int) -> np.ndarray:
 
 
 def test_lazy_lag_gram_equals_its_definition():
-    from pipeline.lag_products import ROW_GROUPS, build_lag_gram, signal_gram
+    from pipeline.estimation.lag_products import ROW_GROUPS, build_lag_gram, signal_gram
 
     rng = np.random.default_rng(3)
     segs = [rng.standard_normal((400, 5)), rng.standard_normal((250, 5))]
@@ -164,7 +164,7 @@ def test_lazy_lag_gram_equals_its_definition():
 
 
 def test_filtered_gram_is_the_filtered_regressors_product():
-    from pipeline.lag_products import Block, filtered_gram
+    from pipeline.estimation.lag_products import Block, filtered_gram
 
     rng = np.random.default_rng(4)
     w = rng.standard_normal((300, 4))
@@ -208,7 +208,7 @@ def _truncation_reference(ref, m: int) -> np.ndarray:
 
 
 def test_vectorised_truncation_test_equals_pair_by_pair():
-    from pipeline.truncation import truncation_test
+    from pipeline.identification.truncation import truncation_test
 
     x, y = _mimo(seed=10)
     est = estimate_step_responses(x, y, n_p=P, dt=1.0, noise="auto")
@@ -219,7 +219,7 @@ def test_vectorised_truncation_test_equals_pair_by_pair():
 
 
 def test_nested_orders_diagnostics_equal_each_orders_own():
-    from pipeline.step_result import diagnostics_of
+    from pipeline.estimation.step_result import diagnostics_of
 
     x, y = _mimo(seed=11)
     d = [np.array([1.0, -0.8]), np.array([1.0, -0.6])]

@@ -32,7 +32,7 @@ from pipeline.adapters.drop_folder import default_max_parallel, per_file_memory_
 from pipeline.adapters.historian_writer import write_json_mcap, write_long_csv
 from pipeline.adapters.store import ResultStore, file_sha256
 from pipeline.errors import DataQualityError
-from pipeline.nightly import job_config_sha256, nightly_run_id, plan_night, process_file
+from pipeline.jobs.nightly import job_config_sha256, nightly_run_id, plan_night, process_file
 from tests.conftest import (
     INPUT_TAG,
     OUTPUT_TAG,

@@ -11,12 +11,12 @@ import pytest
 import scipy.optimize
 import scipy.signal as ss
 
-from pipeline.checks import ljung_box
+from pipeline.identification.checks import ljung_box
 from pipeline.errors import ConfigError, DataQualityError
-from pipeline.estimate import estimate_step_responses
-from pipeline.gram_estimate import estimate_from_context, lag_gram_context
-from pipeline.prediction import innovations
-from pipeline.noise_model import ar_order_by_bic, levinson
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.estimation.gram_estimate import estimate_from_context, lag_gram_context
+from pipeline.estimation.prediction import innovations
+from pipeline.estimation.noise_model import ar_order_by_bic, levinson
 
 
 def _record(n=4000, seed=0, phi=0.8, n_x=2):
@@ -187,7 +187,7 @@ def test_fit_ar_on_a_series_recovers_an_ar2_and_matches_explicit_least_squares()
     coefficients are within 4 standard errors (sqrt((1 - phi_2^2) / n) ~ 0.005) of the
     truth and of an explicit least-squares regression on the lagged series (an
     independent computation), and the innovation std within 2 %."""
-    from pipeline.noise_model import fit_ar
+    from pipeline.estimation.noise_model import fit_ar
 
     rng = np.random.default_rng(7)
     d_true = np.array([1.0, -1.6, 0.73])

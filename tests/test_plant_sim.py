@@ -38,7 +38,7 @@ import scipy.signal as ss
 import yaml
 from scipy.integrate import cumulative_trapezoid, solve_ivp
 
-from pipeline.blocks import (
+from pipeline.models.blocks import (
     Block,
     Deadband,
     FirstOrder,
@@ -47,7 +47,7 @@ from pipeline.blocks import (
     Term,
     Transfer,
 )
-from pipeline.model import Model, insert_after, insert_before, model_from_dict
+from pipeline.models.model import Model, insert_after, insert_before, model_from_dict
 from tests.plant_sim import MAX_STEP_POLE, simulate_plant
 
 MODELS = Path(__file__).resolve().parents[1] / "configs" / "models"
@@ -427,7 +427,7 @@ def test_bad_inputs_name_the_signal():
 def test_long_records_of_the_shipped_loops_with_an_effect_block_stay_finite():
     """10 000 samples at 2 s, 10 substeps (1e5 fine steps) of each shipped loop with an
     effect block and every nuisance: every block's output has the record's length and
-    is finite (the time is printed; its ratio to pipeline.simulate is in
+    is finite (the time is printed; its ratio to pipeline.models.simulate is in
     ``tests/benchmarks/bench_simulate.py``, not asserted here)."""
     boiler = load("boiler_pressure")
     boiler = insert_after(boiler, "fuel", upstream_name="fuel_raw", block=Transfer(

@@ -1,5 +1,5 @@
 """The quality grade rule and the numbers the run reports judge pairs by
-(``pipeline/quality.py``), against hand-computed answers."""
+(``pipeline/identification/quality.py``), against hand-computed answers."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 import scipy.signal
 
 from pipeline.errors import ConfigError
-from pipeline.quality import (
+from pipeline.identification.quality import (
     GRADE_RULE,
     fit_percent,
     grade_from_checks,

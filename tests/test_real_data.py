@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.conditioning import condition
-from pipeline.estimate import estimate_step_responses
-from pipeline.sampling import choose_sample_period, resample_average
-from pipeline.search import search
+from pipeline.identification.conditioning import condition
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.identification.sampling import choose_sample_period, resample_average
+from pipeline.identification.search import search
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 STEAMGEN = DATA / "steamgen.dat"

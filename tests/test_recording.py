@@ -17,8 +17,8 @@ from rerun.chunk import RrdReader
 
 from pipeline.adapters.config import load_job
 from pipeline.adapters.rerun_sink import render_run
-from pipeline.envelope import DISPLAY_POINTS, bucket_ids, bucket_width, envelope_points
-from pipeline.jobs import run_job
+from pipeline.readouts.envelope import DISPLAY_POINTS, bucket_ids, bucket_width, envelope_points
+from pipeline.jobs.estimation import run_job
 
 VENV_BIN = Path(sys.executable).parent
 
@@ -76,7 +76,7 @@ def test_entity_paths_and_values_match_the_stored_results(run_dir):
     sig = pl.read_parquet(first / "signals.parquet").filter(pl.col("signal") == "u")
     raw = np.array([v for _, v in data["/signals/raw/u"]])
     # 7200 samples, more than a view shows: drawn as the per-bucket min/max envelope of
-    # the stored column (issue 33), exactly as pipeline.envelope computes it
+    # the stored column (issue 33), exactly as pipeline.readouts.envelope computes it
     t_s = (sig["time"] - sig["time"][0]).dt.total_seconds(fractional=True).to_numpy()
     width = bucket_width(float(t_s[-1]), sig.height)
     assert width is not None

@@ -31,8 +31,8 @@ from rerun.chunk import RrdReader
 from pipeline.adapters.rerun_sink import discrepancy as rerun_discrepancy_mod
 from pipeline.adapters.rerun_sink import render_discrepancy
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
-from pipeline.synthetic import make_discrepancy_demo
-from pipeline.demo import boiler_model
+from pipeline.simulated.synthetic import make_discrepancy_demo
+from pipeline.jobs.demo import boiler_model
 from pipeline.errors import ConfigError, DataQualityError
 
 VENV_BIN = Path(sys.executable).parent

@@ -21,14 +21,14 @@ from pipeline.adapters.rerun_sink import render_run
 from pipeline.adapters.series_reader import Spec, reduce_series
 from pipeline.adapters.store import ResultStore
 from pipeline.adapters.store.schemas import ResultSchemaError
-from pipeline.envelope import (
+from pipeline.readouts.envelope import (
     DISPLAY_POINTS,
     bucket_ids,
     bucket_width,
     envelope_points,
     first_flagged,
 )
-from pipeline.job_types import LongTable
+from pipeline.jobs.job_types import LongTable
 
 # --------------------------------------------------------------------------- the envelope
 

@@ -14,9 +14,9 @@ import pytest
 import yaml
 
 from pipeline.adapters.config import load_job
-from pipeline.conditioning import condition
-from pipeline.estimate import estimate_step_responses
-from pipeline.jobs import estimate_window, load_recording, prepare
+from pipeline.identification.conditioning import condition
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.jobs.estimation import estimate_window, load_recording, prepare
 from tests.helpers_steamgen import (
     STEAMGEN_TAGS,
     load_steamgen,

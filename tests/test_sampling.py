@@ -1,4 +1,4 @@
-"""Tests of pipeline.sampling: the α_T criterion, the sample-period choice, resampling."""
+"""Tests of pipeline.identification.sampling: the α_T criterion, the sample-period choice, resampling."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from pipeline.errors import ConfigError, DataQualityError
-from pipeline.sampling import (
+from pipeline.identification.sampling import (
     alpha_t,
     alpha_t_curve,
     alpha_t_first_order,

@@ -1,5 +1,5 @@
 """The sample period for integrating outputs, step-wise signals and short records
-(pipeline/sampling.py, as ``plantdyn run`` uses it through pipeline/jobs.prepare).
+(pipeline/identification/sampling.py, as ``plantdyn run`` uses it through pipeline/jobs.prepare).
 
 The plant (a boiler drum, thesis §6.4), simulated here with scipy alone: steam flow and
 feedwater in kg/s, the level in cm integrates ``K (feedwater - steam)`` and swells the wrong
@@ -19,7 +19,7 @@ The bound on T: the swell's time constant must be resolved, ``T <= TAU / 3 = 5 s
 samples per time constant, four before the wrong-way peak at ``t* = TAU ln(SWELL/(K TAU))
 = 23 s``).  The lower bound is the α_T definition applied, by brute force here, to the
 noise-free level's first difference (what eq. 3.15 regresses): ``T_NF`` = 4.4 s; sensor
-noise may lengthen T (pipeline/sampling.py's notes) but must not pin it to the record's 1 s, where the
+noise may lengthen T (pipeline/identification/sampling.py's notes) but must not pin it to the record's 1 s, where the
 per-lag scatter of the estimate put the data's wrong-way peak at 0.51 instead of 0.32
 (measured with ``sampling.dt_s: 1`` on this record; 0.32 at the 5 s chosen).
 """
@@ -37,7 +37,7 @@ import scipy.signal as ss
 import yaml
 
 from pipeline.errors import ConfigError
-from pipeline.sampling import (
+from pipeline.identification.sampling import (
     SEARCH_N_P_MIN,
     SEARCH_OBS_PER_UNKNOWN,
     choose_sample_period,

@@ -6,7 +6,7 @@ import control as ct
 import numpy as np
 import pytest
 
-from pipeline.checks import (
+from pipeline.identification.checks import (
     AgreementResult,
     cross_correlation_check,
     ljung_box,
@@ -14,7 +14,7 @@ from pipeline.checks import (
     windows_agree,
 )
 from pipeline.errors import InsufficientDataError
-from pipeline.search import search, split_windows_by_length
+from pipeline.identification.search import search, split_windows_by_length
 from tests.test_estimate import ar1, simulate
 
 

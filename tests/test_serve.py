@@ -25,7 +25,7 @@ from flows.server import healthy, read_state, stop_server
 from pipeline.adapters.config import load_job
 from pipeline.adapters.store import ResultStore, file_sha256
 from pipeline.errors import ConfigError
-from pipeline.nightly import nightly_run_id
+from pipeline.jobs.nightly import nightly_run_id
 from tests.conftest import subprocess_env, write_job, write_plant_csv
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]

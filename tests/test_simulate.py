@@ -22,9 +22,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.errors import ConfigError, DataQualityError, ModelError
-from pipeline.blocks import Deadband, FirstOrder, Gain, Saturation, Term
-from pipeline.model import Model, insert_after, insert_before, model_from_dict
-from pipeline.simulate import (
+from pipeline.models.blocks import Deadband, FirstOrder, Gain, Saturation, Term
+from pipeline.models.model import Model, insert_after, insert_before, model_from_dict
+from pipeline.models.simulate import (
     MAX_LIFTED_STATES,
     discrete_state_space,
     simulate,

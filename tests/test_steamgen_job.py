@@ -73,10 +73,10 @@ def test_defaults_use_noise_models_that_whiten_every_output(run):
     with the job's N_p)."""
     import numpy as np
 
-    from pipeline.checks import ljung_box
-    from pipeline.conditioning import condition
-    from pipeline.estimate import estimate_step_responses
-    from pipeline.prediction import residuals
+    from pipeline.identification.checks import ljung_box
+    from pipeline.identification.conditioning import condition
+    from pipeline.estimation.estimate import estimate_step_responses
+    from pipeline.estimation.prediction import residuals
 
     checks, report = run
     assert checks["estimation"]["method"] == "prediction_error"

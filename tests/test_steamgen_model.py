@@ -31,11 +31,11 @@ import yaml
 
 from pipeline.adapters.daisy import STEAMGEN_COLUMNS, convert, read_daisy
 from flows.cli import main
-from pipeline.conditioning import condition
+from pipeline.identification.conditioning import condition
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
-from pipeline.estimate import estimate_step_responses
-from pipeline.model import model_from_dict
-from pipeline.simulate import simulate
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.models.model import model_from_dict
+from pipeline.models.simulate import simulate
 from tests.helpers_steamgen import require_steamgen
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -199,7 +199,7 @@ def test_what_if_o2_effects_on_the_held_out_part(model, deviations):
     passes the whitened criteria (docs/discrepancy-accuracy.md: the AR noise model is near
     a unit root and takes slow O2 errors for noise); run with -s to print the numbers
     docs/discrepancy-accuracy.md quotes."""
-    from pipeline.effects import Effect, predict_outputs
+    from pipeline.discrepancy.effects import Effect, predict_outputs
 
     held = slice(6400, None)  # holdout_fraction 1/3 of 9600 samples
 

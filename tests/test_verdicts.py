@@ -1,4 +1,4 @@
-"""pipeline.verdicts: the advice under feedback follows the evidence (issue 36, build 4).
+"""pipeline.identification.verdicts: the advice under feedback follows the evidence (issue 36, build 4).
 
 Under feedback the direct estimate is consistent only with a right noise model (white
 prediction errors) and a loop delay; an instrument is consistent whatever the noise
@@ -8,7 +8,7 @@ prediction errors are not white, and keeps the direct estimate otherwise.
 
 from __future__ import annotations
 
-from pipeline.verdicts import pair_warnings
+from pipeline.identification.verdicts import pair_warnings
 
 
 def _warnings(whiteness_p: float, instruments=()) -> dict:

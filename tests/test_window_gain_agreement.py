@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import scipy.signal as ss
 
-from pipeline.checks import window_agreement
-from pipeline.estimate import estimate_step_responses
+from pipeline.identification.checks import window_agreement
+from pipeline.estimation.estimate import estimate_step_responses
 
 N_HALF, N_P, RECORDS = 3000, 60, 60
 

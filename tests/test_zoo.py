@@ -138,8 +138,8 @@ def test_a_null_plant_is_the_nominal_model_up_to_the_dcs(family):
     starts at rest: 20 min, 1 h for the slow level loop, whose closed-loop time constant
     is 1/(ζ ω_n) ≈ 500 s) -- what is left is the DCS's scan delay, the OP quantum and the
     model's sample-and-hold."""
-    from pipeline.model import model_from_dict
-    from pipeline.simulate import simulate
+    from pipeline.models.model import model_from_dict
+    from pipeline.models.simulate import simulate
 
     fam = _quiet(FAMILIES[family])
     warm_s = 3600.0 if family == "two_tanks" else 1200.0
@@ -178,7 +178,7 @@ def test_historian_export_and_job_as_a_user_has_them(tmp_path):
     """The export is a long CSV with one row per tag and sample at the family's period,
     the job names every tag and the model, the model YAML loads, and truth.json holds
     the known answer."""
-    from pipeline.model import model_from_dict
+    from pipeline.models.model import model_from_dict
 
     trial = make_trial(FAMILIES["two_tanks"], "dead_time", seed=3, hours=0.5)
     job = write_trial(trial, tmp_path)
@@ -280,7 +280,7 @@ def test_visibility_is_the_gap_a_perfect_model_would_close_on_both_parts():
     # one output; holdout_start(300) = 200.  Footprint 3 on the fit part and 4 on the
     # held-out part over a residual of +-1 (sign alternating): the perfect model closes
     # 1 - 1/sqrt(10) on the fit part and 1 - 1/sqrt(17) held out; the smaller counts
-    from pipeline.effect_trials import holdout_start
+    from pipeline.simulated.effect_trials import holdout_start
     from tests.zoo.trial import ideal_gap_reduction
 
     n = 300

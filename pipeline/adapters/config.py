@@ -232,7 +232,7 @@ class EstimationConfig(_Strict):
     method: Literal["auto", "ls", "correlation", "tc", "dc"] = "auto"
     """``auto`` (the default): least squares when the record holds at least 10 observations
     per unknown and every pair settled within the search's horizon, the kernel-regularised
-    FIR otherwise (:mod:`pipeline.method_choice`; checks.json ``estimation.method_choice``
+    FIR otherwise (:mod:`pipeline.identification.method_choice`; checks.json ``estimation.method_choice``
     says which and why); ``ls``: least squares (with the noise model and instruments
     below); ``correlation``: the thesis' older correlation method (method.md §2;
     whole-window auto-correlations, masked samples enter as zeros; white noise; a
@@ -287,7 +287,7 @@ class QualityConfig(_Strict):
 
     spikes: Literal["mask", "off"] = "mask"
     """``mask``: isolated samples far from their neighbours are masked and reported
-    (:mod:`pipeline.spikes`); ``off`` keeps every sample."""
+    (:mod:`pipeline.identification.spikes`); ``off`` keeps every sample."""
     spike_sigmas: float = Field(default=20.0, ge=3.0, le=1e6, allow_inf_nan=False)
     """Deviation from the running median, in robust noise s.d., that makes a spike."""
 
@@ -299,7 +299,7 @@ class RerunConfig(_Strict):
 class DiscrepancySection(_Strict):
     """The job's optional ``discrepancy:`` section (discrepancy jobs only).
 
-    Workflow keys are read by :mod:`pipeline.discrepancy_job`; every other key is a
+    Workflow keys are read by :mod:`pipeline.jobs.discrepancy`; every other key is a
     setting of :class:`pipeline.discrepancy.DiscrepancyConfig` (same name, same meaning;
     unset keys keep the core's automatic defaults).  A test keeps the two lists equal.
     """
@@ -351,7 +351,7 @@ class DiscrepancySection(_Strict):
 
 
 class MonitorConfig(_Strict):
-    """``monitor:``: compare every run with a pinned baseline run (:mod:`pipeline.monitor`)."""
+    """``monitor:``: compare every run with a pinned baseline run (:mod:`pipeline.readouts.monitor`)."""
 
     baseline: str = Field(default="first", min_length=1, max_length=64)
     """A run id of this job, or ``first``: the job's first run in the catalog (with no
@@ -389,7 +389,7 @@ class DaskConfig(_Strict):
 
 class NightlyConfig(_Strict):
     """``nightly:``: how ``plantdyn nightly`` takes the files of the drop folder
-    (:mod:`pipeline.nightly`)."""
+    (:mod:`pipeline.jobs.nightly`)."""
 
     max_parallel: int | None = Field(default=None, ge=1, le=256)
     """Files processed at the same time; default from the cores and the free memory

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import control
 
-from pipeline.frequency import TransferFunctionFit
+from pipeline.readouts.frequency import TransferFunctionFit
 
 
 def transfer_function(fit: TransferFunctionFit) -> control.TransferFunction:
@@ -15,7 +15,7 @@ def transfer_function(fit: TransferFunctionFit) -> control.TransferFunction:
     Parameters
     ----------
     fit : TransferFunctionFit
-        From :func:`pipeline.frequency.fit_transfer_function` (``num``/``den`` in
+        From :func:`pipeline.readouts.frequency.fit_transfer_function` (``num``/``den`` in
         descending powers of s).
 
     Returns
@@ -28,7 +28,7 @@ def transfer_function(fit: TransferFunctionFit) -> control.TransferFunction:
 def sampled_transfer_function(num_z, den_z, *, dt_s: float, output: str | None = None,
                               input: str | None = None) -> control.TransferFunction:
     """A discrete-time ``control.TransferFunction`` at ``dt_s`` (the exact sampled form of a
-    fit with its dead time, :func:`pipeline.lti_fit.zoh_with_delay`).
+    fit with its dead time, :func:`pipeline.readouts.lti_fit.zoh_with_delay`).
 
     Parameters
     ----------

@@ -2,7 +2,7 @@
 
 Reads an estimation run directory (``manifest.json``, ``step_responses.parquet`` window
 ``all``, ``checks.json``), checks the two data files against the manifest's sha256, fits
-one continuous transfer function with dead time per pair (:mod:`pipeline.lti_fit`) and
+one continuous transfer function with dead time per pair (:mod:`pipeline.readouts.lti_fit`) and
 writes one file, atomically (a temporary file in the target folder, then ``os.replace``):
 
 ``csv`` (:data:`SCHEMA_CSV`)
@@ -42,7 +42,7 @@ writes one file, atomically (a temporary file in the target folder, then ``os.re
 
 The exported model is the reported model: a pair's transfer function is written only
 when its DC gain (rate) agrees with the run's reported gain within
-``max(2σ, 10 %)`` (:func:`pipeline.lti_fit.reported_model`); otherwise, and for a pair that reports no gain
+``max(2σ, 10 %)`` (:func:`pipeline.readouts.lti_fit.reported_model`); otherwise, and for a pair that reports no gain
 (still moving at its horizon), it is left out and ``fit_error`` says why.  Every file
 carries units, tags, the settledness verdict, the grade and the gain with its σ.
 
@@ -131,7 +131,7 @@ class PairData:
         ``checks.json`` ``pairs[].settled.verdict`` (``settled``, ``moving``,
         ``insufficient_data``).
     grade : str or None
-        The pair's quality grade (:func:`pipeline.quality.grade_from_checks`).
+        The pair's quality grade (:func:`pipeline.identification.quality.grade_from_checks`).
     gain_note : str
         ``checks.json`` ``pairs[].gain_note``.
     gain_extrapolated : dict or None
@@ -221,7 +221,7 @@ class ExportResult:
     format : str
         One of :data:`FORMATS`.
     fits : dict
-        ``(output, input)`` -> :class:`pipeline.lti_fit.StepModelFit` (or the error text);
+        ``(output, input)`` -> :class:`pipeline.readouts.lti_fit.StepModelFit` (or the error text);
         empty for ``csv``.
     notes : list of str
         Lines worth telling the user (run status, poor fits).
@@ -344,7 +344,7 @@ def read_run(run_dir: str | os.PathLike) -> RunData:
     dts = table["dt_s"].unique().to_list()
     if len(dts) != 1:
         raise DataQualityError(f"{steps_file}: window '{WINDOW}' has several dt_s {dts}")
-    from pipeline.quality import grade_from_checks
+    from pipeline.identification.quality import grade_from_checks
 
     by_pair = {(p["output"], p["input"]): p for p in checks.get("pairs", [])}
     outputs = tuple(dict.fromkeys(p["output"] for p in checks.get("pairs", [])))
@@ -454,7 +454,7 @@ def _text(v: float | None) -> str:
 # ----------------------------------------------------------------------------- fits
 def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) -> dict:
     """Every pair's transfer function with dead time: as the run stored it, or fitted
-    for a run written before runs stored it (:func:`pipeline.lti_fit.reported_model`).
+    for a run written before runs stored it (:func:`pipeline.readouts.lti_fit.reported_model`).
 
     Parameters
     ----------
@@ -468,7 +468,7 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
     dict
         ``(output, input)`` -> ``StepModelFit``, or the error text when a pair cannot be fitted.
     """
-    from pipeline.lti_fit import reported_model
+    from pipeline.readouts.lti_fit import reported_model
 
     fits = {}
     for p in run.pair_list():
@@ -485,7 +485,7 @@ def fit_pairs(run: RunData, progress: Callable[[str, str], None] | None = None) 
 
 def _tf_dict(fit, dt_s: float) -> dict | None:
     """A fit as the files store it, with its exact sampled form."""
-    from pipeline.lti_fit import zoh_with_delay
+    from pipeline.readouts.lti_fit import zoh_with_delay
 
     if isinstance(fit, str):
         return None

@@ -1,6 +1,6 @@
 """Long stored series (``signals.parquet``, ``residuals.parquet``) read in bounded memory
 for figures: a row group at a time, reduced to min/max envelopes at display resolution
-(:mod:`pipeline.envelope`), or one series (one signal, one output) at a time in full for
+(:mod:`pipeline.readouts.envelope`), or one series (one signal, one output) at a time in full for
 what needs every sample.
 
 The files are long tables: a key (``signal`` or ``output``), a ``time`` column and value
@@ -19,7 +19,7 @@ import numpy as np
 import polars as pl
 import pyarrow.parquet as pq
 
-from pipeline.envelope import (
+from pipeline.readouts.envelope import (
     DISPLAY_POINTS,
     bucket_ids,
     bucket_width,
@@ -263,7 +263,7 @@ def reduce_series(path: Path, keys: Sequence[str], specs: Mapping[str, Spec], *,
     """Stream a long table once and hand every key's drawn series to ``on_key`` (in file
     order, each key as soon as its rows end): every sample when the key has at most
     ``max_points`` rows, else per bucket of ``span / (max_points / 2)`` its min and max
-    (:func:`pipeline.envelope.envelope_points`) or first flagged sample.
+    (:func:`pipeline.readouts.envelope.envelope_points`) or first flagged sample.
 
     Parameters
     ----------

@@ -9,13 +9,13 @@ workflow"):
    which measured signal explains it (regression of ``e`` on a bank of lagged/filtered
    versions of every signal, partial statistic per signal, p-value from a circular-shift
    block bootstrap that keeps both autocorrelations); which lags (the least-squares FIR
-   of ``e`` on the signals, :func:`pipeline.estimate.estimate_step_responses`, lags whose
+   of ``e`` on the signals, :func:`pipeline.estimation.estimate.estimate_step_responses`, lags whose
    ``delta_h`` exceeds 3 standard deviations); which frequency band (the step/frequency
    response estimated from the data against the model's); which time windows (block RMS
    of ``e`` and change points of its level); which operating range (``e`` binned by a load
    signal); and which *locations* of the model could produce it (the screening scores of
    step 2).
-2. **Name**: every catalogue effect (:mod:`pipeline.effects`) at every applicable
+2. **Name**: every catalogue effect (:mod:`pipeline.discrepancy.effects`) at every applicable
    location is a candidate, nested in the nominal model at its null value.  Candidates
    are *screened* with a first-order (Born) approximation: an effect at block ``B``
    perturbs ``B``'s output (or input) by a signal ``dv`` computable from the nominal
@@ -70,7 +70,7 @@ workflow"):
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the
    held-out test while a worse one passes (it is listed as ``rejected``).
 5. **Augment**: the accepted effect is added to the model
-   (:func:`pipeline.effects.apply_effect`) and the held-out output-error RMS before and
+   (:func:`pipeline.discrepancy.effects.apply_effect`) and the held-out output-error RMS before and
    after is the ``gap``.
 
 Thresholds (defaults of :class:`DiscrepancyConfig`) were set on hidden-effect trials
@@ -78,9 +78,9 @@ with the tuning seeds (``TUNE_SEED0`` = 1000 in ``tests/benchmarks/bench_discrep
 seeds below 20 000); the published suite uses seeds from 100 000 on and the CI test
 seeds from 200 000 on.
 
-The module is core: numpy/scipy and :mod:`pipeline.model`, :mod:`pipeline.simulate`,
-:mod:`pipeline.estimate`, :mod:`pipeline.effects`.  The bundled demo's data come from
-:func:`pipeline.synthetic.make_discrepancy_demo`.
+The module is core: numpy/scipy and :mod:`pipeline.models.model`, :mod:`pipeline.models.simulate`,
+:mod:`pipeline.estimation.estimate`, :mod:`pipeline.discrepancy.effects`.  The bundled demo's data come from
+:func:`pipeline.simulated.synthetic.make_discrepancy_demo`.
 """
 
 from __future__ import annotations

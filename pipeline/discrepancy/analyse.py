@@ -37,7 +37,7 @@ from pipeline.discrepancy.select import (
     rms_of,
     same_class,
 )
-from pipeline.effects import (
+from pipeline.discrepancy.effects import (
     EFFECT_PARAMETERS,
     Effect,
     apply_effect,
@@ -46,11 +46,11 @@ from pipeline.effects import (
     output_offsets,
 )
 from pipeline.errors import InsufficientDataError
-from pipeline.model import Model
-from pipeline.noise_model import fit_ar
+from pipeline.models.model import Model
+from pipeline.estimation.noise_model import fit_ar
 from pipeline.progress import quiet
-from pipeline.simulate import simulate
-from pipeline.stability import check_simulable
+from pipeline.models.simulate import simulate
+from pipeline.models.stability import check_simulable
 
 
 def analyse_discrepancy(
@@ -106,7 +106,7 @@ def analyse_discrepancy(
         Non-finite or unequal-length signals, too short a record.
     ModelError
         A model delay that is not a whole number of samples at `dt_s` or not shorter
-        than the record; an unstable block or loop (:func:`pipeline.stability.check_simulable`).
+        than the record; an unstable block or loop (:func:`pipeline.models.stability.check_simulable`).
     """
     # thousands of small vector operations: BLAS single-threaded (pipeline._threads)
     return single_threaded_blas(_analyse)(model, inputs=inputs, measured=measured,
@@ -323,7 +323,7 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
 
 
 def _degenerate_refits(fitted: list) -> list[Fit]:
-    """The degenerate forms (:func:`pipeline.effects.degenerate_forms`) of the best fit
+    """The degenerate forms (:func:`pipeline.discrepancy.effects.degenerate_forms`) of the best fit
     among `fitted` (whitened BIC), started at the values its limit maps to: refitted so
     that :func:`~pipeline.discrepancy.select.decide` can compare the best fit with each
     simpler form it contains.
@@ -351,7 +351,7 @@ def _fit_key(effect: Effect) -> tuple[str, str, Any]:
 
 def _nested_forms(fitted: list, chosen: list[int]) -> list[int]:
     """Indices of the fitted effects (not chosen themselves) that are degenerate forms
-    of a chosen one (:func:`pipeline.effects.degenerate_kind`): refitted jointly
+    of a chosen one (:func:`pipeline.discrepancy.effects.degenerate_kind`): refitted jointly
     too, so that the nested pair is compared on equal terms.  Without this, a jointly
     refitted inverse response of magnitude 0.01-0.03 -- the extra lag itself -- beat
     the lag fitted with the earlier effects held fixed and was named (3 of 100

@@ -19,7 +19,7 @@ some of those remain significant but minor tries them as the first of a confirme
 failed on held-out data, or too small alone -- the same way (:data:`N_MASKED`).
 
 Effects are kept with locations in the NOMINAL model's names
-(:func:`pipeline.effects.original_location`) and applied to it in order; a later
+(:func:`pipeline.discrepancy.effects.original_location`) and applied to it in order; a later
 effect at a block an earlier one wrapped acts on the outermost block of that name,
 which for the linear effects (gain, dead time, lag, inverse response in series) is the
 same plant.
@@ -37,10 +37,10 @@ from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.problem import SCALE_FACTOR_HINT
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
 from pipeline.discrepancy.select import holdout_gap, same_class
-from pipeline.effects import Effect, apply_effect, original_location, output_offsets
+from pipeline.discrepancy.effects import Effect, apply_effect, original_location, output_offsets
 from pipeline.errors import DivergenceError
-from pipeline.model import Model
-from pipeline.simulate import simulate
+from pipeline.models.model import Model
+from pipeline.models.simulate import simulate
 
 #: One search of the chain: (effects already in the model, the model, measured outputs as
 #: adjusted, candidates it must also fit and test) -> result.
@@ -155,7 +155,7 @@ def _lookalikes(link: Link, dt_s: float) -> tuple[Candidate, ...]:
 
 def simulate_with(augmented: Model, effects: Sequence[Effect], inputs: Mapping[str, Any],
                   **kwargs: Any):
-    """:func:`~pipeline.simulate.simulate` of a model augmented with ``effects``; a
+    """:func:`~pipeline.models.simulate.simulate` of a model augmented with ``effects``; a
     divergence names the effects that caused it (the nominal model was checked stable)
     and, for a gain factor beyond :data:`SCALE_FACTOR_HINT`, the likely unit mismatch.
 
@@ -168,7 +168,7 @@ def simulate_with(augmented: Model, effects: Sequence[Effect], inputs: Mapping[s
     inputs : mapping of str -> array
         The model inputs.
     **kwargs
-        Passed to :func:`~pipeline.simulate.simulate` (``dt_s``, ``initial``).
+        Passed to :func:`~pipeline.models.simulate.simulate` (``dt_s``, ``initial``).
     """
     try:
         return simulate(augmented, inputs, **kwargs)
@@ -197,7 +197,7 @@ def build(model: Model, effects: Sequence[Effect], dt_s: float) -> Model:
     effects : sequence of Effect
         Effects with locations in the nominal model's names.
     dt_s : float
-        Sample period, s (short lags become gains, :func:`pipeline.effects.apply_effect`).
+        Sample period, s (short lags become gains, :func:`pipeline.discrepancy.effects.apply_effect`).
     """
     for effect in effects:
         model = apply_effect(model, effect, dt_s=dt_s)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from pipeline.effects import EFFECT_NAMES, MIN_GAP_REDUCTION
+from pipeline.discrepancy.effects import EFFECT_NAMES, MIN_GAP_REDUCTION
 from pipeline.errors import ConfigError
 
 
@@ -24,7 +24,7 @@ class DiscrepancyConfig:
     Parameters
     ----------
     effects : tuple of str
-        Catalogue effects to consider (default: all of :data:`pipeline.effects.EFFECT_NAMES`).
+        Catalogue effects to consider (default: all of :data:`pipeline.discrepancy.effects.EFFECT_NAMES`).
     holdout_fraction : float
         Last fraction of the record held out for selection and the gap, in (0.1, 0.6).
     warmup_s : float or None
@@ -35,7 +35,7 @@ class DiscrepancyConfig:
         spurious bias or drift), at most 10 % of the
         record.
     initial : {"rest", "steady"}
-        Initial state of every simulation (:func:`pipeline.simulate.simulate`).
+        Initial state of every simulation (:func:`pipeline.models.simulate.simulate`).
     ar_order_max : int
         Highest AR order of the noise model (chosen by BIC, 0 = white).
     bic_margin : float
@@ -88,7 +88,7 @@ class DiscrepancyConfig:
     lookalike_gap : float
         Equivalence margin of an approximant in the catalogue's nesting (an inverse
         response near magnitude 1 is the Padé form of a dead time:
-        :func:`pipeline.effects.degenerate_forms`): the richer effect is named over
+        :func:`pipeline.discrepancy.effects.degenerate_forms`): the richer effect is named over
         the simpler form only when the form misses more than this share of what the
         richer effect closes of the held-out gap, at the one-sided 95 % lower
         confidence bound (:func:`pipeline.discrepancy.select.decide`); otherwise the

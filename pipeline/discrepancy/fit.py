@@ -23,9 +23,9 @@ from pipeline.discrepancy.lure import (
     static_path,
 )
 from pipeline.discrepancy.screen import Screen, Screener, near
-from pipeline.effects import Effect, apply_effect, predict_outputs
+from pipeline.discrepancy.effects import Effect, apply_effect, predict_outputs
 from pipeline.errors import ConfigError, PipelineError
-from pipeline.simulate import simulate
+from pipeline.models.simulate import simulate
 
 
 #: Relative tolerances (ftol, xtol) of the least-squares fits.  A whitened sum of squares

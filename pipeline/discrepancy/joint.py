@@ -26,10 +26,10 @@ import scipy.optimize
 import scipy.signal
 
 from pipeline.discrepancy.problem import Problem
-from pipeline.effects import Effect, apply_effect
+from pipeline.discrepancy.effects import Effect, apply_effect
 from pipeline.errors import PipelineError
-from pipeline.model import Model
-from pipeline.simulate import simulate
+from pipeline.models.model import Model
+from pipeline.models.simulate import simulate
 
 #: Parameters refitted jointly, and whether they are positive (fitted in log).
 _FREE: dict[str, dict[str, bool]] = {

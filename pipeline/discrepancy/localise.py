@@ -13,9 +13,9 @@ import scipy.signal
 
 from pipeline.discrepancy.problem import Problem
 from pipeline.errors import ConfigError, DataQualityError, PipelineError, SingularSystemError
-from pipeline.estimate import estimate_step_responses
-from pipeline.prediction import residuals as fir_residuals
-from pipeline.simulate import simulate
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.estimation.prediction import residuals as fir_residuals
+from pipeline.models.simulate import simulate
 
 
 def lag_filter(x: np.ndarray, tau_samples: float) -> np.ndarray:

@@ -6,7 +6,7 @@ A ``saturation`` of block B is a static map ``s -> clip(s, low, high)`` of B's o
 outputs plus the injection's response, and ``s`` is its nominal value plus the response
 to *earlier* injections (strictly causal: the nominal model has no algebraic loop).  One
 pass over time with a state matrix of K columns therefore simulates K limit pairs
-exactly (equal to :func:`pipeline.effects.predict_outputs` to rounding) for about the
+exactly (equal to :func:`pipeline.discrepancy.effects.predict_outputs` to rounding) for about the
 cost of one per-sample simulation -- which is what makes dense searches over saturation
 limits, whose error valleys are narrow when a loop winds up, affordable.
 
@@ -25,9 +25,9 @@ import numpy as np
 
 from pipeline.discrepancy.problem import Problem
 from pipeline.errors import ModelError, PipelineError
-from pipeline.blocks import Sum, Term
-from pipeline.model import Model, insert_after, insert_before
-from pipeline.simulate import discrete_state_space
+from pipeline.models.blocks import Sum, Term
+from pipeline.models.model import Model, insert_after, insert_before
+from pipeline.models.simulate import discrete_state_space
 
 
 def inject_model(model: Model, block: str, *, side: str) -> Model:

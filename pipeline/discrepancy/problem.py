@@ -11,8 +11,8 @@ import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
-from pipeline.model import Model
-from pipeline.simulate import simulate
+from pipeline.models.model import Model
+from pipeline.models.simulate import simulate
 
 
 #: Innovation stds are floored at this fraction of the output's std (:func:`sigma_floor`).
@@ -100,7 +100,7 @@ class Problem:
     ar: list[np.ndarray] = field(default_factory=list)  # per output [1, -phi_1, ...]
     sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     #: block and output names of the nominal model: a later search of the chain screens
-    #: only locations with a counterpart there (:func:`pipeline.effects.original_location`)
+    #: only locations with a counterpart there (:func:`pipeline.discrepancy.effects.original_location`)
     location_names: tuple[str, ...] | None = None
     #: fitted candidates whose simulation over the whole record diverged: dropped from
     #: the selection, listed in the result with their parameters (shared by the copies
@@ -250,7 +250,7 @@ def validate_signals(model: Model, inputs: Mapping[str, Any], measured: Mapping[
         Fewer than 500 samples.
     """
     if not isinstance(model, Model):
-        raise ConfigError(f"model: expected a pipeline.model.Model, got {type(model).__name__}")
+        raise ConfigError(f"model: expected a pipeline.models.model.Model, got {type(model).__name__}")
     if not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and dt_s > 0):
         raise ConfigError(f"dt_s={dt_s!r} must be a positive number of seconds")
     if not isinstance(inputs, Mapping) or not isinstance(measured, Mapping):

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.effects import Effect
-from pipeline.model import Model
+from pipeline.discrepancy.effects import Effect
+from pipeline.models.model import Model
 
 
 VERDICTS = ("effect_found", "inconclusive", "no_significant_effect")
@@ -181,7 +181,7 @@ class DiscrepancyResult:
         offsets are in :attr:`output_offsets`.
     output_offsets : dict of str -> ndarray
         Added to the augmented model's simulated outputs (zeros unless
-        sensor_bias_drift).  :func:`pipeline.effects.predict_outputs` with the nominal
+        sensor_bias_drift).  :func:`pipeline.discrepancy.effects.predict_outputs` with the nominal
         model and :attr:`effect` reproduces :attr:`series` ``.augmented``.
     noise : dict
         Noise model per output (AR coefficients, innovation std) and the nominal BIC.

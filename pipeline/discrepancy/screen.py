@@ -16,11 +16,16 @@ import scipy.optimize
 from pipeline.discrepancy.localise import lag_filter
 from pipeline.discrepancy.lure import first_crossing, inject_model, saturation_profile
 from pipeline.discrepancy.problem import Problem
-from pipeline.effects import Effect, applicable_locations, original_location, predict_outputs
+from pipeline.discrepancy.effects import (
+    Effect,
+    applicable_locations,
+    original_location,
+    predict_outputs,
+)
 from pipeline.errors import PipelineError
-from pipeline.blocks import Backlash, Sum, Term
-from pipeline.model import Model
-from pipeline.simulate import simulate
+from pipeline.models.blocks import Backlash, Sum, Term
+from pipeline.models.model import Model
+from pipeline.models.simulate import simulate
 
 
 #: Relative tolerance under which two candidates' sensitivities count as identical
@@ -178,7 +183,7 @@ class Screener:
     def _outputs(self, model: Model, effect: Effect | None, inputs: dict[str, np.ndarray]
                  ) -> np.ndarray | None:
         """Measured outputs (stop, n_y) of `model` with `effect`
-        (:func:`pipeline.effects.predict_outputs`) driven by `inputs` on ``[0, stop)``;
+        (:func:`pipeline.discrepancy.effects.predict_outputs`) driven by `inputs` on ``[0, stop)``;
         None when the simulation fails or is not finite."""
         try:
             with np.errstate(all="ignore"):
@@ -428,7 +433,7 @@ class Screener:
     def _grid_play(self, grid: list[_GridPoint], name: str, loc: str) -> None:
         """deadband or backlash at the input of block `loc`: widths as fractions of the
         input's extreme; the injected signal is the block's map of the nominal input
-        less that input (the backlash's by :func:`~pipeline.simulate.simulate` of the
+        less that input (the backlash's by :func:`~pipeline.models.simulate.simulate` of the
         one block, so its memory is the simulator's)."""
         u = self.block_input(loc)
         scale = float(np.max(np.abs(u)))

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.discrepancy.problem import Problem
-from pipeline.effects import Effect, degenerate_kind
+from pipeline.discrepancy.effects import Effect, degenerate_kind
 
 
 def criteria(P: Problem, y_pred: np.ndarray, k: int) -> tuple[float, list[np.ndarray]]:
@@ -357,13 +357,13 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
     catalogue's nesting.
 
     The best finding (BIC order) is compared with each finding that is one of its
-    degenerate forms (:func:`pipeline.effects.degenerate_forms`: an inverse response's
+    degenerate forms (:func:`pipeline.discrepancy.effects.degenerate_forms`: an inverse response's
     extra lag; near magnitude 1 its Padé dead time).  When it does not predict the
     held-out data distinguishably better than such a form, the two are one explanation:
     the simplest form (fewest parameters, then BIC) is named and the richer one listed
     as its equivalent.  The equivalence margin, a share of what the richer effect closes
     of the gap, is what the declared limit leaves room for
-    (:func:`pipeline.effects.degenerate_kind`): none for an exact nesting -- the richer
+    (:func:`pipeline.discrepancy.effects.degenerate_kind`): none for an exact nesting -- the richer
     effect is kept when its extra parameter improves the held-out prediction at all,
     at the confidence bound -- and `lookalike_gap` for an approximant, whose
     approximation error is not an effect (under nuisance mismatch a hidden 20 s delay's

@@ -15,8 +15,8 @@ for odd -- with hidden effects of random size and location, white or AR(1) (phi
 sees only the data and the nominal model):
 
 1. ``clean``: one hidden effect per trial, ``--trials`` per catalogue effect plus
-   ``--nulls`` null trials, simulated by ``pipeline.simulate`` with the model's own
-   block structure (:func:`pipeline.effect_trials.make_hidden_effect_trial`).
+   ``--nulls`` null trials, simulated by ``pipeline.models.simulate`` with the model's own
+   block structure (:func:`pipeline.simulated.effect_trials.make_hidden_effect_trial`).
 2. ``nuisance``: the same kind of trials re-simulated as a real plant differs from its
    model (:func:`tests.nuisance_trials.make_nuisance_trial`: continuous-time plant, DCS
    controllers acting on the previous scan, actuator quantisation, a slow unmeasured
@@ -57,11 +57,11 @@ import yaml
 
 from pipeline.adapters.progress import bar as progress_bar
 from pipeline.discrepancy import analyse_discrepancy
-from pipeline.synthetic import make_discrepancy_demo
-from pipeline.effect_trials import HIDDEN_EFFECTS, make_hidden_effects_trial
-from pipeline.effects import Effect
+from pipeline.simulated.synthetic import make_discrepancy_demo
+from pipeline.simulated.effect_trials import HIDDEN_EFFECTS, make_hidden_effects_trial
+from pipeline.discrepancy.effects import Effect
 from pipeline.errors import ConfigError
-from pipeline.model import Model, model_from_dict
+from pipeline.models.model import Model, model_from_dict
 
 MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"
 SUITES = ("clean", "nuisance", "pairs", "zoo")

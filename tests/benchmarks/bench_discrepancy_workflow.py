@@ -4,7 +4,7 @@ Run:  .venv/bin/python -m tests.benchmarks.bench_discrepancy_workflow [--samples
 
 Writes a historian export of the discrepancy demo plant (the boiler loop with the
 controller gain 20 % high, 1 s samples; 1e5 samples = 27.8 h) into a temporary folder,
-runs ``plantdyn discrepancy`` through :func:`pipeline.discrepancy_job.run_discrepancy`
+runs ``plantdyn discrepancy`` through :func:`pipeline.jobs.discrepancy.run_discrepancy`
 (ingest, grid, analysis, run directory, Rerun recording) and prints the wall time per
 stage, side by side with two references measured in the same run on the same data:
 a bare ``polars.read_csv`` of the export and one nominal simulation of the model.
@@ -23,10 +23,10 @@ import numpy as np
 import polars as pl
 
 from pipeline.adapters.config import load_job
-from pipeline.demo import BOILER_MODEL, DISCREPANCY_JOB, write_discrepancy_export
-from pipeline.discrepancy_job import run_discrepancy
-from pipeline.model import model_from_dict
-from pipeline.simulate import simulate
+from pipeline.jobs.demo import BOILER_MODEL, DISCREPANCY_JOB, write_discrepancy_export
+from pipeline.jobs.discrepancy import run_discrepancy
+from pipeline.models.model import model_from_dict
+from pipeline.models.simulate import simulate
 
 
 def main() -> None:

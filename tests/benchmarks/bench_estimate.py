@@ -37,9 +37,9 @@ import scipy.fft
 import scipy.linalg
 import scipy.signal as ss
 
-from pipeline.estimate import estimate_from_normal_equations, estimate_step_responses
-from pipeline.normal_equations import normal_equations
-from pipeline.orders import sweep_orders
+from pipeline.estimation.estimate import estimate_from_normal_equations, estimate_step_responses
+from pipeline.estimation.normal_equations import normal_equations
+from pipeline.estimation.orders import sweep_orders
 
 
 def best_of(fn, repeat: int = 3):
@@ -150,7 +150,7 @@ def part3(n_d: int, n_x: int, P: int) -> None:
 
 
 def part4(n_d: int, n_x: int, P: int) -> None:
-    from pipeline.search import search
+    from pipeline.identification.search import search
 
     n = n_d + P - 1
     x, y0 = make_data(n, n_x, 1, seed=3)
@@ -198,7 +198,7 @@ def make_mpc_data(n: int, n_x: int, n_y: int, seed: int = 5):
 
 
 def part5(sizes) -> list[tuple]:
-    from pipeline.search import search
+    from pipeline.identification.search import search
 
     print("[5] MPC-sized plants, AR(1) 0.9 noise; estimates best of 2 interleaved, "
           "search one run")

@@ -13,8 +13,8 @@ Everything is simulated with numpy/scipy here, written as a long historian CSV
 on the level), so the sample period is α_T's and the feedback test is the job's own
 (``estimation.feedback: auto``).  Per pair: ``checks.json`` → ``pairs[].feedback``.
 ``--mode direct`` runs the job's own stages in-process up to the search, which runs the
-test (``pipeline.jobs.load_recording``, ``prepare``, ``search_orders``; the same p-values,
-without the windows, the report and the store).
+test (``pipeline.jobs.recording.load_recording``, ``pipeline.jobs.estimation.prepare``,
+``search_orders``; the same p-values, without the windows, the report and the store).
 
 Printed: the open-loop false-alarm rate with pair counts (overall, per record length, per
 disturbance), detection per loop kind.  Targets: false alarms <= 2 % over >= 200
@@ -83,9 +83,9 @@ def feedback_cli(job: Path) -> dict:
 
 def feedback_direct(job: Path) -> dict:
     """The job's own stages in-process, up to the search (which runs the feedback test):
-    load and prepare the record, then :func:`pipeline.jobs.search_orders`."""
+    load and prepare the record, then :func:`pipeline.jobs.estimation.search_orders`."""
     from pipeline.adapters.config import load_job
-    from pipeline.jobs import load_recording, prepare, search_orders
+    from pipeline.jobs.estimation import load_recording, prepare, search_orders
 
     cfg = load_job(job)
     prep = prepare(cfg, load_recording(cfg))

@@ -25,8 +25,8 @@ import time
 import numpy as np
 import scipy.signal as ss
 
-from pipeline.estimate import estimate_step_responses
-from pipeline.kernel_fir import estimate_kernel
+from pipeline.estimation.estimate import estimate_step_responses
+from pipeline.estimation.kernel_fir import estimate_kernel
 from tests.benchmarks.bench_estimate import best_of
 
 

@@ -2,7 +2,7 @@
 
 Five cases, simulated here with numpy/scipy only (exact zero-order-hold discretisation of
 continuous lags by ``scipy.signal.cont2discrete``, explicit loops for the controller; never
-``pipeline.simulate`` or ``pipeline.synthetic``), record period 1 s:
+``pipeline.models.simulate`` or ``pipeline.simulated.synthetic``), record period 1 s:
 
 - ``si5k`` / ``si50k``: one input, open loop, N = 5 000 / 50 000; plant
   1.5 / ((8 s + 1)(3 s + 1)) with a dead time of 4 samples; ARMA output noise

@@ -1,4 +1,4 @@
-"""Simulation benchmark: the two paths of :func:`pipeline.simulate.simulate`, one run.
+"""Simulation benchmark: the two paths of :func:`pipeline.models.simulate.simulate`, one run.
 
 Run:  .venv/bin/python -m tests.benchmarks.bench_simulate [--samples N]
 
@@ -22,9 +22,9 @@ import numpy as np
 import scipy.signal
 import yaml
 
-from pipeline.blocks import Deadband, Saturation, Term
-from pipeline.model import Model, insert_after, insert_before, model_from_dict
-from pipeline.simulate import discrete_state_space, simulate
+from pipeline.models.blocks import Deadband, Saturation, Term
+from pipeline.models.model import Model, insert_after, insert_before, model_from_dict
+from pipeline.models.simulate import discrete_state_space, simulate
 
 MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"
 
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> None:
         t_ind, _ = _best_of(lambda m=model, u=u: simulate_plant(
             m, u, dt_s=dt_s, substeps=10, dcs_scan_s=0.5), repeats=1)
         print(f"{name:16s} independent plant (10 substeps, DCS) {t_ind * 1e3:7.1f} ms "
-              f"= {t_ind / t_sim:5.1f}x pipeline.simulate")
+              f"= {t_ind / t_sim:5.1f}x pipeline.models.simulate")
 
 
 if __name__ == "__main__":

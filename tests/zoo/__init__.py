@@ -1,4 +1,4 @@
-"""The plant zoo: plant families simulated independently of ``pipeline.simulate``.
+"""The plant zoo: plant families simulated independently of ``pipeline.models.simulate``.
 
 Each family (one module) is a physical plant written as its own ordinary differential
 equations, with its nominal model YAML (the project's model format), DCS loops, actuators

@@ -1,7 +1,7 @@
 """The zoo's own plant simulator: continuous time, a DCS, actuators, sensors, a historian.
 
-Independent of the code under test: nothing here imports ``pipeline.simulate``,
-``pipeline.model`` or ``pipeline.effects``.  A family (:class:`Family`) writes its plant
+Independent of the code under test: nothing here imports ``pipeline.models.simulate``,
+``pipeline.models.model`` or ``pipeline.discrepancy.effects``.  A family (:class:`Family`) writes its plant
 as ordinary differential equations in ABSOLUTE engineering units (°C, m, kg/s, % OP);
 :func:`simulate_plant` integrates them and plays the plant's surroundings:
 

@@ -34,7 +34,7 @@ Visible effects only, by the workflow's own definition of a finding: a drawn eff
 redrawn (up to :data:`MAX_REDRAWS` times, the trial's ``redraws``) until a model that had
 it exactly would shrink the gap of the nominal model, on the held-out part where the
 workflow judges and on the part it fits on alike, by at least
-:data:`~pipeline.effect_trials.TRIAL_GAP_REDUCTION` (1.5 times the 5 % practical bar,
+:data:`~pipeline.simulated.effect_trials.TRIAL_GAP_REDUCTION` (1.5 times the 5 % practical bar,
 as the boiler trials).  Measured from the zoo's own records, not from the workflow:
 the gap before is the measured record against the nominal plant (the same simulation
 without the effect, the unmeasured disturbance and the noise -- what a perfect nominal
@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from pipeline.effect_trials import TRIAL_GAP_REDUCTION, holdout_start
+from pipeline.simulated.effect_trials import TRIAL_GAP_REDUCTION, holdout_start
 from tests.zoo.sim import (
     WARMUP_S,
     ZOO_EFFECTS,

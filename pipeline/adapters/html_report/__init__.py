@@ -12,7 +12,7 @@ failing the run.
 * :func:`render_run_html` — an estimation run: a monitor banner when checks.json has one,
   the outputs × inputs step-response matrix (all-data estimate with ±2σ, each disjoint
   window), the gain matrix with σ and grades, the relative gain array (square gain
-  matrices), the grade per pair with the rule (:mod:`pipeline.quality`), measured vs
+  matrices), the grade per pair with the rule (:mod:`pipeline.identification.quality`), measured vs
   predicted on a held-out window with the fit %, residual autocorrelation and
   input–residual cross-correlation with their bands, frequency responses, the N_p/N_d
   search trace, data quality.

@@ -27,8 +27,13 @@ from pipeline.adapters.html_report.stored import (
     load_run,
     residual_correlations,
 )
-from pipeline.quality import GRADE_MEANING, GRADE_RULE, grade_from_checks, relative_gain_array
-from pipeline.settledness import gain_cell
+from pipeline.identification.quality import (
+    GRADE_MEANING,
+    GRADE_RULE,
+    grade_from_checks,
+    relative_gain_array,
+)
+from pipeline.identification.settledness import gain_cell
 
 __all__ = ["render_run_html"]
 
@@ -152,7 +157,7 @@ def gain_table(run: StoredRun, units: dict[str, str]) -> str:
                 cell = fmt_pm(p.get(key), p.get(f"{key}_std"))
                 if p.get("sign_established") is False:
                     cell += " (sign not established)"
-            else:  # no bare number off an unsettled curve (pipeline.settledness)
+            else:  # no bare number off an unsettled curve (pipeline.identification.settledness)
                 cell = esc(gain_cell(p, key))
             if p.get("integrating"):
                 cell = f"rate {cell}"
@@ -189,14 +194,14 @@ def gain_table(run: StoredRun, units: dict[str, str]) -> str:
 
 
 def grade_rule_table() -> str:
-    """The grade rule (:data:`pipeline.quality.GRADE_RULE`) as an HTML table with the
+    """The grade rule (:data:`pipeline.identification.quality.GRADE_RULE`) as an HTML table with the
     meaning of each letter."""
     rule = table(["criterion", "read from", "A", "B", "C", "D"],
                  [[esc(c) for c in row] for row in GRADE_RULE], table_id="grade-rule")
     meaning = "".join(f"<li>{grade_badge(g)} {esc(t)}</li>" for g, t in GRADE_MEANING.items())
     return ("<h3>The grade rule</h3><p>Each criterion caps the grade; a pair's grade is the "
             "worst cap. A criterion whose value is not in the run is not judged. "
-            "(<code>pipeline/quality.py</code>; report.md shows the same grades.)</p>"
+            "(<code>pipeline/identification/quality.py</code>; report.md shows the same grades.)</p>"
             + rule + f"<ul>{meaning}</ul>")
 
 
@@ -281,7 +286,7 @@ def _frequency(run: StoredRun, units: dict[str, str]) -> str:
         return "<p>No step_responses.parquet in this run.</p>"
     return ("<figure>" + figures.frequency_matrix(run, units) +
             "<figcaption>Frequency response of each all-data step response (the DTFT of its "
-            "increments, <code>pipeline/frequency.py</code>; integrating pairs continue their "
+            "increments, <code>pipeline/readouts/frequency.py</code>; integrating pairs continue their "
             "last increment), from 1/4 of the slowest lag range up to the Nyquist frequency "
             "π/T.</figcaption></figure>")
 

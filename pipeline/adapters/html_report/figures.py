@@ -22,8 +22,8 @@ from pipeline.adapters.html_report.page import (
 )
 from pipeline.adapters.html_report.stored import StoredRun, step_arrays, window_labels
 from pipeline.adapters.series_reader import Spec, reduce_series
-from pipeline.envelope import bucket_ids, bucket_width, envelope_points
-from pipeline.frequency import frequency_response_from_step
+from pipeline.readouts.envelope import bucket_ids, bucket_width, envelope_points
+from pipeline.readouts.frequency import frequency_response_from_step
 
 __all__ = [
     "correlation_figures",
@@ -38,7 +38,7 @@ _BAND = "#9ecae1"
 FIGURE_POINTS = 4000
 """Points per line (or markers per row) of a long time-series figure: a 12-inch PNG is
 about 1200 pixels wide, so longer series are drawn as min/max envelopes
-(:mod:`pipeline.envelope`)."""
+(:mod:`pipeline.readouts.envelope`)."""
 _SMALL = 7
 
 
@@ -69,8 +69,8 @@ _TF = "#c0392b"
 def _exported_step(pair: dict, step: np.ndarray, std: np.ndarray, dt_s: float):
     """The step response of the transfer function ``plantdyn export`` writes for the pair,
     at the lags (None where the export leaves it out,
-    :func:`pipeline.lti_fit.reported_model`)."""
-    from pipeline.lti_fit import reported_model, sampled_step
+    :func:`pipeline.readouts.lti_fit.reported_model`)."""
+    from pipeline.readouts.lti_fit import reported_model, sampled_step
 
     key = "rate" if pair.get("integrating") else "gain"
     fit = reported_model(step, dt_s=dt_s, step_std=std, integrating=key == "rate",
@@ -142,7 +142,7 @@ def step_matrix(run: StoredRun, units: dict[str, str]) -> str:
 
 def frequency_matrix(run: StoredRun, units: dict[str, str]) -> str:
     """Magnitude and phase of every pair's all-data step response (its increments' DTFT,
-    :func:`pipeline.frequency.frequency_response_from_step`); rows = outputs (magnitude
+    :func:`pipeline.readouts.frequency.frequency_response_from_step`); rows = outputs (magnitude
     above phase), columns = inputs; inline SVG.
 
     Parameters

@@ -14,10 +14,10 @@ import numpy as np
 import polars as pl
 
 from pipeline.adapters.series_reader import read_key
-from pipeline.checks import cross_correlation_check, ljung_box
-from pipeline.noise_model import NUISANCE_NAMES
-from pipeline.prediction import whiten_residual
-from pipeline.quality import fit_percent, simulate_fir
+from pipeline.identification.checks import cross_correlation_check, ljung_box
+from pipeline.estimation.noise_model import NUISANCE_NAMES
+from pipeline.estimation.prediction import whiten_residual
+from pipeline.identification.quality import fit_percent, simulate_fir
 
 __all__ = ["StoredRun", "load_run", "step_arrays", "held_out_fit", "residual_correlations"]
 

@@ -281,7 +281,7 @@ class RunWriter:
         ----------
         df : polars.DataFrame or iterable of them
             The signals table, whole or in chunks (:meth:`write_parquet_chunks`; a
-            :class:`pipeline.job_types.LongTable` is one).
+            :class:`pipeline.jobs.job_types.LongTable` is one).
         """
         return self._write_table("signals.parquet", df)
 

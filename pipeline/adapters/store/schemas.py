@@ -204,7 +204,7 @@ CATALOG_DDL = (
         attempts INTEGER NOT NULL DEFAULT 0,
         PRIMARY KEY (job, sha256)
     )""",
-    # a file that failed with bad data, per job configuration (pipeline.nightly): an
+    # a file that failed with bad data, per job configuration (pipeline.jobs.nightly): an
     # edited job is another configuration, so the file is tried again
     """CREATE TABLE IF NOT EXISTS failed_files (
         job TEXT NOT NULL,
