@@ -1,7 +1,7 @@
 """plantdyn: step responses of industrial plants from normal operating data.
 
 The folders are the layers (design.md; imports point down only, checked by
-``tests/test_layers.py`` from the folders themselves):
+``tests/project/test_layers.py`` from the folders themselves):
 
 * core, numeric and pure (numpy/scipy): :mod:`pipeline.estimation` (the least-squares
   estimate and its noise models), :mod:`pipeline.identification` (sample period,

@@ -24,7 +24,7 @@ Use::
 
     python -m tests.fuzzing --cases 2000 --seed 1 [--out fuzz.json]   # scripts/fuzz.sh
 
-``tests/test_fuzz.py`` runs a CI sample.
+``tests/flows/test_cli_fuzz.py`` runs a CI sample.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ The record is placed at local 2023-11-05 00:30 America/Chicago, so the repeated 
   (:func:`steamgen_to_long_csv`);
 * a JSON MCAP (:func:`steamgen_to_mcap`).
 
-Used by ``tests/test_ingest_csv.py`` / ``tests/test_ingest_mcap.py`` and available to
+Used by ``tests/adapters/test_ingest_csv.py`` / ``tests/adapters/test_ingest_mcap.py`` and available to
 other tests (e.g. comparing step responses estimated from the round-tripped data).
 """
 

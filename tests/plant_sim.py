@@ -38,7 +38,7 @@ and buffer 0).  Dead times shorter than ``h`` are refused.
 For speed the diagram is compiled once per call into a straight-line Python function
 (generated here, with Python floats in the inner loop; the generated code names blocks
 and inputs by index only, never by their names): about 0.1-0.15 s for 1e5 fine steps of
-the 7-9 block shipped loops (``tests/test_plant_sim.py`` prints it).
+the 7-9 block shipped loops (``tests/project/test_plant_sim.py`` prints it).
 
 Nuisances
 ---------

@@ -46,7 +46,7 @@ _FREE: dict[str, dict[str, bool]] = {
 #: (:meth:`pipeline.discrepancy.fit.Fitter`): an inverse response of negative magnitude
 #: starts the right way -- a lead-lag, not the catalogue's wrong-way response -- and, free
 #: to go there, a joint refit named one (magnitude -0.19) for a lag that an independently
-#: integrated plant holds (tests/test_discrepancy_joint.py).
+#: integrated plant holds (tests/discrepancy/test_discrepancy_joint.py).
 _NONNEGATIVE = {("inverse_response", "magnitude")}
 #: How a candidate's parameter moves toward "no effect" (see :data:`_WEAKER_STARTS`):
 #: divided (a time constant, a width, a magnitude, a slope, a gain of an unmodelled

@@ -46,7 +46,7 @@ Optimisation (why this scheme).  A cheap start, then a projected Newton method:
    poor model far from the optimum), L-BFGS-B 50-90 factorisations, while a 1-D search
    over a shared decay rate costs an eigendecomposition (10 Choleskys) per trial rate
    and cannot give inputs their own rates.  The optimum is checked against a dense
-   multi-start search in tests/test_kernel_fir.py.
+   multi-start search in tests/estimation/test_kernel_fir.py.
 
 Dead times.  A TC/DC prior decays from the first lag it covers; an unmodelled dead time
 (zeros, then the response's peak) drags the decay rate down and shrinks the tail (gain

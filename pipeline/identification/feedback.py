@@ -29,7 +29,7 @@ records are decimated (2-10x measured), and ``n_p_max`` with ``M`` leads per inp
 leaves ``nu`` of 7-400 on records of 200-1000 samples.  At ``nu = 120`` chi^2(40) puts
 ``p_all < 0.005`` at 1.8 % instead of 0.5 %; on 250-sample levels with two inputs
 (``nu`` ~30) chi^2 flagged 4 of 40 open-loop pairs, F none
-(``tests/test_closed_loop.py``).
+(``tests/estimation/test_closed_loop.py``).
 
 Integrating outputs, two forms (method.md §1, §10): the noise model is fitted to the
 differenced output (eq. 3.15) or to the level on the cumulated inputs, whichever has the

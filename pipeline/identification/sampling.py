@@ -17,7 +17,7 @@ reconstruction ``T`` must keep accurate, and α_T is measured on ``Δy`` (``inte
 The level itself is a random-walk-like signal: its spectrum is the rate's divided by
 ``ω²``, so its slow wander dominates ``mean(y²)`` and α_T on the level tolerates holds
 far longer than the fast part of the response (a boiler drum with a 15 s swell/shrink
-got ``T = 22 s``, the simulated one in tests/test_sampling_integrating.py 24 s; measured
+got ``T = 22 s``, the simulated one in tests/identification/test_sampling_integrating.py 24 s; measured
 on ``Δy`` of the noise-free record, 4.4 s).  ``Δy`` is sampled every ``dt`` like the
 level, so the hold-period mapping is unchanged; α_T is scale-free, so ``Δy ≈ ẏ·dt``
 measures ``ẏ``.

@@ -45,7 +45,7 @@ The decision: a pair is ``changed`` when any of the three exceeds ``threshold_si
 Each has a two-sided false-alarm probability ``α = 2(1 − Φ(threshold_sigma))`` (0.27 %
 at 3 σ) when the stored σ are calibrated, so a pair's is at most ``3α`` (0.81 %) by the
 union bound, and a night with ``P`` pairs at most ``3Pα``.  Measured on an independently
-simulated two-pair plant with AR(1) 0.9 noise (``python -m tests.test_monitor``): 0 of
+simulated two-pair plant with AR(1) 0.9 noise (``python -m tests.readouts.test_monitor``): 0 of
 1000 quiet night-vs-baseline comparisons flagged; a 30 % gain change flagged in 500 of
 500, a 10 % one in 79 of 80, a 5 % one in 9 of 80 (the gain's σ is 1.8 % a night).
 

@@ -1,4 +1,4 @@
-"""Open loop with coloured noise, the full Monte Carlo of ``tests/test_coloured_noise.py``
+"""Open loop with coloured noise, the full Monte Carlo of ``tests/estimation/test_coloured_noise.py``
 (issue 9, must-show 1): 80 records per noise pole, 40 with a 30 % gain change.
 
 The test suite runs a CI sample of the same design (40 and 20 records, the same seeds);
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 
-from tests.test_coloured_noise import _run, change_detection
+from tests.estimation.test_coloured_noise import _run, change_detection
 
 POLES = ((0.5, 2_100_000, 2_400_000), (0.9, 2_200_000, 2_500_000),
          (0.97, 2_300_000, 2_600_000))

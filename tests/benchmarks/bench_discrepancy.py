@@ -107,7 +107,7 @@ TUNE_SEED0 = {"clean": 1000, "nuisance": 700_000, "pairs": 800_000}
 #: whose first 20 were run once after that change, as its out-of-sample check (design
 #: notes, "Session 7").
 SUITE_SEED0 = {"clean": 100_000, "nuisance": 2_400_000, "pairs": 2_100_000}
-#: The CI samples (tests/test_hidden_effects.py).
+#: The CI samples (tests/discrepancy/test_hidden_effects.py).
 CI_SEED0 = {"clean": 200_000, "nuisance": 500_000, "pairs": 600_000}
 #: Row/column label of the null case in the confusion matrix.
 NONE = "none"

@@ -23,7 +23,7 @@ For each plant the first 2/3 of the rows are the fit part and the last 1/3 is he
    historian CSV (steamgen through ``pipeline.adapters.daisy``; frac2 as the 4 header
    rows plus the fit rows), with a job YAML at the project's DEFAULT settings
    (``configs/steamgen.yaml`` with only ``source.path`` and ``storage`` changed, or the
-   job of ``tests/test_frac2_job.py``; ``rerun: {enabled: false}``; ``--extra-yaml`` is
+   job of ``tests/jobs/test_frac2_job.py``; ``rerun: {enabled: false}``; ``--extra-yaml`` is
    merged in), and ``plantdyn run JOB.yaml --no-prefect`` runs as a subprocess.  The
    run's ``step_responses.parquet`` (window ``all``) and ``checks.json`` (``dt_s``,
    ``sampling.decimation``, ``conditioning.method``, per pair ``n_p``) are read back.

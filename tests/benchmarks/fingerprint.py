@@ -6,7 +6,7 @@ Runs, through the ``plantdyn`` CLI in a scratch folder (``--no-prefect``):
 * the real steam generator (DaISy 98-003 converted as ``scripts/steamgen.sh`` does):
   ``configs/steamgen.yaml`` and ``configs/steamgen_discrepancy.yaml``;
 * the fractionator export (``../shared/data/frac2_historian_export.csv``, the job of
-  ``tests/test_frac2_job.py``),
+  ``tests/jobs/test_frac2_job.py``),
 
 and prints, per run, a SHA-256 of every numeric column of ``step_responses.parquet``
 (rows sorted by window, output, input, lag; float64 bytes, so bit-for-bit) and of every
@@ -118,7 +118,7 @@ def run_all(work: Path) -> dict[str, dict[str, str]]:
                      ("steamgen_discrepancy", "steamgen_discrepancy.yaml")):
         cmd = "run" if key == "steamgen" else "discrepancy"
         res[key] = fingerprint_run(_cli([cmd, "--no-prefect", str(work / "configs" / job)], work))
-    from tests.test_frac2_job import INPUTS, OUTPUTS, _name
+    from tests.jobs.test_frac2_job import INPUTS, OUTPUTS, _name
 
     job = {"job": "frac2",
            "source": {"path": str(SHARED / "frac2_historian_export.csv"),

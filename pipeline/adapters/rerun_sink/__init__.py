@@ -31,7 +31,7 @@ injects no ``log_time``/``log_tick``; the recording id derives from job and run 
 wall-clock recording properties are sent, so the same run renders to the same *data*.
 The file is not byte-identical between renders: Rerun stamps every chunk and row with a
 time-based id (TUID), and the blueprint store gets a random id and a ``log_time``; compare
-decoded contents instead (``tests/test_rerun_sink.py`` does).
+decoded contents instead (``tests/adapters/test_rerun_sink.py`` does).
 
 The default blueprint opens on ``elapsed`` with the side panels collapsed, on tabs:
 

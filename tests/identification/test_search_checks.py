@@ -1,0 +1,228 @@
+"""N_p/N_d search and consistency checks (issue 2, must-show 7)."""
+
+from __future__ import annotations
+
+import control as ct
+import numpy as np
+import pytest
+
+from pipeline.identification.checks import (
+    AgreementResult,
+    cross_correlation_check,
+    ljung_box,
+    pair_agreement,
+    windows_agree,
+)
+from pipeline.errors import InsufficientDataError
+from pipeline.identification.search import search, split_windows_by_length
+from tests.estimation.test_estimate import ar1, simulate
+
+
+def settling_time_98(G, *, integrating: bool, t_max: float = 600.0, dt: float = 0.01) -> float:
+    """98 % settling time of the continuous step response (of its slope if integrating),
+    computed independently on a fine grid with python-control."""
+    t = np.arange(0, t_max, dt)
+    h = ct.step_response(G, T=t).outputs
+    q = np.gradient(h, t) if integrating else h
+    final = q[-1]
+    outside = np.flatnonzero(np.abs(q - final) > 0.02 * abs(final))
+    return float(t[outside[-1] + 1])
+
+
+SYSTEMS = {
+    "first_order": (ct.tf([2.0], [10.0, 1.0]), False),
+    "second_order_oscillatory": (ct.tf([1.0], [25.0, 3.0, 1.0]), False),  # zeta = 0.3
+    "integrator_with_lag": (ct.tf([0.05], [8.0, 1.0, 0.0]), True),
+}
+
+
+@pytest.mark.parametrize("name", list(SYSTEMS))
+def test_np_search_lands_near_settling_time(name):
+    """N_p*T within 0.8–1.5x the 98 % settling time (plus T for integrating outputs,
+    method.md eq. 3.15); noise 5 % of the output (of its difference if integrating)."""
+    G, integ = SYSTEMS[name]
+    rng = np.random.default_rng(30)
+    n, dt = 20000, 1.0
+    u = ar1(n, np.exp(-0.3), rng)
+    y = simulate(G, u, dt)
+    y = y + 0.05 * np.std(np.diff(y) if integ else y) * rng.standard_normal(n)
+    res = search(u, y, dt=dt, integrating=integ, n_p_max=150)
+    ts = settling_time_98(G, integrating=integ) + (dt if integ else 0.0)
+    ratio = res.n_p[0, 0] * dt / ts
+    print(f"{name}: T_s={ts:.1f} s, N_p={res.n_p[0, 0]}, ratio {ratio:.2f}, N_d={res.n_d}")
+    assert 0.8 <= ratio <= 1.5
+    assert res.settled[0, 0]
+    # every trial is recorded: the grid and the refinement around the choice
+    tried = [t["n_p"] for t in res.order_trace]
+    assert res.n_p[0, 0] in tried and len(tried) >= 10
+    assert all("bic" in t for t in res.order_trace)
+    # a time-invariant plant: disjoint windows agree
+    assert res.agreement[0][0].verdict == "pass"
+
+
+def test_agreement_fails_when_gain_changes_30_percent_between_windows():
+    rng = np.random.default_rng(31)
+    G = ct.tf([2.0], [10.0, 1.0])
+    n, dt = 20000, 1.0
+    u = ar1(n, np.exp(-0.3), rng)
+    y = np.concatenate([simulate(G, u[: n // 2], dt), simulate(1.3 * G, u[n // 2:], dt)])
+    y = y + 0.05 * rng.standard_normal(n)
+    res = search(u, y, dt=dt, n_p=45)
+    assert res.agreement[0][0].verdict == "fail"
+    # N_d grew until the data ran out (windows never agree), and every trial is recorded
+    assert len(res.nd_trace) >= 2
+    assert res.nd_trace[-1]["n_d"] > res.nd_trace[0]["n_d"]
+    assert res.agreement[0][0].gain_spread == pytest.approx(0.3 / 1.3, abs=0.05)
+
+
+def test_nd_grows_until_noisy_windows_become_informative():
+    """High noise: 10*N_p observations cannot detect a 30 % change, so N_d doubles."""
+    rng = np.random.default_rng(32)
+    G = ct.tf([1.0], [5.0, 1.0])
+    n = 40000
+    u = ar1(n, 0.5, rng)
+    y = simulate(G, u, 1.0) + 2.0 * rng.standard_normal(n)
+    res = search(u, y, dt=1.0, n_p=25)
+    verdicts = [p["verdict"] for t in res.nd_trace for p in t["pairs"]]
+    assert verdicts[0] == "insufficient_data"
+    assert verdicts[-1] == "pass"
+    assert res.n_d > 250
+
+
+def _agreeing(p_value=0.5, gain_p=0.5, verdict="pass", detect=0.1):
+    return AgreementResult(1.0, verdict, 0.0, detect, 2, p_value, 8, 0.01, 1.0, gain_p)
+
+
+def test_windows_agree_is_one_question_about_the_whole_plant():
+    """Stage 2's stopping rule: each of the m pairs at 1/m of its false-alarm rates
+    (Wald 1 %, gain 4 %), every pair informative.  Answers set by hand."""
+    m = 400  # a 20 x 20 plant
+    grid = [[_agreeing() for _ in range(20)] for _ in range(20)]
+    assert windows_agree(grid)
+    # a pair failing at its own 1 % (p = 0.005) is what 400 pairs give by chance ...
+    grid[3][7] = _agreeing(p_value=0.005, verdict="fail")
+    assert windows_agree(grid)
+    # ... one below 1 % / 400 is not, nor a gain below 4 % / 400
+    grid[3][7] = _agreeing(p_value=0.9 * 0.01 / m, verdict="fail")
+    assert not windows_agree(grid)
+    grid[3][7] = _agreeing(gain_p=0.9 * 0.04 / m, verdict="fail")
+    assert not windows_agree(grid)
+    # a failing pair whose windows could not see a 30 % change is not informative
+    grid[3][7] = _agreeing(p_value=0.005, verdict="fail", detect=0.31)
+    assert not windows_agree(grid)
+    grid[3][7] = _agreeing(verdict="insufficient_data", detect=0.5)
+    assert not windows_agree(grid)
+    # one pair: the pair's own rates
+    assert not windows_agree([[_agreeing(p_value=0.009, verdict="fail")]])
+    assert windows_agree([[_agreeing(p_value=0.011)]])
+    assert not windows_agree([])
+
+
+def test_window_check_starts_where_a_window_holds_two_observations_per_unknown():
+    """8 inputs at N_p 20: 160 unknowns per output, so a window needs 2 x 160 = 320
+    observations, more than 10 N_p = 200.  Two such windows fit in 3,000 samples, so the
+    check runs and starts there (it used to stop at the first, too small, window)."""
+    rng = np.random.default_rng(7)
+    n, n_x, P = 3000, 8, 20
+    u = np.column_stack([ar1(n, 0.5, rng) for _ in range(n_x)])
+    G = ct.tf([1.0], [3.0, 1.0])
+    y = sum((0.5 + 0.1 * j) * simulate(G, u[:, j], 1.0) for j in range(n_x))
+    y = y + 0.2 * rng.standard_normal(n)
+    res = search(u, y, dt=1.0, n_p=P)
+    assert res.nd_trace[0]["n_d"] == 2 * n_x * P
+    assert "error" not in res.nd_trace[0] and res.agreement
+    assert res.n_d >= 2 * n_x * P
+
+
+def test_pair_agreement_statistic_is_the_wald_test_of_the_difference():
+    """Two windows: the statistic is d' (C_a + C_b)^-1 d with the lags' full covariance
+    (here the covariance of a cumulative sum of independent increments), chi^2(n_p)."""
+    import scipy.stats
+
+    rng = np.random.default_rng(35)
+    n = 6
+    T = np.tril(np.ones((n, n)))
+    Ca = T @ np.diag(rng.uniform(0.01, 0.02, n)) @ T.T
+    Cb = T @ np.diag(rng.uniform(0.01, 0.02, n)) @ T.T
+    h_a = np.cumsum(rng.standard_normal(n))
+    h_b = h_a + rng.standard_normal(n) * 0.2
+    r = pair_agreement([h_a, h_b], [np.sqrt(np.diag(Ca)), np.sqrt(np.diag(Cb))], [Ca, Cb])
+    d = h_a - h_b
+    expected = float(d @ np.linalg.inv(Ca + Cb) @ d)
+    assert r.statistic == pytest.approx(expected, rel=1e-9)
+    assert r.df == n
+    assert r.p_value == pytest.approx(scipy.stats.chi2.sf(expected, n), rel=1e-9)
+    assert (r.verdict == "fail") == (r.p_value < 0.01)
+
+
+def test_pair_agreement_with_three_windows_is_the_homogeneity_test():
+    """K windows: sum_w (h_w - h_bar)' C_w^-1 (h_w - h_bar), h_bar the precision-weighted
+    mean, chi^2((K-1) n_p) — computed here from the stacked GLS problem."""
+    rng = np.random.default_rng(36)
+    n, K = 4, 3
+    covs = []
+    for _ in range(K):
+        M = rng.standard_normal((n, n))
+        covs.append(M @ M.T + n * np.eye(n))
+    hs = [rng.standard_normal(n) for _ in range(K)]
+    r = pair_agreement(hs, [np.sqrt(np.diag(c)) for c in covs], covs)
+    # GLS of the stacked windows on a common mean, residual quadratic form
+    X = np.vstack([np.eye(n)] * K)
+    V = np.zeros((K * n, K * n))
+    for k, c in enumerate(covs):
+        V[k * n:(k + 1) * n, k * n:(k + 1) * n] = c
+    Vi = np.linalg.inv(V)
+    y = np.concatenate(hs)
+    mean = np.linalg.solve(X.T @ Vi @ X, X.T @ Vi @ y)
+    res = y - X @ mean
+    assert r.statistic == pytest.approx(float(res @ Vi @ res), rel=1e-9)
+    assert r.df == (K - 1) * n
+
+
+def test_pair_agreement_verdicts():
+    s = np.full(10, 0.01)
+    h = np.linspace(0, 1, 10)
+    assert pair_agreement([h, h + 0.01], [s, s]).verdict == "pass"
+    assert pair_agreement([h, 1.3 * h], [s, s]).verdict == "fail"
+    wide = np.full(10, 1.0)
+    # a clear response (final 5 = 5 sigma) but 2*sqrt(2)/5 = 57 % > 30 % detectable change
+    assert pair_agreement([5 * h, 5 * h], [wide, wide]).verdict == "insufficient_data"
+    assert pair_agreement([h], [s]).verdict == "insufficient_data"
+    # a pair without any response passes: there is no gain to compare
+    z = np.zeros(10)
+    assert pair_agreement([z, z + 0.001], [wide, wide]).verdict == "pass"
+
+
+def test_ljung_box_white_vs_coloured():
+    rng = np.random.default_rng(33)
+    e = rng.standard_normal(5000)
+    assert ljung_box(e, lags=20)["white"]
+    ar = ar1(5000, 0.5, rng)
+    lb = ljung_box(ar, lags=20)
+    assert not lb["white"] and lb["autocorrelation"][0] == pytest.approx(0.5, abs=0.05)
+
+
+def test_cross_correlation_detects_missing_input_effect():
+    rng = np.random.default_rng(34)
+    x = rng.standard_normal(4000)
+    e_indep = rng.standard_normal(4000)
+    ok = cross_correlation_check(x, e_indep, max_lag=20)
+    assert ok["ok"]
+    assert ok["band"] == pytest.approx(2.5758 / np.sqrt(4000), rel=1e-3)
+    e_dep = e_indep + 0.3 * np.concatenate([np.zeros(5), x[:-5]])  # effect at lag 5
+    bad = cross_correlation_check(x, e_dep, max_lag=20)
+    assert not bad["ok"]
+    assert bad["lags"][int(np.argmax(np.abs(bad["r"])))] == 5
+
+
+def test_windows_are_disjoint_and_spread():
+    w = split_windows_by_length(1000, 200, 3)
+    assert w == [(0, 200), (400, 600), (800, 1000)]
+    assert split_windows_by_length(100, 200, 2) == []
+
+
+def test_search_on_too_short_record_says_what_to_do():
+    # the default longest horizon is N // (5 n_x) lags: 12 samples give 2 < n_p_min = 3
+    rng = np.random.default_rng(0)
+    with pytest.raises(InsufficientDataError, match=r"too short for the N_p search"):
+        search(rng.standard_normal(12), rng.standard_normal(12), dt=1.0)
