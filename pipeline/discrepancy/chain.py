@@ -492,6 +492,20 @@ class Chain:
                 out.append(link.candidate)
         return tuple(out)
 
+    def _search_or_none(self, effects: Sequence[Effect], also: Sequence[Candidate] = ()
+                        ) -> DiscrepancyResult | None:
+        """:meth:`search`, or None when the model with `effects` diverges.  The chain
+        proposes models no search has simulated -- a pair's second effect without the
+        first, one effect left out for backfitting -- and an effect held bounded by
+        another can destabilise a loop alone (zoo null 8 108 023: an operating-point gain
+        accepted given a saturation diverged without it, and ended the analysis as
+        exit 2).  Such a model is not an explanation; the chain goes on without it."""
+        try:
+            return self.search(effects, also)
+        except DivergenceError as exc:
+            self.say("chain", f"not pursued: {exc}")
+            return None
+
     def _pair(self, cand: Candidate, budget: int, must_close: float
               ) -> tuple[tuple[list[Link], DiscrepancyResult] | None, int]:
         """`cand` (a first-search candidate) as a provisional first effect, confirmed by
@@ -503,16 +517,19 @@ class Chain:
         link0 = _link(cand, self.model)
         if link0 is None or budget < 2:
             return None, budget
-        second = self.search([link0.effect])
+        second = self._search_or_none([link0.effect])
         budget -= 1
-        link1 = _accepted(second, self.model) if second.verdict == "effect_found" else None
+        link1 = _accepted(second, self.model) if second is not None and \
+            second.verdict == "effect_found" else None
         if link1 is None or same_class(link1.effect, link0.effect):
             return None, budget
         [link0] = _revise([link0], second.revised_prior)
         self.say("chain", f"confirming {link0.effect.describe()} given "
                  f"{link1.effect.describe()}")
-        alt = self.search([link1.effect], also=[link0.candidate])
+        alt = self._search_or_none([link1.effect], also=[link0.candidate])
         budget -= 1
+        if alt is None:
+            return None, budget
         again = _accepted(alt, self.model) if alt.verdict == "effect_found" else None
         if again is None or not same_class(again.effect, link0.effect) or \
                 alt.gap["holdout_rms_after"] > must_close:
@@ -575,9 +592,12 @@ class Chain:
             others = links[:j] + links[j + 1:]
             self.say("backfit", f"re-searching {links[j].effect.describe()} given the "
                      f"{len(others)} other effect(s)")
-            alt = self.search([lk.effect for lk in others],
-                              also=_lookalikes(links[j], self.dt_s))
+            alt = self._search_or_none([lk.effect for lk in others],
+                                       also=_lookalikes(links[j], self.dt_s))
             budget -= 1
+            if alt is None:  # the others diverge without it: it stays as it was
+                j += 1
+                continue
             if alt.verdict == "no_significant_effect":
                 if not self.needed(links, j)[0]:
                     dropped.append(links[j].effect)  # the others explain it now
