@@ -41,6 +41,8 @@ from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
 
 __all__ = [
     "METHODS",
+    "MASKED_VALUE",
+    "as_masked_zero",
     "Conditioned",
     "Conditioning",
     "condition",
@@ -60,6 +62,32 @@ _PARAMS = {
     "difference": ("kdiff1",),
     "highpass": ("cutoff_hz", "cutoff_period_s", "order"),
 }
+
+
+# ------------------------------------------------------------- the missing-data policy
+MASKED_VALUE = 0.0
+"""What a bad sample holds when a record goes to the estimators.
+
+The one missing-data representation: a record carries NaN where a sample is bad, beside
+its quality mask (``good``).  The core's estimators and residual computations take finite
+arrays and the mask and never use a masked sample: every observation that needs one is
+left out (method.md §2).  So a bad sample is passed as ``MASKED_VALUE`` -- 0, the
+conditioned signals' mean -- which only the gap-filled views (the correlation method,
+the residual series of the report, block averaging before the mask is applied) see, and
+there as the signal's mean.  Gaps the job bridges are filled by :func:`interpolate_gaps`
+before conditioning; this is for the samples that stay bad."""
+
+
+def as_masked_zero(values: np.ndarray) -> np.ndarray:
+    """``values`` with every NaN as :data:`MASKED_VALUE` (a copy): the record as the
+    estimators take it beside its mask (the policy above).
+
+    Parameters
+    ----------
+    values : ndarray
+        Samples, NaN where bad.
+    """
+    return np.where(np.isnan(values), MASKED_VALUE, values)
 
 
 # ------------------------------------------------------------------- single transforms

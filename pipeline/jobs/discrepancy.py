@@ -51,7 +51,7 @@ import polars as pl
 from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
 from pipeline.discrepancy.report import summary_markdown
 from pipeline.errors import ConfigError, InsufficientDataError
-from pipeline.identification.conditioning import interpolate_gaps
+from pipeline.identification.conditioning import as_masked_zero, interpolate_gaps
 from pipeline.models.model import Model, model_from_dict, model_to_dict
 from pipeline.progress import Progress, quiet
 from pipeline.jobs.recording import (
@@ -218,7 +218,7 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
     factor = configured_decimation(cfg, rec.grid_dt_s) or 1
     vals, good = rec.values, rec.good
     if factor > 1:
-        vals, good = resample_average_masked(np.nan_to_num(vals), good, factor)
+        vals, good = resample_average_masked(as_masked_zero(vals), good, factor)
     t = rec.time[::factor][: vals.shape[0]]
     vals, filled = interpolate_gaps(vals, good, MAX_FILL_SAMPLES)
     good = good | filled

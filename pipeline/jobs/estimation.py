@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.estimation.alt_estimates import estimate_correlation_method
-from pipeline.identification.conditioning import condition, interpolate_gaps
+from pipeline.identification.conditioning import as_masked_zero, condition, interpolate_gaps
 from pipeline.errors import (
     DataQualityError,
     InstrumentError,
@@ -110,7 +110,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
             n_p_min=cfg.search.n_p_min)
         factor = int(choice.decimation)
         sampling = {**choice.to_dict(), "source": "alpha_t"}
-    vals, good = resample_average_masked(np.nan_to_num(rec.values), rec.good, factor)
+    vals, good = resample_average_masked(as_masked_zero(rec.values), rec.good, factor)
     n = vals.shape[0]
     tgrid = rec.time[: n * factor : factor] if factor > 1 else rec.time[:n]
     dt_s = sample_period_s(factor, rec.grid_dt_s)
@@ -209,7 +209,7 @@ def search_orders(cfg, prep: Prepared, tick: Tick = silent) -> SearchResult:
             raise _instrument_error(cfg, prep, InstrumentError("", instrument=k))
     try:
         sr = search(
-            np.nan_to_num(prep.x), np.nan_to_num(prep.y), dt=prep.dt_s,
+            as_masked_zero(prep.x), as_masked_zero(prep.y), dt=prep.dt_s,
             integrating=prep.integrating, mask=prep.good_xy, n_p_max=s.n_p_max,
             n_p_min=s.n_p_min, n_p=n_p, n_d_start=s.n_d_start, max_windows=s.max_windows,
             estimate_windows=False, noise=e.noise, n_k=cfg.n_k_matrix(), instruments=prep.r,
@@ -300,7 +300,7 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
         The estimator ``estimation.method`` resolved to (:func:`estimate_settings`).
     """
     a, b = window if window is not None else (0, prep.x.shape[0])
-    x, y = np.nan_to_num(prep.x[a:b]), np.nan_to_num(prep.y[a:b])
+    x, y = as_masked_zero(prep.x[a:b]), as_masked_zero(prep.y[a:b])
     try:
         if method == "correlation":  # masked samples enter as zeros (the conditioned mean)
             return estimate_correlation_method(x, y, n_p=n_p, dt=prep.dt_s,

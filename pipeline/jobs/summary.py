@@ -6,6 +6,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.identification.checks import cross_correlation_check, ljung_box, window_agreement
+from pipeline.identification.conditioning import as_masked_zero
 from pipeline.errors import PipelineError
 from pipeline.jobs.job_types import LongTable, Prepared, Summary, WindowFailure
 from pipeline.estimation.prediction import innovations, residuals
@@ -139,7 +140,7 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
 def _residual_series(prep: Prepared, all_est: StepResponseEstimate):
     """The gap-filled inputs, and the residuals and one-step prediction errors of the
     all-data estimate (NaN where any sample they need is masked)."""
-    x0, y0 = np.nan_to_num(prep.x), np.nan_to_num(prep.y)
+    x0, y0 = as_masked_zero(prep.x), as_masked_zero(prep.y)
     bad = ~prep.good_xy.all(axis=1)
     P = int(all_est.n_p.max())
     touched = np.convolve(bad.astype(float), np.ones(P + 1))[: bad.size] > 0

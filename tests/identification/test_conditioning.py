@@ -206,3 +206,15 @@ def test_errors_name_the_problem_and_the_fix():
         Conditioning(method="highpass", cutoff_hz=0.1, order=0)
     with pytest.raises(ConfigError, match="unknown conditioning method 'Mean'"):
         Conditioning(method="Mean")
+
+
+def test_masked_samples_reach_the_estimators_as_the_conditioned_mean():
+    """The missing-data policy: NaN (bad) samples become 0, the conditioned mean; good
+    samples and the caller's array are untouched."""
+    from pipeline.identification.conditioning import MASKED_VALUE, as_masked_zero
+
+    x = np.array([[1.5, np.nan], [np.nan, -2.0], [0.25, 3.0]])
+    out = as_masked_zero(x)
+    assert MASKED_VALUE == 0.0
+    np.testing.assert_array_equal(out, [[1.5, 0.0], [0.0, -2.0], [0.25, 3.0]])
+    assert np.isnan(x[0, 1]) and np.isnan(x[1, 0])  # a copy

@@ -15,6 +15,7 @@ import polars as pl
 
 from pipeline.adapters.series_reader import read_key
 from pipeline.identification.checks import cross_correlation_check, ljung_box
+from pipeline.identification.conditioning import as_masked_zero
 from pipeline.estimation.noise_model import NUISANCE_NAMES
 from pipeline.estimation.prediction import whiten_residual
 from pipeline.identification.quality import fit_percent, simulate_fir
@@ -213,7 +214,7 @@ def held_out_fit(run: StoredRun) -> dict[str, Any] | None:
     bad_x = ~np.isfinite(x).all(axis=1)
     P = dh_all.shape[2]
     touched = np.convolve(bad_x.astype(float), np.ones(P))[: bad_x.size] > 0
-    x0 = np.nan_to_num(x)
+    x0 = as_masked_zero(x)
     out: dict[str, Any] = {"what": what, "samples": [int(a), int(b)],
                            "time": times[a:b], "outputs": {}}
     for i, o in enumerate(run.outputs):
@@ -260,7 +261,7 @@ def residual_correlations(run: StoredRun) -> dict[str, Any] | None:
     if run.residuals is None or run.signals is None or run.checks is None:
         return None
     x, times = _signals(run, run.inputs)
-    x0 = np.nan_to_num(x)
+    x0 = as_masked_zero(x)
     cfg_checks = run.config.get("checks") or {}
     white = ((run.checks.get("residuals") or {}).get("whiteness") or {})
     out: dict[str, Any] = {"outputs": {}, "pairs": {}}
