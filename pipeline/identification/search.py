@@ -179,6 +179,12 @@ class SearchResult:
         integrating output), read from the reference fit at ``n_p_max``: the step there
         minus the step at the pair's N_p, with its standard deviation (zero when the
         orders were fixed and no reference was fitted).
+    window_estimates : dict
+        The chosen stage-2 trial's estimates by window ``(start, stop)``: the first and the
+        last of ``windows``, estimated with ``n_p``, ``n_k``, ``noise`` and the
+        instruments.  A caller that estimates those windows with the same settings reads
+        them here instead of estimating them again (each window estimated once;
+        :func:`pipeline.jobs.estimation.run_job`).
     """
 
     n_p: np.ndarray
@@ -197,6 +203,7 @@ class SearchResult:
     instruments: bool = False
     left_out: np.ndarray | None = None
     left_out_std: np.ndarray | None = None
+    window_estimates: dict = field(default_factory=dict)
 
 
 def _truncate(ne: NormalEquations, m: int) -> NormalEquations:
@@ -425,12 +432,13 @@ def _window_estimates(x, y, mask, windows, n_p, dt, integrating, *, noise="white
             for a, b in windows]
 
 
-def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating, **kw):
-    """Estimates of the windows that can be estimated (a bad window is skipped)."""
-    out = []
+def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating, **kw) -> dict:
+    """Estimates by window of the windows that can be estimated (a bad window is
+    skipped)."""
+    out = {}
     for w in windows:
         try:
-            out.extend(_window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw))
+            [out[w]] = _window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw)
         except DataQualityError:
             continue
     return out
@@ -518,17 +526,20 @@ def search(
     left, left_std = _left_out(x, y, est_max, npm, fixed=fixed, order=order, P0=P0, dt=dt,
                                integrating=integrating, mask=mask, nk=nk)
     kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    n_d, length, nd_trace = _stage2(x, y, mask, npm, dt, integrating, kw, n_d_start=n_d_start,
-                                    extra=extra, steps=steps)
+    n_d, length, nd_trace, window_ests = _stage2(x, y, mask, npm, dt, integrating, kw,
+                                                 n_d_start=n_d_start, extra=extra,
+                                                 steps=steps)
     tick(steps.total, steps.total)
     wins = split_windows_by_length(n, length, max_windows) if length else []
     agreement = []
-    if estimate_windows and wins:
-        agreement = window_agreement(
-            _usable_window_estimates(x, y, mask, wins, npm, dt, integrating, **kw))
+    if estimate_windows and wins:  # stage 2's windows are not estimated again
+        todo = [w for w in wins if w not in window_ests]
+        ests = {**_usable_window_estimates(x, y, mask, todo, npm, dt, integrating, **kw),
+                **window_ests}
+        agreement = window_agreement([ests[w] for w in wins if w in ests])
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
                         bic_order, wins, nk, fb, noise_models, noise,
-                        instruments is not None, left, left_std)
+                        instruments is not None, left, left_std, window_ests)
 
 
 def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
@@ -669,9 +680,10 @@ def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: 
 
 
 def _stage2(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *, n_d_start,
-            extra: int, steps: _Steps) -> tuple[int, int, list]:
-    """Stage 2 at the chosen orders: ``(n_d, window samples, trace)``, ``(0, 0, trace)``
-    when no two windows can be estimated (module doc)."""
+            extra: int, steps: _Steps) -> tuple[int, int, list, dict]:
+    """Stage 2 at the chosen orders: ``(n_d, window samples, trace, the chosen trial's
+    window estimates)``, ``(0, 0, trace, {})`` when no two windows can be estimated
+    (module doc)."""
     n = x.shape[0]
     P = int(npm.max())
     # 10 N_p observations, at least the 2 per unknown a window needs, at most the
@@ -684,11 +696,11 @@ def _stage2(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *, n_
             "error": f"two disjoint windows of the record's {n} samples hold at most "
                      f"{max(n_d, 0)} observations each, fewer than the {need} the "
                      f"{int(npm.sum(axis=1).max())} unknowns of an output need "
-                     f"({WINDOW_MIN_OBS_PER_UNKNOWN} per unknown): no window check"}]
+                     f"({WINDOW_MIN_OBS_PER_UNKNOWN} per unknown): no window check"}], {}
     steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
-    chosen, nd_trace = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d, P=P,
-                                      extra=extra, step=steps.step)
-    return (*(chosen if chosen is not None else (0, 0)), nd_trace)
+    chosen, nd_trace, ests = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d,
+                                            P=P, extra=extra, step=steps.step)
+    return (*(chosen if chosen is not None else (0, 0)), nd_trace, ests)
 
 
 def _window_trials(n: int, n_d: int, P: int, extra: int) -> int:
@@ -699,13 +711,15 @@ def _window_trials(n: int, n_d: int, P: int, extra: int) -> int:
 
 
 def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,
-                   n_d: int, P: int, extra: int, step) -> tuple[tuple[int, int] | None, list]:
+                   n_d: int, P: int, extra: int, step
+                   ) -> tuple[tuple[int, int] | None, list, dict]:
     """Stage 2: N_d doubled from ``n_d`` until two disjoint windows agree or data runs
-    out; the chosen ``(n_d, window samples)`` (None: no two windows fit) and the trace."""
+    out; the chosen ``(n_d, window samples)`` (None: no two windows fit), the trace and
+    the chosen trial's window estimates by window."""
     n, n_y, n_x = x.shape[0], y.shape[1], x.shape[1]
     most = n // 2 - (P - 1 + extra)  # the largest N_d two disjoint windows hold
     nd_trace: list = []
-    chosen = None
+    chosen, chosen_ests = None, {}
     while True:
         length = n_d + P - 1 + extra
         wins = split_windows_by_length(n, length, 2)
@@ -738,10 +752,10 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
                        "p_value": agr[i][j].p_value, "verdict": agr[i][j].verdict}
                       for i in range(n_y) for j in range(n_x)],
         })
-        chosen = (n_d, length)
+        chosen, chosen_ests = (n_d, length), dict(zip(wins, ests))
         if nd_trace[-1]["windows_agree"]:
             break
         if n_d >= most:
             break
         n_d = min(2 * n_d, most)
-    return chosen, nd_trace
+    return chosen, nd_trace, chosen_ests

@@ -69,6 +69,7 @@ __all__ = [
     "search_orders",
     "estimate_settings",
     "estimate_window",
+    "searched_windows",
     "summarise",
     "write_run",
     "run_job",
@@ -254,6 +255,26 @@ def estimate_settings(cfg, sr: SearchResult, n_samples: int) -> tuple:
     return (mc.n_p, sr.n_k, sr.noise, sr.instruments, mc.method)
 
 
+def searched_windows(sr: SearchResult, settings: tuple) -> dict:
+    """The windows the search's stage 2 estimated (``SearchResult.window_estimates``,
+    the first and last of ``sr.windows``) when the job estimates with the search's own
+    settings -- least squares at the search's orders -- so that each window is
+    estimated once; ``{}`` when the job's estimator differs (kernel FIR, the
+    correlation method, another horizon).
+
+    Parameters
+    ----------
+    sr : SearchResult
+        The order search's outcome.
+    settings : tuple
+        :func:`estimate_settings` of the job.
+    """
+    n_p, _, _, _, method = settings
+    if method != "ls" or not np.array_equal(np.broadcast_to(n_p, sr.n_p.shape), sr.n_p):
+        return {}
+    return dict(sr.window_estimates)
+
+
 def method_choice(cfg, sr: SearchResult, n_samples: int):
     """:func:`pipeline.identification.method_choice.choose_method` for the job and its search.
 
@@ -435,8 +456,12 @@ def run_job(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
     progress("search", f"N_p {sr.n_p.ravel().tolist()}, N_d {sr.n_d}, "
              f"{len(sr.windows)} windows")
     windows = [None, *(tuple(w) for w in sr.windows)]  # all data first
-    ests = stage.map("estimate", estimate_window, prep, windows,
-                     *estimate_settings(cfg, sr, prep.x.shape[0]), over=1)
+    settings = estimate_settings(cfg, sr, prep.x.shape[0])
+    known = searched_windows(sr, settings)
+    todo = [w for w in windows if w not in known]
+    done = dict(zip(todo, stage.map("estimate", estimate_window, prep, todo, *settings,
+                                    over=1)))
+    ests = [known[w] if w in known else done[w] for w in windows]
     summary = stage("summarise", summarise, cfg, prep, sr, ests[0], ests[1:])
     if cfg.monitor is not None:  # the baseline is read before the new run is written
         summary, run_id = stage("monitor", monitor_run, cfg, summary, run_id)

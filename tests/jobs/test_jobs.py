@@ -41,3 +41,39 @@ def test_window_where_the_input_does_not_move_is_recorded_not_fatal(tmp_path):
     agr = summary.checks["pairs"][0]["agreement"]
     assert agr["n_windows"] == len(sr.windows) - 1
     assert np.isfinite(agr["statistic"])
+
+
+def test_each_window_is_estimated_once_and_the_run_stores_those_estimates(tmp_path,
+                                                                          monkeypatch):
+    """Stage 2 estimated the first and the last window at the chosen N_d; the job reads
+    them from the search instead of estimating them again (issue 35, build 3), and what
+    the run stores for them is what estimating the window gives."""
+    import polars as pl
+
+    import pipeline.jobs.estimation as job
+    from pipeline.jobs.estimation import run_job
+
+    write_plant_csv(tmp_path / "drop" / "export.csv", seed=5, hours=2.0)
+    cfg = load_job(write_job(tmp_path))
+    asked = []
+    real = job.estimate_window
+
+    def counting(prep, window, *args, **kw):
+        asked.append(window)
+        return real(prep, window, *args, **kw)
+
+    monkeypatch.setattr(job, "estimate_window", counting)
+    report = run_job(cfg)
+    prep = prepare(cfg, load_recording(cfg))
+    sr = search_orders(cfg, prep)
+    assert len(sr.windows) >= 2
+    first, last = tuple(sr.windows[0]), tuple(sr.windows[-1])
+    assert None in asked and first not in asked and last not in asked
+    assert len(asked) == 1 + len(sr.windows) - 2  # all data and the middle windows
+    steps = pl.read_parquet(report.run_dir / "step_responses.parquet")
+    for k, w in ((0, first), (len(sr.windows) - 1, last)):
+        est = real(prep, w, *job.estimate_settings(cfg, sr, prep.x.shape[0]))
+        got = steps.filter(pl.col("window") == f"w{k}").sort("lag")
+        np.testing.assert_array_equal(got["step"].to_numpy(), est.step[0, 0, :sr.n_p[0, 0]])
+        np.testing.assert_array_equal(got["step_std"].to_numpy(),
+                                      est.step_std[0, 0, :sr.n_p[0, 0]])
