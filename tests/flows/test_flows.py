@@ -142,7 +142,10 @@ def test_estimate_on_dask_cluster_equals_default_runner(prefect_harness, tmp_pat
                                         in dask_scheduler.task_prefixes.items()})
     n_windows = step_responses(dsk.run_dir)["window"].n_unique()  # "all" + w0, w1, ...
     # (dask names a task by its function: the task wraps pipeline.jobs.estimation.estimate_window)
-    assert finished.get("estimate_window") == n_windows, finished
+    # the all-data fit and the windows between the first and the last: those two come
+    # from the search's stage 2, which estimated them with the job's settings (least
+    # squares at the search's orders on this plant; each window is estimated once)
+    assert n_windows >= 3 and finished.get("estimate_window") == n_windows - 2, finished
     a, b = step_responses(ref.run_dir), step_responses(dsk.run_dir)
     assert_plausible_plant(a)
     assert_frame_equal(a, b, check_exact=True)
