@@ -482,7 +482,9 @@ def search(
     n_p : int or int array (n_y, n_x), optional
         Fix the orders (e.g. from a known settling time) and skip stage 1.
     n_d_start : int, optional
-        First stage-2 window size in observations; default ``10 * max(n_p)``.
+        First stage-2 window size in observations; default ``10 * max(n_p)``; raised to
+        the :data:`WINDOW_MIN_OBS_PER_UNKNOWN` observations per unknown a window needs
+        and capped at the largest two disjoint windows (module doc).
     max_windows : int
         Disjoint windows reported at the chosen N_d (at least 2 are used to judge).
     estimate_windows : bool
