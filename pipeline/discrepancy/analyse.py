@@ -128,7 +128,7 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
              also: tuple[Candidate, ...]) -> DiscrepancyResult:
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
-                     _gap_reference(chain.steps, prior), also, free_offsets)
+                     gap_reference(chain.steps, prior), also, free_offsets)
 
     chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say,
                   clock=clock)
@@ -197,7 +197,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         timings[stage] = now - last
         last = now
 
-    P, nominal, resid = _problem(model, inputs, measured, dt_s, config, say, free_offsets)
+    P, nominal, resid = discrepancy_problem(model, inputs, measured, dt_s, config, say, free_offsets)
     P.location_names = (*base.block_names, *base.outputs)
     lap("simulate")
     say("localise", "residual regression, bootstrap, lags, bands, windows, load bins")
@@ -361,12 +361,28 @@ def _nested_forms(fitted: list, chosen: list[int]) -> list[int]:
             if k not in chosen and any(degenerate_kind(r, fit.effect) for r in richer)]
 
 
-def _problem(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
-             dt_s: float, config: DiscrepancyConfig, say: Callable[[str, str], None],
-             free_offsets: tuple[str, ...] = ()):
+def discrepancy_problem(model: Model, inputs: Mapping[str, Any],
+                        measured: Mapping[str, Any], dt_s: float, config: DiscrepancyConfig,
+                        say: Callable[[str, str], None], free_offsets: tuple[str, ...] = ()):
     """Validate, simulate the nominal model, choose warm-up, split, N_p and the largest
     delay: the :class:`Problem`, the nominal simulation and the residual (the free
-    outputs' constants profiled out of every prediction, the nominal one included)."""
+    outputs' constants profiled out of every prediction, the nominal one included).
+
+    Parameters
+    ----------
+    model : Model
+        The nominal model.
+    inputs, measured : mapping of str -> array
+        Model inputs (and extra signals) and measured outputs, on one grid.
+    dt_s : float
+        Sample period, s.
+    config : DiscrepancyConfig
+        The workflow's settings (warm-up, split, noise orders, initial state).
+    say : callable (stage, message)
+        Progress lines.
+    free_offsets : tuple of str
+        Outputs whose constant is profiled out of every prediction.
+    """
     ins, outputs, y = validate_signals(model, inputs, measured, dt_s)
     n = y.shape[0]
     dt_s = float(dt_s)
@@ -556,8 +572,8 @@ def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray
     return changed, floored
 
 
-def _gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
-                   ) -> float | None:
+def gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
+                  ) -> float | None:
     """The held-out gap a search's findings must close ``min_gap_reduction`` of: the gap
     the NOMINAL model's dynamics leave with the chain's sensor corrections
     (``sensor_bias_drift``) -- the gap of the latest search whose model held sensor
@@ -575,6 +591,13 @@ def _gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
     closed 15 % of what remained and was called minor.  In 7 of the 8 pair misses that
     stopped after one correct effect (pairs seeds 1 500 000+, now spent) the first was
     a sensor bias and the missing effect the best minor one, at 8-21 % of what remained.
+
+    Parameters
+    ----------
+    steps : sequence of DiscrepancyResult
+        The chain's searches so far, in order.
+    prior : sequence of Effect
+        The effects in the model of the search to come.
     """
     def sensors_only(effects: Sequence[Effect]) -> bool:
         return all(e.is_sensor_correction for e in effects)
@@ -592,7 +615,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     """Held-out comparison of the fitted candidates: the sorted unique candidates, the
     verdict, the effect found (or None), the look-alikes and the minor effects.
     ``gap_reference``: the held-out gap practical significance is measured against
-    (:func:`_gap_reference`; None: this model's)."""
+    (:func:`gap_reference`; None: this model's)."""
     config, y, outputs = P.config, P.y, P.outputs
     candidates = []
     hold_slice = slice(P.holdout_start, P.n)
@@ -636,7 +659,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
             unique.append(c)
     candidates = unique
     passed = [c for c in candidates if c.passed]
-    # practical significance (:func:`_gap_reference`)
+    # practical significance (:func:`gap_reference`)
     bar = config.min_gap_reduction * (gap_nom if gap_reference is None else gap_reference)
 
     def practical(c: Candidate) -> bool:

@@ -332,7 +332,7 @@ class Chain:
         """Whether the chain `links` as fitted needs its `k`-th effect: the held-out gap
         without it, less that with all, must be at least ``min_gap_reduction`` of the
         gap with the chain's sensor corrections only (the nominal gap when there are
-        none: the reference of :func:`pipeline.discrepancy.analyse._gap_reference`).
+        none: the reference of :func:`pipeline.discrepancy.analyse.gap_reference`).
         Returns (needed, gap without it, gap with all).
 
         Parameters
@@ -622,7 +622,7 @@ def prune(chain: Chain, links: Sequence[Link]) -> tuple[list[Link], list[Candida
     effects as minor candidates.
 
     Each search held its finding to ``min_gap_reduction`` of the reference gap
-    (:func:`pipeline.discrepancy.analyse._gap_reference`) on the model of that moment,
+    (:func:`pipeline.discrepancy.analyse.gap_reference`) on the model of that moment,
     with the earlier effects refitted jointly.  That joint refit can be what closed the
     gap: after a saturation (accepted first, its limits fitted on the static-map path) a
     controller gain of x1.017 and an operating-point gain of slope -0.003 passed, while

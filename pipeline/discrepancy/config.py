@@ -78,7 +78,7 @@ class DiscrepancyConfig:
         floor), except that accepted sensor corrections (``sensor_bias_drift``) are
         taken off first: a measurement bias says nothing about the dynamics and would
         make every later effect "minor"
-        (:func:`pipeline.discrepancy.analyse._gap_reference`).  A statistically
+        (:func:`pipeline.discrepancy.analyse.gap_reference`).  A statistically
         significant but smaller one is reported under ``minor_effects``.  Default 0.05:
         under realistic nuisance mismatch (a plant simulated independently of the
         model, DCS delay, input noise) spurious one-sample delays and 1 % gain changes

@@ -37,8 +37,8 @@ def _bank(x: np.ndarray, taus: Sequence[float]) -> np.ndarray:
     return np.column_stack([x] + [lag_filter(x, t) for t in taus])
 
 
-def _input_relevance(P: Problem, resid: np.ndarray, signals: list[str], start: int,
-                     rng: np.random.Generator) -> dict[str, dict[str, float]]:
+def input_relevance(P: Problem, resid: np.ndarray, signals: list[str], start: int,
+                    rng: np.random.Generator) -> dict[str, dict[str, float]]:
     """Partial statistic per signal and circular-shift bootstrap p-value.
 
     The residual (after removing mean and trend) is regressed on a bank of each
@@ -49,6 +49,19 @@ def _input_relevance(P: Problem, resid: np.ndarray, signals: list[str], start: i
     by a random offset (10-90 % of the record): this is a block bootstrap with one cut
     that keeps the autocorrelation of both the residual and the signal but breaks their
     alignment, which a naive F test on autocorrelated data would not.
+
+    Parameters
+    ----------
+    P : Problem
+        Validated signals and split.
+    resid : ndarray (N,)
+        One output's residual, full record.
+    signals : list of str
+        The candidate signals (model inputs and extra signals).
+    start : int
+        First analysed sample.
+    rng : numpy.random.Generator
+        Random offsets of the circular shifts.
     """
     n_s = P.settling_s / P.dt_s
     taus = np.geomspace(2.0, max(3.0, n_s / 2), 4)
@@ -391,7 +404,7 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
     loc: dict[str, Any] = {}
     fir_out = []
     for i, out in enumerate(P.outputs):
-        rel = _input_relevance(P, resid[:, i], ff.signals, ff.start, rng)
+        rel = input_relevance(P, resid[:, i], ff.signals, ff.start, rng)
         fir_out.append(np.nan_to_num(ff.fir_res[:, i]))
         loc[out], rolling[out] = _localise_output(P, ff, sp, resid, i, out, rel, window)
     return loc, fir_out, rolling

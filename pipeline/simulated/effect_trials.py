@@ -448,7 +448,7 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
             shown.append(_visibility(model, truth, others[1], rel, n))
         if len(shown) == len(effects) and all(
                 v >= MIN_VISIBILITY and r >= TRIAL_GAP_REDUCTION for v, r in shown) and (
-                len(effects) == 1 or _each_needed(model, effects, truth, without, nominal,
+                len(effects) == 1 or each_needed(model, effects, truth, without, nominal,
                                                   inputs, dt_s=dt_s, rel=rel, n=n)):
             return tuple(effects), truth, redraws, shown[0][0]
         redraws += 1
@@ -458,11 +458,24 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
     )
 
 
-def _expected_gap(model: Model, truth: Mapping[str, np.ndarray],
-                  predicted: Mapping[str, np.ndarray], rel: float, n: int) -> float:
+def expected_gap(model: Model, truth: Mapping[str, np.ndarray],
+                 predicted: Mapping[str, np.ndarray], rel: float, n: int) -> float:
     """Expected held-out gap of a model predicting `predicted` for a plant whose
     noise-free outputs are `truth` (noise std ``rel * std(truth)``): each output's
-    expected mean square over its held-out variance, pooled as the workflow's ``gap``."""
+    expected mean square over its held-out variance, pooled as the workflow's ``gap``.
+
+
+    Parameters
+    ----------
+    model : Model
+        The model whose outputs are pooled.
+    truth, predicted : mapping of str -> array
+        Noise-free plant outputs and a model's prediction of them.
+    rel : float
+        Sensor noise std relative to each output's std.
+    n : int
+        Record length in samples (the hold-out is its last third).
+    """
     held = slice(holdout_start(n), n)
     ratios = []
     for name in model.outputs:
@@ -472,10 +485,10 @@ def _expected_gap(model: Model, truth: Mapping[str, np.ndarray],
     return math.sqrt(sum(ratios) / len(ratios))
 
 
-def _each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np.ndarray],
-                 without: Sequence[Mapping[str, np.ndarray]], nominal: Any,
-                 inputs: Mapping[str, np.ndarray], *, dt_s: float, rel: float, n: int
-                 ) -> bool:
+def each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np.ndarray],
+                without: Sequence[Mapping[str, np.ndarray]], nominal: Any,
+                inputs: Mapping[str, np.ndarray], *, dt_s: float, rel: float, n: int
+                ) -> bool:
     """Whether every one of several effects is a finding by the workflow's own rule for
     a chain (:meth:`pipeline.discrepancy.chain.Chain.needed`), in expected values with
     the true parameters: the plant's model without it (`without`, in effect order), less
@@ -484,24 +497,45 @@ def _each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np
     corrections only (the nominal gap when there are none).
 
     The workflow measures a later effect against that reference, not against the gap
-    of the model it is added to (:func:`pipeline.discrepancy.analyse._gap_reference`
+    of the model it is added to (:func:`pipeline.discrepancy.analyse.gap_reference`
     says why), so an effect that closes 7.5 % of what the other one leaves can be a
     minor effect by definition: 15 of the 100 pair trials of seeds 1 700 000 were (a
     sensor drift closing 12 % of what a deadband left, 3 % of the nominal gap).  The
     per-effect bar against the plant without it (:func:`_visibility`) still applies, and
     the bar holds with the other effects refitted too (:func:`_refitted`).
+
+    Parameters
+    ----------
+    model : Model
+        The nominal model (the effects are applied to it).
+    effects : sequence of Effect
+        The hidden effects, in order.
+    truth : mapping of str -> array
+        Noise-free plant outputs.
+    without : sequence of mappings of str -> array
+        The plant's outputs without each effect, in effect order.
+    nominal : SimulationResult
+        The nominal model's simulation.
+    inputs : mapping of str -> array
+        Model inputs.
+    dt_s : float
+        Sample period, s.
+    rel : float
+        Sensor noise std relative to each output's std.
+    n : int
+        Record length in samples.
     """
     sensors = [e for e in effects if e.is_sensor_correction]
     base = (nominal.signals if not sensors
             else _plant_outputs(model, sensors, inputs, dt_s)[1])
-    bar = TRIAL_GAP_REDUCTION * _expected_gap(model, truth, base, rel, n)
-    full = _expected_gap(model, truth, truth, rel, n)
+    bar = TRIAL_GAP_REDUCTION * expected_gap(model, truth, base, rel, n)
+    full = expected_gap(model, truth, truth, rel, n)
     for k, others in enumerate(without):
-        if _expected_gap(model, truth, others, rel, n) - full < bar:
+        if expected_gap(model, truth, others, rel, n) - full < bar:
             return False
         refitted = _refitted(model, [*effects[:k], *effects[k + 1:]], truth, inputs,
                              dt_s=dt_s, n=n)
-        if refitted is not None and _expected_gap(model, truth, refitted, rel, n) - full < bar:
+        if refitted is not None and expected_gap(model, truth, refitted, rel, n) - full < bar:
             return False
     return True
 
@@ -565,6 +599,6 @@ def _visibility(model: Model, out: Mapping[str, np.ndarray],
     for name in model.outputs:
         sigma = rel * float(np.std(out[name]))
         vis.append(float(np.sqrt(np.mean((out[name] - reference[name]) ** 2))) / sigma)
-    reduction = 1.0 - _expected_gap(model, out, out, rel, n) / _expected_gap(
+    reduction = 1.0 - expected_gap(model, out, out, rel, n) / expected_gap(
         model, out, reference, rel, n)
     return max(vis), reduction

@@ -81,13 +81,13 @@ TUNE_SEED0 = {"clean": 1000, "nuisance": 700_000, "pairs": 800_000}
 #: after the trajectory screening (``screen._TRAJECTORY_STEP``, tuning seeds only) the
 #: runs use 1 500 000 (64/100).  Its log was read to find that a later effect's
 #: practical-significance bar should take the accepted sensor corrections off the
-#: nominal gap (``analyse._gap_reference``), so those seeds are spent and the run after
+#: nominal gap (``analyse.gap_reference``), so those seeds are spent and the run after
 #: it uses 1 600 000 (65/100).  The nuisance saturation row of 900 000 was read to find
 #: that the final chain must be pruned (``chain.prune``) and that a replacing pair is not
 #: led by the single effect's own kind (``chain.Chain._replaced``), so the nuisance suite
 #: after those moves to 2 000 000 (438/450, saturation 44/50) and the pairs to 1 700 000
 #: (64/100).  Both logs were read (the pairs' to find trials whose effect the chain's
-#: rule must call minor -- ``effect_trials._each_needed`` -- and to try the dynamic
+#: rule must call minor -- ``effect_trials.each_needed`` -- and to try the dynamic
 #: look-alike sweep, ``chain._DYNAMIC``, on its dead-time misses), so the runs after
 #: those use nuisance 2 100 000 and pairs 1 800 000.  Both of those logs were read to
 #: find trials no estimate can name (a saturation limit met only in the held-out third,

@@ -21,7 +21,7 @@ import yaml
 
 from pipeline.discrepancy import DiscrepancyConfig, analyse_discrepancy
 from pipeline.simulated.synthetic import make_discrepancy_demo
-from pipeline.discrepancy.localise import _input_relevance
+from pipeline.discrepancy.localise import input_relevance
 from pipeline.discrepancy.problem import Problem
 from pipeline.discrepancy.effects import (
     EFFECT_NAMES,
@@ -345,7 +345,7 @@ def test_a_pair_one_effect_absorbs_when_refitted_is_no_pair_trial(drum):
     expected gap by far more than the bar.  The generator refits the remaining effect
     before it judges (``_refitted``) and rejects the pair; a pair whose effects do not
     stand in for each other (a gain on the demand, a lag on the swell) stays."""
-    from pipeline.simulated.effect_trials import (TRIAL_GAP_REDUCTION, _each_needed, _expected_gap,
+    from pipeline.simulated.effect_trials import (TRIAL_GAP_REDUCTION, each_needed, expected_gap,
                                         _plant_outputs, trial_inputs)
 
     n, dt = 6_000, 2.0
@@ -362,15 +362,15 @@ def test_a_pair_one_effect_absorbs_when_refitted_is_no_pair_trial(drum):
     product = outputs([Effect("gain", "feedwater_demand", {"factor": 1.40 * 0.74})])
     for o in drum.outputs:
         np.testing.assert_allclose(product[o], truth[o], rtol=1e-9, atol=1e-9 * np.std(truth[o]))
-    bar = TRIAL_GAP_REDUCTION * _expected_gap(drum, truth, nominal.signals, rel, n)
-    full = _expected_gap(drum, truth, truth, rel, n)
+    bar = TRIAL_GAP_REDUCTION * expected_gap(drum, truth, nominal.signals, rel, n)
+    full = expected_gap(drum, truth, truth, rel, n)
     without = [outputs([b]), outputs([a])]
-    assert all(_expected_gap(drum, truth, w, rel, n) - full >= bar for w in without)
-    assert not _each_needed(drum, [a, b], truth, without, nominal, inputs, dt_s=dt, rel=rel, n=n)
+    assert all(expected_gap(drum, truth, w, rel, n) - full >= bar for w in without)
+    assert not each_needed(drum, [a, b], truth, without, nominal, inputs, dt_s=dt, rel=rel, n=n)
 
     lag = Effect("extra_lag", "swell", {"tau_s": 60.0})
     truth = outputs([a, lag])
-    assert _each_needed(drum, [a, lag], truth, [outputs([lag]), outputs([a])], nominal,
+    assert each_needed(drum, [a, lag], truth, [outputs([lag]), outputs([a])], nominal,
                         inputs, dt_s=dt, rel=rel, n=n)
 
 
@@ -486,7 +486,7 @@ def test_circular_shift_bootstrap_p_values_are_calibrated():
                            dt_s=1.0, n=n, fit_start=0, holdout_start=n, config=cfg,
                            settling_s=40.0, n_p=20, max_delay=10, nominal_signals={},
                            y_nominal=np.zeros((n, 1)))
-        p = _input_relevance(problem, r, ["x"], 0, rng)["x"]["p_value"]
+        p = input_relevance(problem, r, ["x"], 0, rng)["x"]["p_value"]
         rejections += p < 0.1
     assert rejections / reps <= 0.22
 

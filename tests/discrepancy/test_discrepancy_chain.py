@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from pipeline.jobs.demo import boiler_model
-from pipeline.discrepancy.analyse import _gap_reference
+from pipeline.discrepancy.analyse import gap_reference
 from pipeline.discrepancy.chain import Chain, Link, prune
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.results import Candidate
@@ -204,7 +204,7 @@ def test_a_pair_that_closes_too_little_more_keeps_the_single_effect():
 
 def test_gap_reference_takes_off_sensor_corrections_only():
     """Practical significance of a later effect is judged against the gap of the latest
-    search whose model held sensor corrections only (analyse._gap_reference)."""
+    search whose model held sensor corrections only (analyse.gap_reference)."""
     bias = Effect("sensor_bias_drift", "drum_level", {"bias": 1.0, "drift_per_h": 0.0})
     gain = Effect("gain", "controller", {"factor": 1.2})
 
@@ -212,12 +212,12 @@ def test_gap_reference_takes_off_sensor_corrections_only():
         return SimpleNamespace(gap={"holdout_rms_before": gap}, revised_prior=prior)
 
     nominal, after_bias, after_both = step(4.0), step(0.4, bias), step(0.3, bias, gain)
-    assert _gap_reference([], ()) is None  # the first search: its own gap
-    assert _gap_reference([nominal], (bias,)) is None  # only a sensor correction
-    assert _gap_reference([nominal], (gain,)) == 4.0  # a process effect: the nominal gap
-    assert _gap_reference([nominal, after_bias], (bias, gain)) == 0.4
-    assert _gap_reference([nominal, after_bias, after_both], (bias, gain, gain)) == 0.4
-    assert _gap_reference([nominal, step(1.0, gain)], (gain, bias)) == 4.0
+    assert gap_reference([], ()) is None  # the first search: its own gap
+    assert gap_reference([nominal], (bias,)) is None  # only a sensor correction
+    assert gap_reference([nominal], (gain,)) == 4.0  # a process effect: the nominal gap
+    assert gap_reference([nominal, after_bias], (bias, gain)) == 0.4
+    assert gap_reference([nominal, after_bias, after_both], (bias, gain, gain)) == 0.4
+    assert gap_reference([nominal, step(1.0, gain)], (gain, bias)) == 4.0
 
 
 def test_a_single_effects_location_lookalike_does_not_lead_a_replacing_pair():

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.discrepancy.analyse import _problem
+from pipeline.discrepancy.analyse import discrepancy_problem
 from pipeline.discrepancy.config import DiscrepancyConfig
 import pipeline.discrepancy.joint as joint_module
 from pipeline.discrepancy.joint import joint_refit
@@ -33,7 +33,7 @@ def _problem_on_plant(model, truth, inputs, dt_s, prior, *, noise: float, seed: 
     augmented = model
     for e in prior:
         augmented = apply_effect(augmented, e, dt_s=dt_s)
-    P, _, _ = _problem(augmented, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
+    P, _, _ = discrepancy_problem(augmented, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
     P.ar = [np.array([1.0])] * P.n_y
     P.sigma = np.array([noise * float(np.std(measured[o])) for o in P.outputs])
     return P
@@ -154,7 +154,7 @@ def test_screening_given_the_earlier_effects_scores_as_their_joint_least_squares
 
     model = load_model("boiler_pressure")
     inputs, measured, dt_s = make_discrepancy_demo(model, seed=5, hours=1.0, dt_s=1.0)
-    P, _, resid = _problem(model, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
+    P, _, resid = discrepancy_problem(model, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
     P.ar = [np.array([1.0, -0.8])] * P.n_y
     P.sigma = np.array([0.05 * float(np.std(P.y[:, i])) for i in range(P.n_y)])
     rng = np.random.default_rng(7)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.discrepancy.analyse import _problem
+from pipeline.discrepancy.analyse import discrepancy_problem
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.lure import StaticMapPath, first_crossing
 from pipeline.discrepancy.effects import Effect, predict_outputs
@@ -21,7 +21,7 @@ from pipeline.simulated.synthetic import make_discrepancy_demo
 def problem():
     model = load_model("boiler_pressure")
     inputs, measured, dt_s = make_discrepancy_demo(model, seed=5, hours=1.0, dt_s=1.0)
-    P, _, _ = _problem(model, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
+    P, _, _ = discrepancy_problem(model, inputs, measured, dt_s, DiscrepancyConfig(), quiet)
     # a coloured-noise whitening filter per output (AR(2)), as the analysis fits one
     P.ar = [np.array([1.0, -0.9, 0.2])] * P.n_y
     P.sigma = np.array([0.01 * float(np.std(P.y[:, i])) + 1e-9 for i in range(P.n_y)])

@@ -342,7 +342,7 @@ def test_a_sensor_bias_and_an_effect_behind_it_through_the_cli(tmp_path, capsys)
     The bias is 90 % of the nominal model's held-out gap; the gain closes ~11 % of what
     the bias leaves but under 5 % of the nominal gap.  Practical significance is judged
     against the gap the dynamics leave once the sensor correction is applied
-    (``analyse._gap_reference``), at the lower 95 % confidence bound of the share closed
+    (``analyse.gap_reference``), at the lower 95 % confidence bound of the share closed
     (``select.holdout_rms_evidence``): the gain's share has a bootstrap spread of about
     4 %, so its bound sits near the 5 % bar.  The gain is found with its slope whichever
     side of the bar the bound falls: as the second effect (then in the model's blocks
