@@ -391,10 +391,22 @@ def _unit_noise(model: Model, n: int, noise_kind: str | None, rng: np.random.Gen
     return kind, phi, rel, noise_unit
 
 
-def _plant_outputs(model: Model, effects: Sequence[Effect], inputs: Mapping[str, np.ndarray],
-                   dt_s: float) -> tuple[Model, dict[str, np.ndarray]] | None:
+def plant_outputs(model: Model, effects: Sequence[Effect], inputs: Mapping[str, np.ndarray],
+                  dt_s: float) -> tuple[Model, dict[str, np.ndarray]] | None:
     """The model with `effects` added and its outputs (offsets included), or None when
-    the loop is unstable or blows up."""
+    the loop is unstable or blows up.
+
+    Parameters
+    ----------
+    model : Model
+        The nominal model.
+    effects : sequence of Effect
+        Effects added in order.
+    inputs : mapping of str -> array
+        Model inputs.
+    dt_s : float
+        Sample period, s.
+    """
     augmented = model
     for effect in effects:
         augmented = apply_effect(augmented, effect, dt_s=dt_s)
@@ -423,7 +435,7 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
             for _draw in range(max_redraws):
                 candidate = _draw_effect(name, base, base_sim, inputs, dt_s, rng,
                                          locations_of=model, exclude=used)
-                plant = _plant_outputs(model, [*effects, candidate], inputs, dt_s)
+                plant = plant_outputs(model, [*effects, candidate], inputs, dt_s)
                 if plant is None or not all(
                         np.all(np.isfinite(v)) and np.std(v) < 20 * np.std(nominal.signals[k]) + 1e-12
                         for k, v in plant[1].items()):
@@ -438,10 +450,10 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
                 raise ConfigError(
                     f"make_hidden_effect_trial: no stable {name} effect in {max_redraws} "
                     f"draws for model {model.name!r} (seed {seed})")
-        truth = _plant_outputs(model, effects, inputs, dt_s)[1]
+        truth = plant_outputs(model, effects, inputs, dt_s)[1]
         shown, without = [], []  # each effect's visibility; the plant without it
         for k in range(len(effects)):
-            others = _plant_outputs(model, effects[:k] + effects[k + 1:], inputs, dt_s)
+            others = plant_outputs(model, effects[:k] + effects[k + 1:], inputs, dt_s)
             if others is None:
                 break
             without.append(others[1])
@@ -527,7 +539,7 @@ def each_needed(model: Model, effects: Sequence[Effect], truth: Mapping[str, np.
     """
     sensors = [e for e in effects if e.is_sensor_correction]
     base = (nominal.signals if not sensors
-            else _plant_outputs(model, sensors, inputs, dt_s)[1])
+            else plant_outputs(model, sensors, inputs, dt_s)[1])
     bar = TRIAL_GAP_REDUCTION * expected_gap(model, truth, base, rel, n)
     full = expected_gap(model, truth, truth, rel, n)
     for k, others in enumerate(without):
@@ -570,7 +582,7 @@ def _refitted(model: Model, others: Sequence[Effect], truth: Mapping[str, np.nda
 
     def residual(z: np.ndarray) -> np.ndarray:
         try:
-            plant = _plant_outputs(model, effects_at(z), inputs, dt_s)
+            plant = plant_outputs(model, effects_at(z), inputs, dt_s)
         except (ConfigError, ModelError):  # e.g. a saturation's limits crossed
             plant = None
         if plant is None:
@@ -581,7 +593,7 @@ def _refitted(model: Model, others: Sequence[Effect], truth: Mapping[str, np.nda
 
     z = scipy.optimize.least_squares(residual, x0 / scale, diff_step=1e-3,
                                      max_nfev=40 * len(free)).x
-    plant = _plant_outputs(model, effects_at(z), inputs, dt_s)
+    plant = plant_outputs(model, effects_at(z), inputs, dt_s)
     return None if plant is None else plant[1]
 
 

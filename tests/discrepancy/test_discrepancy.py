@@ -345,8 +345,13 @@ def test_a_pair_one_effect_absorbs_when_refitted_is_no_pair_trial(drum):
     expected gap by far more than the bar.  The generator refits the remaining effect
     before it judges (``_refitted``) and rejects the pair; a pair whose effects do not
     stand in for each other (a gain on the demand, a lag on the swell) stays."""
-    from pipeline.simulated.effect_trials import (TRIAL_GAP_REDUCTION, each_needed, expected_gap,
-                                        _plant_outputs, trial_inputs)
+    from pipeline.simulated.effect_trials import (
+        TRIAL_GAP_REDUCTION,
+        each_needed,
+        expected_gap,
+        plant_outputs,
+        trial_inputs,
+    )
 
     n, dt = 6_000, 2.0
     inputs = trial_inputs(drum.name, n=n, dt_s=dt, rng=np.random.default_rng(5))
@@ -354,7 +359,7 @@ def test_a_pair_one_effect_absorbs_when_refitted_is_no_pair_trial(drum):
     rel = 0.1  # noise std / output std: each gain alone opens 2-3.4 times the bar
 
     def outputs(effects):
-        return _plant_outputs(drum, effects, inputs, dt)[1]
+        return plant_outputs(drum, effects, inputs, dt)[1]
 
     a = Effect("gain", "feedwater_demand", {"factor": 1.40})
     b = Effect("gain", "feedwater_flow", {"factor": 0.74})

@@ -8,7 +8,7 @@ the layers read from the folders (``pipeline/__init__.py`` names them):
 * nothing under ``pipeline/`` imports ``flows`` (the library never depends on its
   orchestration), and the adapters (``pipeline/adapters/``) do not import the
   composition (``pipeline/jobs/``);
-* no module imports a private (``_name``) name of another module, from ``pipeline`` or
+* no module (library, flows or test) imports a private (``_name``) name of another module, from ``pipeline`` or
   ``flows``, whether by ``from m import _x`` or ``m._x``.
 """
 
@@ -109,8 +109,10 @@ def test_the_library_never_imports_flows_and_adapters_not_composition():
 
 
 def test_no_module_imports_a_private_name_of_another():
+    """Library, flows and the tests alike: a test checks a rule through its public name
+    (a rule worth a test is worth a documented name)."""
     bad = []
-    for path in _sources("pipeline", "flows"):
+    for path in _sources("pipeline", "flows") + sorted((ROOT / "tests").rglob("test_*.py")):
         rel = path.relative_to(ROOT)
         tree = ast.parse(path.read_text())
         aliases = {}  # local name -> project module it stands for
