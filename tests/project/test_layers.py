@@ -8,8 +8,8 @@ the layers read from the folders (``pipeline/__init__.py`` names them):
 * nothing under ``pipeline/`` imports ``flows`` (the library never depends on its
   orchestration), and the adapters (``pipeline/adapters/``) do not import the
   composition (``pipeline/jobs/``);
-* no module (library, flows or test) imports a private (``_name``) name of another module, from ``pipeline`` or
-  ``flows``, whether by ``from m import _x`` or ``m._x``.
+* no module -- library, flows or test -- imports a private (``_name``) name of another
+  module, from ``pipeline`` or ``flows``, whether by ``from m import _x`` or ``m._x``.
 """
 
 from __future__ import annotations
