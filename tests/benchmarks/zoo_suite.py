@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.simulated.effect_trials import TRIAL_GAP_REDUCTION
 from tests.zoo import FAMILIES, ZOO_EFFECTS
 from tests.zoo.trial import make_trial, write_trial
 
@@ -193,10 +194,33 @@ def summarise_zoo(results: list[dict[str, Any]]) -> str:
                   + str(sum(any(n.startswith("time budget") for n in r.get("notes") or [])
                             for r in sub)),
                   ""]
+        lines += _explainable_lines(eff)
         if hidden:
             lines += ["not visible after every redraw (left out): "
                       + ", ".join(f"{e} {k}" for e, k in sorted(hidden.items())), ""]
     return "\n".join(lines)
+
+
+def _explainable_lines(eff: list[dict[str, Any]]) -> list[str]:
+    """Rates among the trials the nominal model with the true effect explains (the
+    second bar, :mod:`tests.zoo.explainable`; rows from ``tests.benchmarks.zoo_explain``)
+    and among the rest."""
+    rows = [r for r in eff if "model_gap_reduction" in r
+            and not math.isnan(r["model_gap_reduction"])]
+    if not rows:
+        return []
+    parts = []
+    for e in ZOO_EFFECTS:
+        rs = [r for r in rows if r["effect"] == e]
+        if not rs:
+            continue
+        ok = [r for r in rs if r["model_gap_reduction"] >= TRIAL_GAP_REDUCTION]
+        rest = [r for r in rs if r not in ok]
+        parts.append(f"{e} {sum(r['correct'] for r in ok)}/{len(ok)} explainable, "
+                     f"{sum(r['correct'] for r in rest)}/{len(rest)} not")
+    return [f"named among the trials the nominal model with the true effect explains "
+            f"(closes at least {TRIAL_GAP_REDUCTION:.1%} of the held-out gap) and among "
+            "the rest: " + "; ".join(parts), ""]
 
 
 def main(argv: list[str] | None = None) -> int:
