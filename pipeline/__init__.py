@@ -21,7 +21,7 @@ The names in ``__all__`` are the public face; each is imported on first use, so
 
 from __future__ import annotations
 
-import importlib
+from pipeline._lazy import lazy_names
 
 __version__ = "0.1.0"
 
@@ -44,14 +44,4 @@ _PUBLIC = {
 }
 __all__ = ["__version__", *_PUBLIC]
 
-
-def __getattr__(name: str):
-    # PEP 562 lazy attributes (as scipy does): the public names without importing every
-    # layer when one core module is imported
-    if name in _PUBLIC:
-        return getattr(importlib.import_module(_PUBLIC[name]), name)
-    raise AttributeError(f"module 'pipeline' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_names(__name__, _PUBLIC)

@@ -11,7 +11,7 @@ load all of them).
 
 from __future__ import annotations
 
-import importlib
+from pipeline._lazy import lazy_names
 
 _PUBLIC = {
     "run_job": "pipeline.jobs.estimation",
@@ -24,12 +24,4 @@ _PUBLIC = {
 }
 __all__ = list(_PUBLIC)
 
-
-def __getattr__(name: str):
-    if name in _PUBLIC:
-        return getattr(importlib.import_module(_PUBLIC[name]), name)
-    raise AttributeError(f"module 'pipeline.jobs' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(__all__)
+__getattr__, __dir__ = lazy_names(__name__, _PUBLIC)
