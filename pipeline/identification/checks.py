@@ -22,6 +22,7 @@ __all__ = [
     "AgreementResult",
     "pair_agreement",
     "window_agreement",
+    "windows_agree",
     "ljung_box",
     "cross_correlation_check",
 ]
@@ -74,7 +75,12 @@ class AgreementResult:
         False-alarm rate of the Wald test.
     gain_statistic, gain_p_value : float
         The gain part: chi^2 of the windows' final values with ``n_windows - 1`` df, at
-        the false-alarm rate :data:`GAIN_AGREEMENT_ALPHA`.
+        the false-alarm rate :data:`GAIN_AGREEMENT_ALPHA`.    informative : bool
+        Whether the windows could tell: a change of :data:`DETECTABLE_GAIN_CHANGE` is
+        detectable, or the pair has no response to compare.  Decided here once, whatever
+        the verdict; the verdict is ``insufficient_data`` for a pair that does not fail
+        and is not informative.  (Not written to ``checks.json``: it is what the verdict
+        and ``detectable_change`` say.)
     """
 
     statistic: float
@@ -87,9 +93,11 @@ class AgreementResult:
     alpha: float = AGREEMENT_ALPHA
     gain_statistic: float = float("nan")
     gain_p_value: float = float("nan")
+    informative: bool = False
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        del d["informative"]
         for k in ("statistic", "gain_spread", "detectable_change", "p_value",
                   "gain_statistic", "gain_p_value"):
             if not np.isfinite(d[k]):
@@ -170,15 +178,17 @@ def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA) ->
             scale = max(np.max(np.abs(ha)), np.max(np.abs(hb)), 1e-300)
             spread = max(spread, abs(ha[-1] - hb[-1]) / scale)
             detect = max(detect, _DETECT_SIGMAS * np.sqrt(np.max(var)) / scale)
+    # too noisy to tell (a pair with no response at all has no gain to compare, so it
+    # can be judged): a pair that does not fail is then insufficient_data, increase N_d
+    informative = bool(detect <= DETECTABLE_GAIN_CHANGE or _is_null_pair(steps, stds))
     if p < alpha or g_p < GAIN_AGREEMENT_ALPHA:
         verdict = "fail"
-    elif detect > DETECTABLE_GAIN_CHANGE and not _is_null_pair(steps, stds):
-        # The windows agree only because they are too noisy to tell (a pair with no
-        # response at all has no gain to compare, so it passes): increase N_d.
+    elif not informative:
         verdict = "insufficient_data"
     else:
         verdict = "pass"
-    return AgreementResult(stat, verdict, spread, detect, k, p, df, alpha, g_stat, g_p)
+    return AgreementResult(stat, verdict, spread, detect, k, p, df, alpha, g_stat, g_p,
+                           informative)
 
 
 def windows_agree(agreement: list[list[AgreementResult]]) -> bool:
@@ -190,10 +200,10 @@ def windows_agree(agreement: list[list[AgreementResult]]) -> bool:
     ``1 - AGREEMENT_ALPHA - GAIN_AGREEMENT_ALPHA`` whatever its size.  At the per-pair
     rates a 20 x 20 plant's 400 pairs fail about 20 by chance and a 4 x 4 plant's 16 fail
     one in more than half of its records, so "every pair passes" would be a question of
-    the plant's size, not of N_d.  A pair must also be informative (not
-    ``insufficient_data``; a pair that fails at its own rate counts as informative only
-    when its windows could detect :data:`DETECTABLE_GAIN_CHANGE`).  The per-pair verdicts
-    stay at their own rates: they are what a person reads.
+    the plant's size, not of N_d.  Every pair must also be informative
+    (``AgreementResult.informative``, decided by :func:`pair_agreement` whatever the
+    verdict).  The per-pair verdicts stay at their own rates: they are what a person
+    reads.
 
     Parameters
     ----------
@@ -204,13 +214,9 @@ def windows_agree(agreement: list[list[AgreementResult]]) -> bool:
     m = len(pairs)
     if m == 0:
         return False
-    for a in pairs:
-        if a.verdict == "insufficient_data" or (
-                a.verdict == "fail" and not a.detectable_change <= DETECTABLE_GAIN_CHANGE):
-            return False
-        if a.p_value < a.alpha / m or a.gain_p_value < GAIN_AGREEMENT_ALPHA / m:
-            return False
-    return True
+    return all(a.informative and not (a.p_value < a.alpha / m
+                                      or a.gain_p_value < GAIN_AGREEMENT_ALPHA / m)
+               for a in pairs)
 
 
 def _gain_homogeneity(steps, covs) -> tuple[float, float]:

@@ -90,7 +90,9 @@ def test_nd_grows_until_noisy_windows_become_informative():
 
 
 def _agreeing(p_value=0.5, gain_p=0.5, verdict="pass", detect=0.1):
-    return AgreementResult(1.0, verdict, 0.0, detect, 2, p_value, 8, 0.01, 1.0, gain_p)
+    # informative as pair_agreement decides it for a pair with a response
+    return AgreementResult(1.0, verdict, 0.0, detect, 2, p_value, 8, 0.01, 1.0, gain_p,
+                           detect <= 0.3)
 
 
 def test_windows_agree_is_one_question_about_the_whole_plant():
@@ -116,6 +118,22 @@ def test_windows_agree_is_one_question_about_the_whole_plant():
     assert not windows_agree([[_agreeing(p_value=0.009, verdict="fail")]])
     assert windows_agree([[_agreeing(p_value=0.011)]])
     assert not windows_agree([])
+
+
+def test_a_pair_is_informative_when_its_windows_could_see_a_30_percent_change():
+    """pair_agreement decides informativeness once, whatever the verdict: two identical
+    windows at 5 with sigma 1 cannot see a 30 % change (3.86 * sqrt(2) * 1 / 5 = 1.09 of
+    the peak), so they are insufficient_data; at sigma 0.01 they can (0.011); a pair with
+    no response at all (within 2 sigma of zero) is judged as it is."""
+    h = np.full(8, 5.0)
+    noisy = pair_agreement([h, h], [np.ones(8), np.ones(8)])
+    assert not noisy.informative and noisy.verdict == "insufficient_data"
+    assert noisy.detectable_change == pytest.approx(3.86 * np.sqrt(2) / 5, rel=0.01)
+    sharp = pair_agreement([h, h], [np.full(8, 0.01), np.full(8, 0.01)])
+    assert sharp.informative and sharp.verdict == "pass"
+    null = pair_agreement([np.zeros(8), np.zeros(8)], [np.ones(8), np.ones(8)])
+    assert null.informative and null.verdict == "pass"
+    assert "informative" not in noisy.to_dict()  # checks.json keeps its keys
 
 
 def test_window_check_starts_where_a_window_holds_two_observations_per_unknown():
