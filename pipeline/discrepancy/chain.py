@@ -187,6 +187,39 @@ def simulate_with(augmented: Model, effects: Sequence[Effect], inputs: Mapping[s
         ) from None
 
 
+def predict_with_effects(model: Model, effects: Sequence[Effect],
+                         inputs: Mapping[str, np.ndarray], *, dt_s: float, initial: str,
+                         outputs: Sequence[str]) -> dict[str, np.ndarray]:
+    """The measured outputs the nominal model with `effects` predicts: the augmented
+    model simulated (:func:`simulate_with`) plus the effects' measurement offsets
+    (:func:`pipeline.discrepancy.effects.output_offsets`); no re-centred constant.
+
+    Parameters
+    ----------
+    model : Model
+        The nominal model.
+    effects : sequence of Effect
+        Effects with locations in the nominal model's names, added in order.
+    inputs : mapping of str -> array
+        Every model input (and the extra signals an unmodelled input reads).
+    dt_s : float
+        Sample period, s.
+    initial : str
+        Initial state of the simulation (``DiscrepancyConfig.initial``).
+    outputs : sequence of str
+        The outputs to return.
+    """
+    augmented = build(model, effects, dt_s)
+    sim = simulate_with(augmented, effects, {k: inputs[k] for k in augmented.inputs},
+                        dt_s=dt_s, initial=initial)
+    pred = {o: np.array(sim.signals[o], dtype=float) for o in outputs}
+    n = next(iter(pred.values())).size if pred else 0
+    for effect in effects:
+        offsets = output_offsets(effect, n=n, dt_s=dt_s, outputs=outputs)
+        pred = {o: pred[o] + offsets[o] for o in outputs}
+    return pred
+
+
 def build(model: Model, effects: Sequence[Effect], dt_s: float) -> Model:
     """`model` with `effects` added in order.
 
@@ -294,13 +327,8 @@ class Chain:
             Re-estimate the free outputs' constant on the fit part (as every search
             profiles it out of each candidate's prediction; the reported chain does).
         """
-        augmented = build(self.model, effects, self.dt_s)
-        sim = simulate_with(augmented, effects, {k: self.inputs[k] for k in augmented.inputs},
-                            dt_s=self.dt_s, initial=self.config.initial)
-        pred = {o: np.array(sim.signals[o], dtype=float) for o in self.outputs}
-        for effect in effects:
-            offsets = output_offsets(effect, n=self.n, dt_s=self.dt_s, outputs=self.outputs)
-            pred = {o: pred[o] + offsets[o] for o in self.outputs}
+        pred = predict_with_effects(self.model, effects, self.inputs, dt_s=self.dt_s,
+                                    initial=self.config.initial, outputs=self.outputs)
         shift = {}
         if effects and recentre:
             for o in self.free_offsets:  # their constant follows the model ("mean")

@@ -28,9 +28,9 @@ import numpy as np
 
 from pipeline.adapters.config import load_job
 from pipeline.discrepancy.analyse import discrepancy_problem
-from pipeline.discrepancy.chain import build, simulate_with
+from pipeline.discrepancy.chain import predict_with_effects
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.discrepancy.effects import Effect, output_offsets
+from pipeline.discrepancy.effects import Effect
 from pipeline.discrepancy.select import holdout_gap
 from pipeline.errors import PipelineError
 from pipeline.jobs.discrepancy import load_discrepancy_model, prepare_discrepancy
@@ -51,17 +51,12 @@ def model_gap_reduction(trial: ZooTrial) -> float:
     P, _, resid = discrepancy_problem(model, data.inputs, data.measured, data.dt_s, config,
                                       lambda *_: None, tuple(data.measured))
     effect = Effect(trial.effect.name, trial.effect.location, dict(trial.effect.parameters))
-    augmented = build(model, [effect], data.dt_s)
     try:
-        sim = simulate_with(augmented, [effect],
-                            {k: data.inputs[k] for k in augmented.inputs},
-                            dt_s=data.dt_s, initial=config.initial)
+        pred = predict_with_effects(model, [effect], data.inputs, dt_s=data.dt_s,
+                                    initial=config.initial, outputs=P.outputs)
     except PipelineError:  # the model with the true effect diverges
         return float("-inf")
-    n = P.y.shape[0]
-    offsets = output_offsets(effect, n=n, dt_s=data.dt_s, outputs=P.outputs)
-    y_aug = np.column_stack([np.asarray(sim.signals[o], dtype=float)[:n] + offsets[o]
-                             for o in P.outputs])
+    y_aug = np.column_stack([pred[o][: P.y.shape[0]] for o in P.outputs])
     gap = holdout_gap(P.y, list(P.outputs), P.holdout_start, resid,
                       P.with_free_offsets(y_aug))
     before, after = gap["holdout_rms_before"], gap["holdout_rms_after"]
