@@ -111,11 +111,11 @@ def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | Non
     if not trial.visible:  # not a finding by definition: not run, counted apart
         return {**row, "label": INVISIBLE, "verdict": INVISIBLE, "found": None,
                 "correct": False, "param_error": float("nan")}
-    # the second bar (tests/zoo/explainable.py): what the nominal model with the truth closes
-    row["model_gap_reduction"] = model_gap_reduction(trial)
     root = Path(tempfile.mkdtemp(prefix=f"zoo_{family}_"))
     try:
         job = write_trial(trial, root)
+        # the second bar (tests/zoo/explainable.py), read from the same export
+        row["model_gap_reduction"] = model_gap_reduction(trial, job)
         out = io.StringIO()
         start = time.perf_counter()
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):

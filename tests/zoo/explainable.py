@@ -38,13 +38,15 @@ from pipeline.jobs.recording import load_recording
 from tests.zoo.trial import ZooTrial, write_trial
 
 
-def model_gap_reduction(trial: ZooTrial) -> float:
+def model_gap_reduction(trial: ZooTrial, job: Path | None = None) -> float:
     """Held-out gap reduction of the nominal model with the trial's true effect (module
-    docstring); NaN for a null trial, ``-inf`` when that model diverges."""
+    docstring); NaN for a null trial, ``-inf`` when that model diverges.  `job`: the
+    trial's ``job.yaml`` when :func:`~tests.zoo.trial.write_trial` has written it already
+    (else it is written to a temporary folder)."""
     if trial.effect is None:
         return float("nan")
     with tempfile.TemporaryDirectory(prefix="zoo_explainable_") as tmp:
-        cfg = load_job(write_trial(trial, Path(tmp)))
+        cfg = load_job(job if job is not None else write_trial(trial, Path(tmp)))
         model, _ = load_discrepancy_model(cfg)
         data = prepare_discrepancy(cfg, load_recording(cfg), model)
     config = DiscrepancyConfig()  # the zoo's jobs set only the seed
