@@ -5,7 +5,6 @@ library function (:class:`flows.common.TaskStages`), plus the flow's artifacts."
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from prefect import flow
@@ -25,19 +24,6 @@ from pipeline.readouts.monitor import monitor_markdown
 #: The progress artifact's percentage when each stage has ended.
 PROGRESS_PERCENT = {"ingest": 15.0, "prepare": 25.0, "search": 50.0, "estimate": 80.0,
                     "summarise": 85.0, "monitor": 90.0, "store": 100.0}
-
-
-def _pairs_table(checks: dict) -> list[dict]:
-    """The pairs artifact: one row per pair from the stored checks.json."""
-    return [{"output": p["output"], "input": p["input"], "n_p": p["n_p"],
-             "gain": None if p["gain"] is None else round(p["gain"], 6),
-             "gain_std": None if p["gain_std"] is None else float(f"{p['gain_std']:.3g}"),
-             "settled": p["settled"]["verdict"],
-             "rate": None if p["rate"] is None else round(p["rate"], 9),
-             "verdict": p["agreement"]["verdict"],
-             "feedback": None if p["feedback"] is None else p["feedback"]["detected"],
-             "warnings": ", ".join(w["code"] for w in p["warnings"])}
-            for p in checks["pairs"]]
 
 
 @flow(name="estimate", log_prints=True)
@@ -66,11 +52,10 @@ def estimate_flow(job_path: str, files: list[str] | None = None, run_id: str | N
     create_markdown_artifact((run_dir / "report.md").read_text(encoding="utf-8"),
                              key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")
-    checks = json.loads((run_dir / "checks.json").read_text(encoding="utf-8"))
-    create_table_artifact(_pairs_table(checks), key=artifact_key(cfg.job, "pairs"),
-                          description="pairs and window-agreement verdicts")
+    create_table_artifact(report.summary.pair_records(), key=artifact_key(cfg.job, "pairs"),
+                          description="pairs: grade, gain or rate, window and feedback verdicts")
     if cfg.monitor is not None:
-        create_markdown_artifact(monitor_markdown(checks["monitor"]),
+        create_markdown_artifact(monitor_markdown(report.summary.checks["monitor"]),
                                  key=artifact_key(cfg.job, "monitor"),
                                  description=f"{cfg.job} run {report.run_id} vs baseline")
     return report

@@ -501,25 +501,4 @@ def finish_run(cfg, summary: Summary, prep: Prepared, sr: SearchResult, timings:
     verdicts = {f"{p['output']}<-{p['input']}": p["agreement"]["verdict"]
                 for p in summary.checks["pairs"]}
     return RunReport(cfg.job, rid, run_dir, summary.status, prep.dt_s, n_p, sr.n_d, verdicts,
-                     prep.recording.files, rrd, timings, pair_results(summary.checks))
-
-
-def pair_results(checks: dict) -> dict:
-    """Per pair ``"out<-in"`` the reported gain (rate) text and grade, as report.md
-    prints them (the terminal summary shows the same numbers).
-
-    Parameters
-    ----------
-    checks : dict
-        The run's checks.json document.
-    """
-    from pipeline.identification.quality import grade_from_checks
-    from pipeline.identification.settledness import gain_cell
-
-    out = {}
-    for p in checks["pairs"]:
-        key = "rate" if p["integrating"] else "gain"
-        out[f"{p['output']}<-{p['input']}"] = {
-            "gain": f"{key} {gain_cell(p, key)}",
-            "grade": grade_from_checks(p, checks).grade}
-    return out
+                     prep.recording.files, rrd, summary.report, timings)

@@ -10,6 +10,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.identification.sampling import sample_period_s
+from pipeline.readouts.run_summary import RunSummary
 
 
 
@@ -99,15 +100,29 @@ class LongTable:
 
 @dataclass(frozen=True)
 class Summary:
-    """Everything a run writes, as tables and documents (no I/O yet)."""
+    """Everything a run writes, as tables and its summary (no I/O yet): checks.json,
+    report.md and the status are the :class:`~pipeline.readouts.run_summary.RunSummary`'s."""
 
     step_responses: pl.DataFrame
     signals: LongTable
     residuals: LongTable
-    checks: dict
     metrics: list
-    report_md: str
-    status: str
+    report: RunSummary
+
+    @property
+    def checks(self) -> dict:
+        """The run's checks.json document."""
+        return dict(self.report.checks)
+
+    @property
+    def status(self) -> str:
+        """The run's status."""
+        return self.report.status
+
+    @property
+    def report_md(self) -> str:
+        """The run's report.md."""
+        return self.report.to_markdown()
 
 
 @dataclass(frozen=True)
@@ -124,17 +139,13 @@ class RunReport:
     verdicts: dict
     files: tuple[str, ...]
     recording: Path | None
+    summary: RunSummary = field(repr=False)
+    """What report.md says, rendered here for the terminal (the same numbers)."""
     timings_s: dict = field(default_factory=dict)
-    results: dict = field(default_factory=dict)
-    """Per pair ``"out<-in"``: the reported gain (or rate) text and the grade."""
 
     def __str__(self) -> str:
-        lines = [f"run {self.job}/{self.run_id}: {self.status}", f"  results: {self.run_dir}",
-                 f"  dt = {self.dt_s:g} s, N_d per window = {self.n_d}"]
-        for pair, v in self.verdicts.items():
-            r = self.results.get(pair)
-            head = f"grade {r['grade']}, {r['gain']}, " if r else ""
-            lines.append(f"  {pair}: {head}N_p={self.n_p[pair]}, windows {v}")
+        lines = [f"run {self.job}/{self.run_id}: {self.status}", f"  results: {self.run_dir}"]
+        lines += [f"  {line}" for line in self.summary.to_text()]
         if self.recording:
             lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
         if self.timings_s:

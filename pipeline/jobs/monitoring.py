@@ -41,7 +41,7 @@ from pipeline.jobs.job_types import Summary
 from pipeline.readouts.monitor import MonitorResult, PairResponse, compare_runs
 
 __all__ = ["ESTIMATION_STATUSES", "check_baseline", "baseline_run_id", "pair_responses",
-           "monitor_run", "monitor_metrics", "with_banner"]
+           "monitor_run", "monitor_metrics"]
 
 #: Statuses of completed estimation runs (candidates for ``monitor.baseline: first``).
 ESTIMATION_STATUSES = ("ok", "windows_disagree")
@@ -192,22 +192,6 @@ def monitor_metrics(result: MonitorResult, own: list[PairResponse]) -> list[dict
     return rows
 
 
-def with_banner(report_md: str, banner: str) -> str:
-    """``report_md`` with ``banner`` as its first paragraph below the title.
-
-    Parameters
-    ----------
-    report_md : str
-        The run's report (starting with a ``# `` title line).
-    banner : str
-        One markdown line.
-    """
-    head, sep, rest = report_md.partition("\n")
-    if head.startswith("# "):
-        return f"{head}\n\n{banner}\n{sep}{rest}" if sep else f"{head}\n\n{banner}\n"
-    return f"{banner}\n\n{report_md}"
-
-
 def monitor_run(cfg, summary: Summary, run_id: str | None = None) -> tuple[Summary, str]:
     """Compare the new run with its baseline and return the summary to write (checks,
     metrics and report with the result) and the run id (chosen here when ``None``:
@@ -237,7 +221,6 @@ def monitor_run(cfg, summary: Summary, run_id: str | None = None) -> tuple[Summa
         section["message"] = (f"no earlier run of job {cfg.job} in the catalog: this run "
                               "is the baseline later runs are compared with")
     new = dataclasses.replace(
-        summary, checks={**summary.checks, "monitor": section},
-        metrics=[*summary.metrics, *monitor_metrics(result, own)],
-        report_md=with_banner(summary.report_md, result.banner()))
+        summary, report=summary.report.with_checks({**summary.checks, "monitor": section}),
+        metrics=[*summary.metrics, *monitor_metrics(result, own)])
     return new, run_id

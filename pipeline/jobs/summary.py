@@ -10,9 +10,8 @@ from pipeline.identification.conditioning import as_masked_zero
 from pipeline.errors import PipelineError
 from pipeline.jobs.job_types import LongTable, Prepared, Summary, WindowFailure
 from pipeline.estimation.prediction import innovations, residuals
-from pipeline.identification.quality import GRADE_MEANING, GRADE_RULE, grade_from_checks
 from pipeline.identification.search import SearchResult
-from pipeline.identification.settledness import gain_cell
+from pipeline.readouts.run_summary import RunSummary, gain_unit, signal_units
 from pipeline.estimation.step_result import StepResponseEstimate, lag_times
 
 
@@ -131,10 +130,9 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
     status = "ok"
     if any(p["agreement"]["verdict"] == "fail" for p in pairs):
         status = "windows_disagree"
-    sig = _signals_table(prep)
-    rtab = _residuals_table(prep, res)
-    report = _report_md(cfg, prep, sr, pairs, checks, status)
-    return Summary(steps, sig, rtab, checks, metrics, report, status)
+    report = RunSummary.from_checks(checks, job=cfg.job, status=status,
+                                    config=job_config(cfg))
+    return Summary(steps, _signals_table(prep), _residuals_table(prep, res), metrics, report)
 
 
 def _residual_series(prep: Prepared, all_est: StepResponseEstimate):
@@ -159,6 +157,7 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
 
     ins, outs = prep.inputs, prep.outputs
     tags = cfg.tags()
+    units = signal_units(job_config(cfg), prep.recording.quality)
     pairs = []
     metrics = []
     xcorr = {}
@@ -183,7 +182,7 @@ def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
             fb = sr.feedback[i][j] if sr.feedback else None
             fbd = fb.to_dict() if fb is not None else None
             integ = bool(all_est.integrating[i])
-            st = _settledness(cfg, sr, all_est, i, j, o, u)
+            st = _settledness(sr, all_est, i, j, gain_unit(units, o, u))
             final, final_std = _reported(st, integ, all_est, i, j)
             pair = {"output": o, "input": u, "n_p": n, "n_k": int(all_est.n_k[i, j]),
                     "settled": {"verdict": st.verdict, "tail_sum": _num(st.tail_sum),
@@ -262,7 +261,7 @@ def _checks(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate
             "noise_model_at_n_p_max": {outs[i]: m.to_dict()
                                        for i, m in enumerate(sr.noise_model)},
             "order_trace": _named_trace(sr.order_trace, outs, ins),
-            "nd_trace": _named_trace(sr.nd_trace, outs, ins),
+            "nd_trace": _named_trace(sr.nd_trace, outs, ins, prep.time),
         },
         "pairs": pairs,
         "residuals": {
@@ -337,8 +336,7 @@ def _method_choice(cfg, sr: SearchResult, prep: Prepared):
     return method_choice(cfg, sr, prep.x.shape[0])
 
 
-def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: int,
-                 out: str, inp: str):
+def _settledness(sr: SearchResult, est: StepResponseEstimate, i: int, j: int, unit: str):
     """The pair's :func:`pipeline.identification.settledness.settledness` with what its horizon leaves
     out in the search's reference fit."""
     from pipeline.identification.settledness import settledness
@@ -348,9 +346,7 @@ def _settledness(cfg, sr: SearchResult, est: StepResponseEstimate, i: int, j: in
     same = int(est.n_p[i, j]) == int(sr.n_p[i, j])
     lo = 0.0 if sr.left_out is None or not same else float(sr.left_out[i, j])
     lo_std = 0.0 if sr.left_out_std is None or not same else float(sr.left_out_std[i, j])
-    uo, ui = _unit(cfg, out), _unit(cfg, inp)
-    return settledness(est, i, j, left_out=lo, left_out_std=lo_std,
-                       unit=f"{uo}/{ui}" if uo and ui else "")
+    return settledness(est, i, j, left_out=lo, left_out_std=lo_std, unit=unit)
 
 
 def _reported(st, integrating: bool, est: StepResponseEstimate, i: int, j: int
@@ -369,10 +365,15 @@ def _num(v: float) -> float | None:
     return float(v) if v is not None and np.isfinite(v) else None
 
 
-def _named_trace(trace: list, outs: list[str], ins: list[str]) -> list:
+def _named_trace(trace: list, outs: list[str], ins: list[str],
+                 time: np.ndarray | None = None) -> list:
+    """The search's trace with signal names for indices (and, given the record's time,
+    the UTC span of a window that could not be estimated)."""
     out = []
     for t in trace:
         t = dict(t)
+        if time is not None and "failed_window" in t:
+            t["failed_window_time"] = _utc_span(time, *map(int, t["failed_window"]))
         if "pairs" in t:
             t["pairs"] = [{**p, "output": outs[p["output"]], "input": ins[p["input"]]}
                           for p in t["pairs"]]
@@ -404,134 +405,13 @@ def _signals_table(prep: Prepared) -> LongTable:
     return LongTable(n * len(rec.names), make)
 
 
-def _unit(cfg, name: str) -> str:
-    s = {**cfg.signals.inputs, **cfg.signals.outputs}.get(name)
-    return (s.unit if s is not None and s.unit else "")
+def job_config(cfg) -> dict:
+    """The part of the validated job the summary reads (its signals, for their units), as
+    the plain mapping a stored run's manifest holds.
 
-
-def _report_md(cfg, prep: Prepared, sr: SearchResult, pairs: list, checks: dict,
-               status: str) -> str:
-    est = checks["estimation"]
-    method = {"least_squares": "least squares, white-noise assumption (the thesis)",
-              "prediction_error": "least squares with a noise model per output "
-                                  "(prediction-error method)",
-              "instrumental_variables": "instrumental variables ("
-                                        + ", ".join(est["instruments"]) + ")",
-              "correlation": "the correlation method (method.md §2), white-noise σ",
-              "regularized_tc": "kernel-regularised FIR, TC prior (hyperparameters by "
-                                "marginal likelihood, noise model per output, posterior σ)",
-              "regularized_dc": "kernel-regularised FIR, DC prior (hyperparameters by "
-                                "marginal likelihood, noise model per output, posterior "
-                                "σ)"}[est["method"]]
-    lines = [f"# plantdyn run: {cfg.job}", "",
-             f"Status: **{status}**. Sample period T = {prep.dt_s:g} s "
-             f"(decimation {prep.decimation} from the {prep.recording.grid_dt_s:g} s grid, "
-             f"{prep.sampling.get('source')}); conditioning: {prep.conditioning['method']}; "
-             f"N_d per window = {sr.n_d}, {len(sr.windows)} disjoint windows. "
-             f"Estimator: {method} — {est['method_choice']['reason']}.", "",
-             "| output | input | grade | N_p | N_p·T (s) | settled | gain ± σ "
-             "| rate K ± σ (/s) | windows (p) | feedback (p) | warnings |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for p in pairs:
-        uo, ui = _unit(cfg, p["output"]), _unit(cfg, p["input"])
-        unit = f" {uo}/{ui}" if uo and ui else ""
-        gain = "" if p["integrating"] else gain_cell(p, "gain", unit)
-        rate = "" if not p["integrating"] else gain_cell(p, "rate", "")
-        a = p["agreement"]
-        agr = a["verdict"] + (f" ({a['p_value']:.2g})" if a.get("p_value") is not None else "")
-        fb = p["feedback"]
-        fbs = "not tested" if fb is None else \
-            (f"**yes** ({fb['p_value']:.2g})" if fb["detected"] else f"no ({fb['p_value']:.2g})")
-        codes = ", ".join(w["code"] for w in p["warnings"]) or "none"
-        lines.append(f"| {p['output']} | {p['input']} | {grade_from_checks(p, checks).grade} "
-                     f"| {p['n_p']} | {p['n_p'] * prep.dt_s:g} | {p['settled']['verdict']} "
-                     f"| {gain} | {rate} | {agr} | {fbs} | {codes} |")
-    lines += ["", "Noise models (per output, chosen from the data):", ""]
-    for o, nm in checks["noise_model"].items():
-        pole = nm.get("dominant_pole")
-        kind = "white" if nm["order"] == 0 else f"AR({nm['order']})" + \
-            (f", slowest pole {pole:.3f}" if pole is not None else "")
-        lines.append(f"- {o}: {kind}, {nm['form']} form, innovation σ "
-                     f"{nm['innovation_std']:.3g}; prediction errors "
-                     f"{'white' if checks['residuals']['whiteness'][o]['white'] else 'NOT white'}"
-                     f" (Ljung–Box p = {_fmt_p(checks['residuals']['whiteness'][o]['p_value'])})")
-    lines += _grade_lines(pairs, checks)
-    warned = [p for p in pairs if p["warnings"]]
-    lines += ["", "## When to distrust a pair", ""]
-    if not warned:
-        graded = [p for p in pairs if grade_from_checks(p, checks).grade in "CD"]
-        lines.append("No warnings: residuals white under the noise models, no feedback "
-                     "without an instrument, N_p inside its bounds, windows agree."
-                     + (f" {len(graded)} pair(s) are graded C or D all the same: the quality "
-                        "grades above say why and what to change." if graded else ""))
-    lines += _distrust_lines(warned, checks)
-    lines += _window_lines(sr, checks, prep.time)
-    masked = {n: q["masked"] for n, q in prep.recording.quality.items() if q["masked"]}
-    lines += ["", f"Masked grid samples per signal: {masked or 'none'}."]
-    grid = prep.recording.ingest.get("grid", {})
-    if len(grid.get("islands", [])) > 1:
-        lines.append(f"The record has {len(grid['islands'])} stretches separated by breaks "
-                     "longer than every signal's max_gap_s (not gridded).")
-    for name, sp in prep.recording.ingest.get("spikes", {}).items():
-        lines.append(f"Spikes masked in {name}: {sp['samples']} sample(s) far from their "
-                     f"neighbours (largest |value| {sp['largest']:.4g}, first at {sp['first']}); "
-                     "quality.spikes: off keeps them.")
-    for d in grid.get("stray_samples", []):
-        lines.append(f"Stray samples left out: {d['samples']} of {d['signal']} (tag {d['tag']}) "
-                     f"between {d['first']} and {d['last']}, far from the rest of the record "
-                     "— check the export's timestamps.")
-    return "\n".join(lines) + "\n"
-
-
-def _distrust_lines(warned: list[dict], checks: dict) -> list[str]:
-    """One line per distinct warning: a cause shared by several pairs (the output's
-    residuals, say) is said once with every pair it touches and their grades."""
-    groups: dict[tuple[str, str], list[str]] = {}
-    for p in warned:
-        grade = grade_from_checks(p, checks).grade
-        for w in p["warnings"]:
-            groups.setdefault((w["code"], w["message"]), []).append(
-                f"**{p['output']}<-{p['input']}** ({grade})")
-    return [f"- {', '.join(who)} — {code}: {msg}." for (code, msg), who in groups.items()]
-
-
-def _window_lines(sr: SearchResult, checks: dict, time: np.ndarray) -> list[str]:
-    """report.md's account of the window check when it could not run as planned: a
-    window that could not be estimated (which window, when, and why — the input that does
-    not move there), or no two windows at all."""
-    lines = []
-    for w in checks["search"]["windows"]:
-        if w["status"] == "failed":
-            lines.append(f"- Window {w['window']} ({w['time'][0]} to {w['time'][1]}, samples "
-                         f"{w['samples'][0]}–{w['samples'][1]}) could not be estimated: "
-                         f"{w['error']}.")
-    if not sr.windows:
-        last = next((t for t in reversed(sr.nd_trace) if "error" in t), {})
-        where = ""
-        if "failed_window" in last:
-            a, b = last["failed_window"]
-            t0, t1 = _utc_span(time, a, b)
-            where = f"the window {t0} to {t1} (samples {a}–{b}) cannot be estimated: "
-        lines.append("- No window check: " + where
-                     + (last.get("error") or "no two disjoint windows fit") + ".")
-    return (["", "## The window check", ""] + lines) if lines else []
-
-
-def _grade_lines(pairs: list, checks: dict) -> list[str]:
-    """report.md's grade section: why each pair is not an A, and the rule (the same
-    :mod:`pipeline.identification.quality` function and table as report.html)."""
-    lines = ["", "## Quality grades", ""]
-    for p in pairs:
-        g = grade_from_checks(p, checks)
-        lines.append(f"- {p['output']}<-{p['input']}: **{g.grade}**"
-                     + (f" — {'; '.join(g.reasons)}" if g.reasons else " — every check passes"))
-    lines += ["", "Each criterion caps the grade; the grade is the worst cap "
-              "(A " + GRADE_MEANING["A"] + "; B " + GRADE_MEANING["B"] + "; C "
-              + GRADE_MEANING["C"] + "; D " + GRADE_MEANING["D"] + "):", "",
-              "| criterion | read from | A | B | C | D |", "|---|---|---|---|---|---|"]
-    lines += ["| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in GRADE_RULE]
-    return lines
-
-
-def _fmt_p(p) -> str:
-    return "n/a" if p is None else f"{p:.2g}"
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    """
+    return {"signals": cfg.signals.model_dump()}

@@ -395,18 +395,24 @@ def test_a_section_that_cannot_be_drawn_is_shown_not_fatal(demo_run, tmp_path):
 def test_relative_gain_array_of_a_square_matrix():
     from pipeline.adapters.html_report.estimation import gain_table
     from pipeline.adapters.html_report.stored import StoredRun
+    from pipeline.readouts.run_summary import RunSummary
 
     gains = {("y1", "u1"): 2.0, ("y1", "u2"): 1.0, ("y2", "u1"): 1.0, ("y2", "u2"): 2.0}
     checks = {"pairs": [{"output": o, "input": u, "gain": g, "gain_std": 0.01,
                          "integrating": False, "agreement": {"verdict": "pass"}}
                         for (o, u), g in gains.items()]}
     run = StoredRun(Path("."), {"config": {}}, checks, None, None, None, ["y1", "y2"], ["u1", "u2"])
-    doc = Doc(gain_table(run, {"y1": "bar", "u1": "kg/s"}))
+    config = {"signals": {"outputs": {"y1": {"unit": "bar"}}, "inputs": {"u1": {"unit": "kg/s"}}}}
+
+    def summary(config):
+        return RunSummary.from_checks(checks, job="square", status="ok", config=config)
+
+    doc = Doc(gain_table(run, summary(config)))
     # Λ11 = 1 / (1 − g12 g21 / (g11 g22)) = 4/3; rows and columns sum to 1
     assert doc.rows("rga") == [["y1", "1.33", "-0.333"], ["y2", "-0.333", "1.33"]]
     assert "bar per kg/s" in doc.text("gain-matrix") and "bar per input unit" in doc.text("gain-matrix")
     checks["pairs"][0]["gain"] = None
-    assert "rga" not in Doc(gain_table(run, {})).tables
+    assert "rga" not in Doc(gain_table(run, summary({}))).tables
 
 
 # --------------------------------------------------------------------------- discrepancy

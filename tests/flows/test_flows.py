@@ -86,7 +86,9 @@ def test_estimate_flow_equals_direct_run_job(prefect_harness, make_job):
     from flows.estimate import run_estimate
     from pipeline.jobs.estimation import run_job
 
-    job = make_job(1, rerun={"enabled": True})  # the whole path, Rerun sink included
+    job = make_job(1, rerun={"enabled": True},  # the whole path, Rerun sink included
+                   signals={"inputs": {"u": {"tag": INPUT_TAG, "unit": "%"}},
+                            "outputs": {"y": {"tag": OUTPUT_TAG, "unit": "°C"}}})
     direct = run_job(load_job(job), run_id="direct")
     via_flow = run_estimate(job, run_id="flow")
     assert via_flow.run_dir == job.parent / "storage" / JOB / "flow"
@@ -101,6 +103,50 @@ def test_estimate_flow_equals_direct_run_job(prefect_harness, make_job):
     assert list(via_flow.timings_s) == list(direct.timings_s)
     assert list(direct.timings_s)[:6] == ["ingest", "prepare", "search", "estimate",
                                           "summarise", "store/hash_inputs"]
+    _assert_one_summary_everywhere(via_flow)
+
+
+def _latest_artifact(key: str):
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    with get_client(sync_client=True) as client:
+        found = client.read_latest_artifacts(
+            artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[key])))
+    assert len(found) == 1, key
+    return found[0]
+
+
+def _assert_one_summary_everywhere(report) -> None:
+    """The terminal, report.md, report.html and the Prefect artifacts print the same
+    gain text, grade and window verdict: each is a rendering of one summary."""
+    import html as html_lib
+    import json
+
+    from flows.common import artifact_key
+
+    stored = report.run_dir / "report.md"
+    md = stored.read_text(encoding="utf-8")
+    assert _latest_artifact(artifact_key(JOB, "report")).data == md
+    rows = _latest_artifact(artifact_key(JOB, "pairs")).data
+    rows = json.loads(rows) if isinstance(rows, str) else rows
+    checks = json.loads((report.run_dir / "checks.json").read_text())
+    page = html_lib.unescape(re.sub(r"<[^>]+>", " ", (report.run_dir / "report.html").read_text()))
+    terminal = str(report)
+    assert len(rows) == len(checks["pairs"]) == 1
+    for row, pair in zip(rows, checks["pairs"]):
+        # known answer, read from checks.json, not from the summary: gain ± σ to 4 and 2
+        # significant figures and the unit, the grade the grade rule gives
+        gain = f"{pair['gain']:.4g} ± {pair['gain_std']:.2g}"
+        assert row["gain"] == f"{gain} °C/%"
+        name = f"{pair['output']}<-{pair['input']}"
+        line = next(ln for ln in terminal.splitlines() if ln.strip().startswith(name))
+        assert f"grade {row['grade']}, gain {gain} °C/%" in line
+        assert f"windows {pair['agreement']['verdict']}" in line
+        md_row = next(ln for ln in md.splitlines() if ln.startswith(f"| {pair['output']} | "))
+        assert f"| {row['grade']} |" in md_row and f"| {gain} °C/% |" in md_row
+        assert row["windows"] in md_row and row["feedback"] in md_row
+        assert f"{gain} {row['grade']}" in " ".join(page.split())  # the gain matrix cell
 
 
 def test_flows_parse_the_job_once_when_given_it(prefect_harness, make_job, monkeypatch):

@@ -21,10 +21,10 @@ from pipeline.adapters.html_report.page import (
     page,
     panel_grid,
     section,
-    signal_units,
     table,
 )
 from pipeline.discrepancy.report import effect_markup, json_number
+from pipeline.readouts.run_summary import signal_units
 
 __all__ = ["render_discrepancy_html", "effect_html"]
 

@@ -13,12 +13,10 @@ from pipeline.adapters.html_report import figures
 from pipeline.adapters.html_report.page import (
     esc,
     fmt,
-    fmt_pm,
     grade_badge,
     page,
     ratio_unit,
     section,
-    signal_units,
     table,
 )
 from pipeline.adapters.html_report.stored import (
@@ -27,13 +25,8 @@ from pipeline.adapters.html_report.stored import (
     load_run,
     residual_correlations,
 )
-from pipeline.identification.quality import (
-    GRADE_MEANING,
-    GRADE_RULE,
-    grade_from_checks,
-    relative_gain_array,
-)
-from pipeline.identification.settledness import gain_cell
+from pipeline.identification.quality import GRADE_MEANING, GRADE_RULE, relative_gain_array
+from pipeline.readouts.run_summary import RunSummary
 
 __all__ = ["render_run_html"]
 
@@ -41,32 +34,14 @@ _SECTIONS = (("step-matrix", "Step responses"), ("gains", "Gains"),
              ("grades", "Quality grades"), ("fit", "Measured vs predicted (held out)"),
              ("residuals", "Residual correlations"), ("frequency", "Frequency responses"),
              ("search", "N_p / N_d search"), ("data-quality", "Data quality"))
-_METHODS = {"least_squares": "least squares, white noise (the thesis)",
-            "prediction_error": "least squares with a noise model per output "
-                                "(prediction-error method)",
-            "instrumental_variables": "instrumental variables",
-            "correlation": "the correlation method (method.md §2)",
-            "regularized_tc": "kernel-regularised least squares (TC prior)"}
-
-
-def _header(run: StoredRun, banner: str) -> str:
-    m, c = run.manifest, run.checks or {}
-    est = c.get("estimation") or {}
-    search = c.get("search") or {}
+def _header(run: StoredRun, summary: RunSummary, banner: str) -> str:
+    m = run.manifest
     facts = [f"run <b>{esc(m.get('run_id'))}</b>"]
     if m.get("created_utc"):
         facts.append(f"created {esc(m['created_utc'])}")
     if m.get("status"):
         facts.append(f"status <b>{esc(m['status'])}</b>")
-    if c.get("dt_s") is not None:
-        facts.append(f"sample period T = {fmt(c['dt_s'])} s")
-    if (c.get("conditioning") or {}).get("method"):
-        facts.append(f"conditioning: {esc(c['conditioning']['method'])}")
-    if est.get("method"):
-        facts.append(f"estimator: {esc(_METHODS.get(est['method'], est['method']))}")
-    if search.get("n_d"):
-        facts.append(f"N_d per window = {esc(search['n_d'])}, "
-                     f"{len(search.get('windows') or [])} disjoint windows")
+    facts += [esc(f) for f in summary.header_facts()]
     files = [esc(Path(str(f.get("path"))).name)
              + (f" (sha256 {esc(str(f['sha256'])[:12])}…)" if f.get("sha256") else "")
              for f in m.get("inputs") or [] if isinstance(f, Mapping)]
@@ -129,17 +104,18 @@ def _step_matrix(run: StoredRun, units: dict[str, str]) -> str:
             f"its own. Time is after a unit step of the input.{note}</figcaption></figure>")
 
 
-def gain_table(run: StoredRun, units: dict[str, str]) -> str:
+def gain_table(run: StoredRun, summary: RunSummary) -> str:
     """The gain matrix (gain ± σ, or rate ± σ for integrating outputs, with the grade)
     and the relative gain array where the matrix is square with finite gains.
 
     Parameters
     ----------
     run : StoredRun
-        The run (checks.json ``pairs``).
-    units : dict of str to str
-        Unit per signal name.
+        The run (its inputs and outputs give the matrix's order).
+    summary : RunSummary
+        The run's summary (each pair's cell, grade and unit).
     """
+    units = summary.units
     head = ["output \\ input"] + [
         f"{esc(u)}<br><span class=\"unit\">[{esc(units.get(u) or 'no unit')}]</span>"
         for u in run.inputs]
@@ -147,25 +123,18 @@ def gain_table(run: StoredRun, units: dict[str, str]) -> str:
     for i, o in enumerate(run.outputs):
         row = [f"<b>{esc(o)}</b><br><span class=\"unit\">[{esc(units.get(o) or 'no unit')}]</span>"]
         for j, u in enumerate(run.inputs):
-            p = run.pair(o, u)
-            if not p:
+            p = summary.pair(o, u)
+            if p is None:
                 row.append("–")
                 continue
             unit = ratio_unit(units.get(o, ""), units.get(u, ""))
-            key = "rate" if p.get("integrating") else "gain"
-            if p.get(key) is not None:
-                cell = fmt_pm(p.get(key), p.get(f"{key}_std"))
-                if p.get("sign_established") is False:
-                    cell += " (sign not established)"
-            else:  # no bare number off an unsettled curve (pipeline.identification.settledness)
-                cell = esc(gain_cell(p, key))
-            if p.get("integrating"):
+            cell = esc(p.value_plain) or "–"
+            if p.integrating:
                 cell = f"rate {cell}"
                 unit += " per s"
-            else:
-                G[i, j] = np.nan if p.get("gain") is None else float(p["gain"])
-            grade = grade_from_checks(p, run.checks or {}).grade
-            row.append(f"{cell} {grade_badge(grade)}<br><span class=\"unit\">{esc(unit)}</span>")
+            elif p.value is not None:
+                G[i, j] = float(p.value)
+            row.append(f"{cell} {grade_badge(p.grade)}<br><span class=\"unit\">{esc(unit)}</span>")
         rows.append(row)
     out = [table(head, rows, table_id="gain-matrix"),
            "<p>Gain = the final value of the all-data step response (the FIR model's static "
@@ -205,31 +174,20 @@ def grade_rule_table() -> str:
             + rule + f"<ul>{meaning}</ul>")
 
 
-def _grades(run: StoredRun) -> str:
-    checks = run.checks or {}
+def _grades(summary: RunSummary) -> str:
     rows = []
-    for o in run.outputs:
-        for u in run.inputs:
-            p = run.pair(o, u)
-            if not p:
-                continue
-            g = grade_from_checks(p, checks)
-            crit = g.criteria
-            agr = p.get("agreement") or {}
-            fb = p.get("feedback")
-            rows.append([
-                esc(f"{o}<-{u}"), grade_badge(g.grade),
-                "<br>".join(esc(r) for r in g.reasons) or "all checks pass",
-                f"{esc(agr.get('verdict'))} (p {fmt(agr.get('p_value'), 2)})",
-                fmt(crit["relative_sigma"]["value"], 2), fmt(crit["whiteness"]["value"], 2),
-                esc({True: "ok", False: "outside band", None: "–"}[crit["cross_correlation"]["value"]]),
-                "not tested" if not isinstance(fb, Mapping) else
-                (f"detected (p {fmt(fb.get('p_value'), 2)}), n_k = {esc(p.get('n_k'))}"
-                 if fb.get("detected") else f"no (p {fmt(fb.get('p_value'), 2)})"),
-                fmt(crit["excitation"]["value"], 3)])
-    return (table(["pair", "grade", "why not A", "windows", "relative σ", "Ljung–Box p",
-                   "input cross-corr.", "feedback", "input VIF"], rows, table_id="grade-table",
-                  numeric=(4, 5, 8))
+    for p in summary.pairs:
+        crit = p.criteria
+        rows.append([
+            esc(p.name), grade_badge(p.grade),
+            "<br>".join(esc(r) for r in p.reasons) or "all checks pass",
+            esc(p.windows_text), fmt(crit["relative_sigma"]["value"], 2),
+            fmt(crit["whiteness"]["value"], 2),
+            esc({True: "ok", False: "outside band", None: "–"}[crit["cross_correlation"]["value"]]),
+            esc(p.feedback_text), fmt(crit["excitation"]["value"], 3)])
+    return (table(["pair", "grade", "why not A", "windows (p)", "relative σ", "Ljung–Box p",
+                   "input cross-corr.", "feedback (p)", "input VIF"], rows,
+                  table_id="grade-table", numeric=(4, 5, 8))
             + grade_rule_table())
 
 
@@ -306,7 +264,8 @@ def _search(run: StoredRun) -> str:
                     table_id="windows-table"))
 
 
-def _data_quality(run: StoredRun, units: dict[str, str]) -> str:
+def _data_quality(run: StoredRun, summary: RunSummary) -> str:
+    units = summary.units
     dq = (run.checks or {}).get("data_quality") or {}
     rows = []
     for name, q in (dq.get("signals") or {}).items():
@@ -319,17 +278,7 @@ def _data_quality(run: StoredRun, units: dict[str, str]) -> str:
            "(every lag of every signal good).</p>",
            table(["signal", "role", "tag", "unit", "grid samples", "masked", "why masked"],
                  rows, table_id="masked-table", numeric=(4, 5))]
-    ingest = dq.get("ingest") or {}
-    grid = ingest.get("grid") or {}
-    if len(grid.get("islands") or []) > 1:
-        out.append(f"<p>{len(grid['islands'])} stretches separated by breaks longer than "
-                   "every signal's max_gap_s (not gridded).</p>")
-    for name, sp in (ingest.get("spikes") or {}).items():
-        out.append(f"<p>Spikes masked in {esc(name)}: {esc(sp.get('samples'))} sample(s), "
-                   f"largest |value| {fmt(sp.get('largest'))}, first at {esc(sp.get('first'))}.</p>")
-    for d in grid.get("stray_samples") or []:
-        out.append(f"<p>Stray samples left out: {esc(d.get('samples'))} of {esc(d.get('signal'))} "
-                   f"between {esc(d.get('first'))} and {esc(d.get('last'))}.</p>")
+    out += [f"<p>{esc(note)}</p>" for note in summary.data_notes()]
     if run.signals is not None:
         fig = figures.masked_figure(run)
         out.append(f"<figure>{fig}<figcaption>Masked samples (red) on the sample-period grid."
@@ -360,18 +309,21 @@ def render_run_html(run_dir: Path, *, manifest: Mapping[str, Any] | None = None)
         read ``run_dir/manifest.json``.
     """
     run = load_run(Path(run_dir), manifest)
-    units = signal_units(run.config, ((run.checks or {}).get("data_quality") or {}).get("signals"))
+    summary = RunSummary.from_checks(run.checks or {}, job=str(run.manifest.get("job")),
+                                     status=str(run.manifest.get("status")),
+                                     config=run.config)
+    units = summary.units
     body = {
         "step-matrix": lambda: _step_matrix(run, units),
-        "gains": lambda: gain_table(run, units),
-        "grades": lambda: _grades(run),
+        "gains": lambda: gain_table(run, summary),
+        "grades": lambda: _grades(summary),
         "fit": lambda: _fit(run, units),
         "residuals": lambda: _residuals(run),
         "frequency": lambda: _frequency(run, units),
         "search": lambda: _search(run),
-        "data-quality": lambda: _data_quality(run, units),
+        "data-quality": lambda: _data_quality(run, summary),
     }
-    parts = [_header(run, monitor_banner(run.checks))]
+    parts = [_header(run, summary, monitor_banner(run.checks))]
     parts += [section(key, title, body[key]) for key, title in _SECTIONS]
     parts.append(_footer(run))
     return page(f"plantdyn {run.manifest.get('job')} {run.manifest.get('run_id')}",

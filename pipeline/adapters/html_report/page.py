@@ -10,7 +10,7 @@ import io
 import math
 import traceback
 import warnings
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import matplotlib
@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 from pipeline.discrepancy.report import fmt_number, json_number
 
 __all__ = ["esc", "table", "figure_svg", "figure_png", "new_figure", "section", "page",
-           "signal_units", "ratio_unit", "fmt", "fmt_pm", "grade_badge", "SECTION_ERROR_CLASS",
+           "ratio_unit", "fmt", "fmt_pm", "grade_badge", "SECTION_ERROR_CLASS",
            "WINDOW_COLOURS", "panel_grid"]
 
 SECTION_ERROR_CLASS = "section-error"
@@ -258,31 +258,6 @@ def page(title: str, body: str) -> str:
     return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
             f"<title>{esc(title)}</title>\n<style>{_CSS}</style>\n</head>\n<body>\n<main>\n"
             f"{body}\n</main>\n</body>\n</html>\n")
-
-
-def signal_units(config: Mapping[str, Any] | None, quality: Mapping[str, Any] | None) -> dict[str, str]:
-    """Unit per signal name: the job's ``signals.<role>.<name>.unit``, else the unit the
-    export's header gave (``data_quality.signals.<name>.ingest.unit``), else empty.
-
-    Parameters
-    ----------
-    config : mapping or None
-        The resolved job configuration (``manifest.json`` ``config``).
-    quality : mapping or None
-        Per-signal data-quality records (checks.json ``data_quality.signals`` or
-        discrepancy.json ``data.quality``).
-    """
-    units: dict[str, str] = {}
-    for name, q in (quality or {}).items():
-        ingest = q.get("ingest") if isinstance(q, Mapping) else None
-        if isinstance(ingest, Mapping) and ingest.get("unit"):
-            units[name] = str(ingest["unit"])
-    signals = (config or {}).get("signals") or {}
-    for role in ("inputs", "outputs", "instruments"):
-        for name, spec in (signals.get(role) or {}).items():
-            if isinstance(spec, Mapping) and spec.get("unit"):
-                units[name] = str(spec["unit"])
-    return units
 
 
 def ratio_unit(num: str, den: str) -> str:
