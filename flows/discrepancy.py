@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from prefect import flow
@@ -18,6 +19,7 @@ from flows.common import (
 )
 from pipeline.jobs import discrepancy as dj
 from pipeline.adapters.config import load_job
+from pipeline.discrepancy.report import candidate_records
 
 #: The progress artifact's percentage when each stage has ended.
 PROGRESS_PERCENT = {"ingest": 10.0, "model": 15.0, "prepare": 20.0, "analyse": 90.0,
@@ -47,11 +49,9 @@ def discrepancy_flow(job_path: str, files: list[str] | None = None, run_id: str 
                                 run_id=run_id, progress=tell, stage=stages)
     create_markdown_artifact(report.report_md, key=artifact_key(cfg.job, "report"),
                              description=f"{cfg.job} run {report.run_id}")
-    create_table_artifact(
-        [{"effect": c.effect.describe(), "delta_bic": round(c.delta_bic, 2),
-          "holdout_z": round(c.holdout_z, 2), "passed": c.passed}
-         for c in report.result.candidates[:10]],
-        key=artifact_key(cfg.job, "candidates"), description="candidate effects, best first")
+    doc = json.loads((Path(report.run_dir) / "discrepancy.json").read_text(encoding="utf-8"))
+    create_table_artifact(candidate_records(doc), key=artifact_key(cfg.job, "candidates"),
+                          description="candidate effects, best first (as report.md lists them)")
     return report
 
 

@@ -220,6 +220,19 @@ def make_job(tmp_path: Path) -> Callable[..., Path]:
     return make
 
 
+def latest_artifact(key: str):
+    """The latest Prefect artifact with ``key`` on the test's Prefect server (exactly one
+    must exist), as Prefect returns it (``data``: the table's rows or the markdown)."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
+
+    with get_client(sync_client=True) as client:
+        found = client.read_latest_artifacts(
+            artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[key])))
+    assert len(found) == 1, key
+    return found[0]
+
+
 def subprocess_env(**overrides: str | None) -> dict[str, str]:
     """This process's environment with ``overrides`` (None removes a variable)."""
     env = dict(os.environ)

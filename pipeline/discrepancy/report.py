@@ -8,7 +8,8 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-__all__ = ["effect_text", "fmt_number", "json_number", "md_cell", "summary_markdown"]
+__all__ = ["candidate_records", "effect_text", "fmt_number", "json_number", "md_cell",
+           "pass_rule", "summary_markdown"]
 
 
 def json_number(value: Any) -> float:
@@ -64,8 +65,10 @@ def effect_parts(effect: Mapping[str, Any]) -> tuple[str, str, list[tuple[str, s
         ``equivalent_locations``), as in ``discrepancy.json``.
     """
     params = effect.get("parameters") or {}
-    pairs = ([(str(k), v if isinstance(v, str) else fmt_number(v)) for k, v in params.items()]
-             if isinstance(params, Mapping) else [])
+    # by name, as discrepancy.json stores them (sorted keys): a page rendered before the
+    # document is written and one rendered from the stored file read the same
+    pairs = ([(str(k), v if isinstance(v, str) else fmt_number(v))
+              for k, v in sorted(params.items())] if isinstance(params, Mapping) else [])
     return (str(effect.get("name")), str(effect.get("location")), pairs,
             [str(e) for e in effect.get("equivalent_locations") or []])
 
@@ -209,28 +212,62 @@ def _effects(doc: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def _candidates(doc: Mapping[str, Any]) -> list[str]:
-    cands = [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
-    if not cands:
-        return []
+def pass_rule(doc: Mapping[str, Any]) -> str:
+    """The held-out tests a candidate passes and the practical bar a finding clears, with
+    the run's thresholds, in one sentence (report.md and report.html); ``""`` without
+    the run's ``config``.
+
+    Parameters
+    ----------
+    doc : mapping
+        The run's ``discrepancy.json`` document.
+    """
     cfg = doc.get("config") if isinstance(doc.get("config"), Mapping) else {}
-    lines = ["", "## Candidates (best first)", ""]
-    if cfg:
-        lines += [f"Passed: ΔBIC ≥ {fmt_number(cfg.get('bic_margin'))}, held-out z ≥ "
-                  f"{fmt_number(cfg.get('holdout_z_min'))} and a held-out gap below the nominal "
-                  f"{fmt_number((doc.get('gap') or {}).get('holdout_rms_before'))} (whitened), "
-                  "or a held-out RMS reduction with block-bootstrap p ≤ "
-                  f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
-                  f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
-                  "the gap.", ""]
+    if not cfg:
+        return ""
+    return (f"Passed: ΔBIC ≥ {fmt_number(cfg.get('bic_margin'))}, held-out z ≥ "
+            f"{fmt_number(cfg.get('holdout_z_min'))} and a held-out gap below the nominal "
+            f"{fmt_number((doc.get('gap') or {}).get('holdout_rms_before'))} (whitened), "
+            "or a held-out RMS reduction with block-bootstrap p ≤ "
+            f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
+            f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
+            "the gap.")
+
+
+def candidate_records(doc: Mapping[str, Any], limit: int = 8) -> list[dict[str, str]]:
+    """The best ``limit`` candidates as rows of text (report.md's table and the Prefect
+    candidates artifact print these).
+
+    Parameters
+    ----------
+    doc : mapping
+        The run's ``discrepancy.json`` document.
+    limit : int
+        Rows kept, best first.
+    """
+    return [{"effect": effect_markup(c, code=str, plain=str), "delta_bic": fmt_number(c.get("delta_bic")),
+             "holdout_z": fmt_number(c.get("holdout_z"), 3),
+             "holdout_gap": fmt_number(c.get("holdout_gap")),
+             "gap_reduction": f"{100 * json_number(c.get('gap_reduction')):.1f} %",
+             "holdout_rms_p": fmt_number(c.get("holdout_rms_p"), 2),
+             "passed": str(c.get("passed_by")) if c.get("passed") is True else "no"}
+            for c in _candidate_docs(doc)[:limit]]
+
+
+def _candidate_docs(doc: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    return [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
+
+
+def _candidates(doc: Mapping[str, Any]) -> list[str]:
+    rows = candidate_records(doc)
+    if not rows:
+        return []
+    rule = pass_rule(doc)
+    lines = ["", "## Candidates (best first)", ""] + ([rule, ""] if rule else [])
     lines += ["| # | effect | ΔBIC | held-out z | held-out gap | gap reduction | RMS p | passed |",
               "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {k} | {effect_text(c)} | {fmt_number(c.get('delta_bic'))} | "
-              f"{fmt_number(c.get('holdout_z'), 3)} | {fmt_number(c.get('holdout_gap'))} | "
-              f"{100 * json_number(c.get('gap_reduction')):.1f} % | "
-              f"{fmt_number(c.get('holdout_rms_p'), 2)} | "
-              f"{md_cell(c.get('passed_by')) if c.get('passed') is True else 'no'} |"
-              for k, c in enumerate(cands[:8], 1)]
+    lines += [f"| {k} | " + " | ".join([effect_text(c)] + [md_cell(v) for v in list(r.values())[1:]])
+              + " |" for k, (c, r) in enumerate(zip(_candidate_docs(doc), rows), 1)]
     return lines
 
 

@@ -49,7 +49,7 @@ import numpy as np
 import polars as pl
 
 from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
-from pipeline.discrepancy.report import summary_markdown
+from pipeline.discrepancy.report import effect_markup, fmt_number, summary_markdown
 from pipeline.errors import ConfigError, InsufficientDataError
 from pipeline.identification.conditioning import as_masked_zero, interpolate_gaps
 from pipeline.models.model import Model, model_from_dict, model_to_dict
@@ -121,12 +121,11 @@ class DiscrepancyReport:
         lines = [f"discrepancy {self.job}/{self.run_id}: {self.verdict}",
                  f"  results: {self.run_dir}",
                  f"  {self.n_samples} samples at dt = {self.dt_s:g} s"]
-        if self.result is not None and self.result.effect is not None:
-            lines.append(f"  effect: {self.result.effect.describe()}")
-        elif self.effect:
-            lines.append(f"  effect: {self.effect['name']} at {self.effect['location']}")
-        lines.append(f"  held-out RMS {g['holdout_rms_before']:.4g} -> "
-                     f"{g['holdout_rms_after']:.4g} ({100 * g['reduction']:.1f} % smaller)")
+        if self.effect:  # as report.md words it (pipeline.discrepancy.report)
+            lines.append(f"  effect: {effect_markup(self.effect, code=str, plain=str)}")
+        lines.append(f"  held-out RMS {fmt_number(g['holdout_rms_before'])} -> "
+                     f"{fmt_number(g['holdout_rms_after'])} ({100 * g['reduction']:.1f} % "
+                     "smaller)")
         if self.recording:
             lines.append(f"  Rerun recording: {self.recording}  (open: rerun {self.recording})")
         return "\n".join(lines)

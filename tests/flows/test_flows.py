@@ -40,6 +40,7 @@ from tests.conftest import (
     INPUT_TAG,
     OUTPUT_TAG,
     PLANT_GAIN,
+    latest_artifact,
     subprocess_env,
     write_job,
     write_plant_csv,
@@ -106,17 +107,6 @@ def test_estimate_flow_equals_direct_run_job(prefect_harness, make_job):
     _assert_one_summary_everywhere(via_flow)
 
 
-def _latest_artifact(key: str):
-    from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey
-
-    with get_client(sync_client=True) as client:
-        found = client.read_latest_artifacts(
-            artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=[key])))
-    assert len(found) == 1, key
-    return found[0]
-
-
 def _assert_one_summary_everywhere(report) -> None:
     """The terminal, report.md, report.html and the Prefect artifacts print the same
     gain text, grade and window verdict: each is a rendering of one summary."""
@@ -127,8 +117,8 @@ def _assert_one_summary_everywhere(report) -> None:
 
     stored = report.run_dir / "report.md"
     md = stored.read_text(encoding="utf-8")
-    assert _latest_artifact(artifact_key(JOB, "report")).data == md
-    rows = _latest_artifact(artifact_key(JOB, "pairs")).data
+    assert latest_artifact(artifact_key(JOB, "report")).data == md
+    rows = latest_artifact(artifact_key(JOB, "pairs")).data
     rows = json.loads(rows) if isinstance(rows, str) else rows
     checks = json.loads((report.run_dir / "checks.json").read_text())
     page = html_lib.unescape(re.sub(r"<[^>]+>", " ", (report.run_dir / "report.html").read_text()))

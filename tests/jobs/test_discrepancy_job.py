@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,7 @@ from tests.conftest import (
     OUTPUT_TAG,
     PLANT_GAIN,
     PLANT_TAU_S,
+    latest_artifact,
     plant_signals,
 )
 
@@ -262,6 +264,7 @@ def test_discrepancy_section_keys_match_the_core_config():
 
 # ------------------------------------------------------------------ the Prefect flow
 def test_flow_equals_direct_run(prefect_harness, make_job):
+    from flows.common import artifact_key
     from flows.discrepancy import run_discrepancy_flow
     from pipeline.adapters.config import load_job
     from pipeline.jobs.discrepancy import run_discrepancy
@@ -273,6 +276,18 @@ def test_flow_equals_direct_run(prefect_harness, make_job):
     da, db = _read(a.run_dir), _read(b.run_dir)
     assert da["effect"] == db["effect"]
     assert da["gap"] == db["gap"]
+    # the artifacts print what report.md prints: the same text, the same candidate rows
+    md = (a.run_dir / "report.md").read_text(encoding="utf-8")
+    assert latest_artifact(artifact_key(load_job(job).job, "report")).data == md
+    rows = latest_artifact(artifact_key(load_job(job).job, "candidates")).data
+    rows = json.loads(rows) if isinstance(rows, str) else rows
+    assert 1 <= len(rows) <= 8 and len(rows) == min(8, len(da["candidates"]))
+    table = [ln for ln in md.splitlines() if re.match(r"\| \d+ \| ", ln)]
+    for line, row in zip(table, rows, strict=True):
+        cells = [c.strip() for c in line.strip("|").split(" | ")]
+        assert cells[2:] == [row[k] for k in ("delta_bic", "holdout_z", "holdout_gap",
+                                               "gap_reduction", "holdout_rms_p", "passed")]
+        assert cells[1].replace("`", "") == row["effect"]
 
 
 def test_masked_pair_is_named_through_the_cli(tmp_path, capsys):

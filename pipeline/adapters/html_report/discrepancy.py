@@ -23,7 +23,7 @@ from pipeline.adapters.html_report.page import (
     section,
     table,
 )
-from pipeline.discrepancy.report import effect_markup, json_number
+from pipeline.discrepancy.report import effect_markup, json_number, pass_rule
 from pipeline.readouts.run_summary import signal_units
 
 __all__ = ["render_discrepancy_html", "effect_html"]
@@ -196,7 +196,6 @@ def _candidates(doc: Mapping[str, Any]) -> str:
     cands = [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
     if not cands:
         return "<p>No candidate was fitted.</p>"
-    cfg = doc.get("config") if isinstance(doc.get("config"), Mapping) else {}
     rows = []
     for k, c in enumerate(cands, 1):
         params = c.get("parameters") or {}
@@ -209,11 +208,8 @@ def _candidates(doc: Mapping[str, Any]) -> str:
             esc(", ".join(f"{o}: {fmt(v)}" for o, v in (c.get("holdout_rms") or {}).items())),
             _pct(c.get("gap_reduction")), fmt(c.get("holdout_rms_p"), 2),
             "yes" if c.get("passed") is True else "no", esc(c.get("passed_by") or "–")])
-    return (f"<p>Passed: ΔBIC ≥ {fmt(cfg.get('bic_margin'))}, held-out z ≥ "
-            f"{fmt(cfg.get('holdout_z_min'))} and a held-out gap below the nominal "
-            f"{fmt((doc.get('gap') or {}).get('holdout_rms_before'))} (whitened), or a held-out "
-            f"RMS reduction with block-bootstrap p ≤ {fmt(cfg.get('holdout_rms_alpha'))}; a "
-            f"finding must also close ≥ {_pct(cfg.get('min_gap_reduction'))} of the gap.</p>"
+    rule = pass_rule(doc)
+    return ((f"<p>{esc(rule)}</p>" if rule else "")
             + table(["#", "effect", "location", "parameters", "equivalent locations",
                      "parameters (n)", "ΔBIC", "criterion", "screening score", "held-out z",
                      "held-out gap", "held-out RMS", "gap_reduction", "RMS p", "passed",
