@@ -25,12 +25,11 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from pipeline.estimation.alt_estimates import estimate_correlation_method
-from pipeline.identification.conditioning import as_masked_zero, condition, interpolate_gaps
+from pipeline.identification.conditioning import Conditioning, as_masked_zero, interpolate_gaps
 from pipeline.errors import (
     DataQualityError,
     InstrumentError,
@@ -73,7 +72,36 @@ __all__ = [
     "summarise",
     "write_run",
     "run_job",
+    "conditioning_spec",
+    "HIGHPASS_PERIODS",
 ]
+
+
+HIGHPASS_PERIODS = 500
+"""``conditioning.method: highpass`` without ``cutoff_period_s``: the cutoff period is
+this many sample periods T, above any horizon the search allows by default
+(:data:`pipeline.identification.search.N_P_MAX_CAP` lags at T), so the filter removes
+drift without touching the responses it estimates."""
+
+
+def conditioning_spec(section, dt_s: float) -> Conditioning:
+    """The job's ``conditioning`` section as the core's validated spec (the one place its
+    defaults are decided).
+
+    Parameters
+    ----------
+    section : ConditioningConfig
+        The job's ``conditioning`` section.
+    dt_s : float
+        The sample period T (s) the record is conditioned at.
+    """
+    if section.method == "difference":
+        return Conditioning("difference", kdiff1=section.kdiff1)
+    if section.method == "highpass":
+        return Conditioning("highpass", order=section.order,
+                            cutoff_period_s=(section.cutoff_period_s
+                                             or HIGHPASS_PERIODS * dt_s))
+    return Conditioning(section.method)
 
 
 def prepare(cfg, rec: Recording) -> Prepared:
@@ -118,21 +146,15 @@ def prepare(cfg, rec: Recording) -> Prepared:
     n_x = sum(r == "input" for r in rec.roles)
     n_y = sum(r == "output" for r in rec.roles)
     filled, _ = interpolate_gaps(vals, good)
-    c = cfg.conditioning
-    params: dict[str, Any] = {}
-    if c.method == "difference":
-        params["kdiff1"] = c.kdiff1
-    if c.method == "highpass":
-        params["cutoff_period_s"] = c.cutoff_period_s or 50 * dt_s * 10
-        params["order"] = c.order
+    spec = conditioning_spec(cfg.conditioning, dt_s)
     # instruments are conditioned like the inputs (the same transform on every signal)
     xr = np.concatenate([filled[:, :n_x], filled[:, n_x + n_y:]], axis=1)
-    cond = condition(xr, filled[:, n_x:n_x + n_y], method=c.method, dt_s=dt_s, **params)
+    cond = spec.apply(xr, filled[:, n_x:n_x + n_y], dt_s=dt_s)
     g = good
     t = tgrid
     raw = np.where(good, vals, np.nan)
-    if c.method == "difference":
-        k = c.kdiff1
+    if spec.method == "difference":
+        k = spec.kdiff1
         g = good[k:] & good[:-k]
         t = tgrid[: g.shape[0]]
         raw = raw[: g.shape[0]]
@@ -141,7 +163,7 @@ def prepare(cfg, rec: Recording) -> Prepared:
     rc = np.where(g[:, n_x + n_y:], cond.x[:, n_x:], np.nan) if cond.x.shape[1] > n_x else None
     integ = tuple(cfg.signals.outputs[o].integrating for o in cfg.signals.outputs)
     return Prepared(rec, factor, sampling, t, raw, xc, yc, g,
-                    {"method": c.method, **params}, integ, rc)
+                    {"method": spec.method, **spec.params}, integ, rc)
 
 
 def _instrument_error(cfg, prep: Prepared, exc: InstrumentError) -> DataQualityError:

@@ -366,8 +366,10 @@ def test_errors_are_specific():
         estimate_step_responses(x, y, n_p=3, dt=1.0, integrating=[True, False])
 
 
-def test_sweep_orders_equals_separate_fits():
-    from pipeline.estimation.orders import sweep_orders
+def test_benchmark_order_sweep_equals_separate_fits():
+    """bench_estimate part 2 times a sweep of every order from one factor: its RSS are the
+    search's (residual_ss_by_order) and its coefficients separate least-squares fits."""
+    from tests.benchmarks.bench_estimate import sweep_orders
 
     rng = np.random.default_rng(26)
     n, P = 2000, 12

@@ -77,3 +77,26 @@ def test_each_window_is_estimated_once_and_the_run_stores_those_estimates(tmp_pa
         np.testing.assert_array_equal(got["step"].to_numpy(), est.step[0, 0, :sr.n_p[0, 0]])
         np.testing.assert_array_equal(got["step_std"].to_numpy(),
                                       est.step_std[0, 0, :sr.n_p[0, 0]])
+
+
+def test_the_conditioning_section_reaches_the_core_as_its_spec(tmp_path):
+    """``conditioning: {method: highpass}`` without a cutoff filters at the documented
+    default, 500 sample periods (docs/guide/jobs.md), order 2; the prepared record is
+    the core's ``condition`` of the gridded signals with exactly those settings, and
+    checks.json records them."""
+    from pipeline.identification.conditioning import condition, interpolate_gaps
+
+    write_plant_csv(tmp_path / "drop" / "export.csv", seed=5, hours=2.0)
+    cfg = load_job(write_job(tmp_path, conditioning={"method": "highpass"},
+                             sampling={"dt_s": 2.0}))
+    rec = load_recording(cfg)
+    prep = prepare(cfg, rec)
+    assert prep.dt_s == 2.0 and prep.conditioning == {
+        "method": "highpass", "cutoff_period_s": 1000.0, "order": 2}
+    # by hand: average the 1 s grid to 2 s, fill, high-pass at 1000 s
+    vals = rec.values[: rec.values.shape[0] // 2 * 2].reshape(-1, 2, 2).mean(axis=1)
+    filled, _ = interpolate_gaps(vals, np.isfinite(vals))
+    ref = condition(filled[:, :1], filled[:, 1:], method="highpass", dt_s=2.0,
+                    cutoff_period_s=1000.0, order=2)
+    np.testing.assert_allclose(prep.x[:, 0], ref.x[:, 0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(prep.y[:, 0], ref.y[:, 0], rtol=1e-12, atol=1e-12)
