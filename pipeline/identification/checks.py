@@ -23,6 +23,7 @@ __all__ = [
     "pair_agreement",
     "window_agreement",
     "windows_agree",
+    "windows_disagree",
     "ljung_box",
     "cross_correlation_check",
 ]
@@ -211,11 +212,28 @@ def windows_agree(agreement: list[list[AgreementResult]]) -> bool:
         ``[output][input]``, as :func:`window_agreement` returns; an empty list gives False.
     """
     pairs = [a for row in agreement for a in row]
+    return bool(pairs) and all(a.informative for a in pairs) and \
+        not windows_disagree(agreement)
+
+
+def windows_disagree(agreement: list[list[AgreementResult]]) -> bool:
+    """Whether disjoint windows disagree on the whole plant: some informative pair fails
+    its tests at ``1/m`` of their false-alarm rates (the plant-level question of
+    :func:`windows_agree`, asked the other way round: a pair whose windows could not
+    detect a change is no evidence either way).  A run's status says this, so a
+    time-invariant plant is called ``windows_disagree`` with probability at most
+    ``AGREEMENT_ALPHA + GAIN_AGREEMENT_ALPHA`` whatever its number of pairs.
+
+    Parameters
+    ----------
+    agreement : list of list of AgreementResult or None
+        ``[output][input]``, as :func:`window_agreement` returns (``None``: the pair was
+        not compared).
+    """
+    pairs = [a for row in agreement for a in row if a is not None]
     m = len(pairs)
-    if m == 0:
-        return False
-    return all(a.informative and not (a.p_value < a.alpha / m
-                                      or a.gain_p_value < GAIN_AGREEMENT_ALPHA / m)
+    return any(a.informative and (a.p_value < a.alpha / m
+                                  or a.gain_p_value < GAIN_AGREEMENT_ALPHA / m)
                for a in pairs)
 
 

@@ -12,6 +12,7 @@ from pipeline.identification.checks import (
     ljung_box,
     pair_agreement,
     windows_agree,
+    windows_disagree,
 )
 from pipeline.errors import InsufficientDataError
 from pipeline.identification.search import search, split_windows_by_length
@@ -118,6 +119,24 @@ def test_windows_agree_is_one_question_about_the_whole_plant():
     assert not windows_agree([[_agreeing(p_value=0.009, verdict="fail")]])
     assert windows_agree([[_agreeing(p_value=0.011)]])
     assert not windows_agree([])
+
+
+def test_a_run_says_windows_disagree_only_for_the_whole_plant():
+    """The run's status asks windows_agree's question the other way round: some
+    informative pair fails at 1/m of its rates.  A pair without the evidence to tell
+    (insufficient_data) makes the plant not agree, but it is no disagreement; a pair
+    failing at its own rate among 4 is chance at the plant level.  Answers set by hand."""
+    grid = [[_agreeing() for _ in range(2)] for _ in range(2)]
+    assert not windows_disagree(grid)
+    grid[1][0] = _agreeing(gain_p=0.015, verdict="fail")  # below 4 % but above 4 % / 4
+    assert not windows_disagree(grid) and windows_agree(grid)
+    grid[1][0] = _agreeing(gain_p=0.009, verdict="fail")  # below 4 % / 4
+    assert windows_disagree(grid) and not windows_agree(grid)
+    grid[1][0] = _agreeing(verdict="insufficient_data", detect=0.5)
+    assert not windows_disagree(grid) and not windows_agree(grid)
+    grid[1][0] = None  # a pair no two windows compared
+    assert not windows_disagree(grid)
+    assert not windows_disagree([])
 
 
 def test_a_pair_is_informative_when_its_windows_could_see_a_30_percent_change():
