@@ -51,3 +51,36 @@ def test_window_gain_check_false_fail_rate_and_power():
     print(f"false fails {fails}/{RECORDS}, 3σ ({3 * sd:.3f}) detected {detected}/{RECORDS}")
     assert fails <= 8
     assert detected >= 40
+
+
+def _plant_half(rng) -> tuple[np.ndarray, np.ndarray]:
+    """Three AR(1) 0.9 inputs, two outputs: first-order lags (5 and 12 samples, gains
+    1, -0.5, 2 and 0.7, 1.5, -1) plus white noise of 0.3."""
+    u = ss.lfilter([1.0], [1, -0.9], rng.standard_normal((N_HALF, 3)), axis=0)
+    y = np.zeros((N_HALF, 2))
+    for i, (tau, gains) in enumerate(((5, (1.0, -0.5, 2.0)), (12, (0.7, 1.5, -1.0)))):
+        a = np.exp(-1 / tau)
+        for j, g in enumerate(gains):
+            y[:, i] += ss.lfilter([0.0, g * (1 - a)], [1, -a], u[:, j])
+    return u, y + 0.3 * rng.standard_normal((N_HALF, 2))
+
+
+@pytest.mark.statistical
+def test_a_time_invariant_plant_is_called_windows_disagree_at_the_stated_rate():
+    """A run's status (checks.windows_disagree: some pair fails at 1/m of its rates) on a
+    time-invariant 3 x 2 plant: at most the stated 5 % of records, 60 records, ≤ 8 (the
+    99 % binomial bound).  The per-pair rule (any of the 6 pairs fails at its own rate)
+    would call about 1 - 0.95^6 = 26 % of them so (P(≤ 8 of 60) ≈ 1 %; 20 of these 60
+    when this test was written, against 2 for the plant-level rule).  N_p = 80 holds the
+    slower lag to 0.1 % (e^(-80/12)); at N_p = 40 (3.6 % left out) the windows' truncation
+    biases differ with their inputs and 15 of 60 disagree: a horizon too short is a
+    disagreement, not a false alarm."""
+    from pipeline.identification.checks import windows_disagree
+
+    called = 0
+    for s in range(RECORDS):
+        rng = np.random.default_rng(30_000 + s)
+        ests = [estimate_step_responses(*_plant_half(rng), n_p=80, dt=1.0) for _ in range(2)]
+        called += windows_disagree(window_agreement(ests))
+    print(f"time-invariant 3 x 2 plant called windows_disagree in {called}/{RECORDS}")
+    assert called <= 8
