@@ -30,6 +30,7 @@ from pipeline.discrepancy.select import (
     holdout_gap,
     PRACTICAL_ALPHA,
     centred,
+    less_common_level,
     holdout_rms_evidence,
     holdout_rms_test,
     holdout_z_score,
@@ -637,8 +638,11 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         e_cand = (y[hold_slice] - fit.y_pred[hold_slice]) / np.array(hold_std)
         _, p_rms = holdout_rms_test(e_nom, e_cand, seed=seed + k)
         c_cand = centred(e_cand, P.free)
-        _, _, low = holdout_rms_evidence(c_nom, c_cand, seed=seed + k,
-                                         alpha=PRACTICAL_ALPHA)
+        # an actuator's nonlinearity moves a free output's held-out level by its own
+        # path: the level it moves is evidence, the level both leave a nuisance
+        judged = less_common_level(e_nom, e_cand, P.free) if fit.effect.level_is_evidence \
+            else (c_nom, c_cand)
+        _, _, low = holdout_rms_evidence(*judged, seed=seed + k, alpha=PRACTICAL_ALPHA)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,

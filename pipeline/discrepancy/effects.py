@@ -185,6 +185,18 @@ class Effect:
         return frozenset((self.location, *self.equivalent_locations))
 
     @property
+    def level_is_evidence(self) -> bool:
+        """An actuator's nonlinearity (deadband, backlash, saturation): the held-out level
+        it moves a free output to is set by the actuator's own path (a PI loop's OP
+        settles half a deadband away, on the side it came from), not free to follow a
+        slow unmeasured disturbance as a drift or a slow unmodelled input is.  Its
+        practical size is judged with the level it moves kept as evidence
+        (:func:`pipeline.discrepancy.select.less_common_level`); every other effect's
+        with each free output's held-out level left out
+        (:func:`pipeline.discrepancy.select.centred`)."""
+        return self.name in ("deadband", "backlash", "saturation")
+
+    @property
     def is_sensor_correction(self) -> bool:
         """A measurement-side effect (``sensor_bias_drift``): it changes what the sensor
         reports, not the plant -- added to the measured output (:func:`output_offsets`),

@@ -221,3 +221,30 @@ def test_a_level_on_the_held_out_part_is_not_an_effects_share():
     np.testing.assert_array_equal(centred(nominal, []), nominal)
     assert abs(r - (1.0 - np.sqrt(float(np.sum(e1**2)) / float(np.sum(e0**2))))) < 1e-12
     assert low > 0.8
+
+
+def test_an_actuator_effect_is_credited_for_the_level_it_moves_and_no_more():
+    # less_common_level takes off the held-out level both models leave (same sign: the
+    # smaller mean) and keeps what one moves and the other does not (by hand below)
+    from pipeline.discrepancy.select import less_common_level
+
+    m = 2000
+    s = np.sin(2 * np.pi * np.arange(m) / 200.0)[:, None]  # mean 0 over whole periods
+    nominal = 2.0 + s
+    moves = 0.2 + s        # moves the level most of the way back: credited 1.8
+    a, b = less_common_level(nominal, moves, [0])
+    assert np.allclose(a.mean(axis=0), 1.8) and np.allclose(b.mean(axis=0), 0.0)
+    np.testing.assert_allclose(a - a.mean(axis=0), s, atol=1e-12)
+    leaves = 2.0 + 0.1 * s  # leaves the level, removes the shape: no dilution by the level
+    a, b = less_common_level(nominal, leaves, [0])
+    assert np.allclose(a.mean(axis=0), 0.0) and np.allclose(b.mean(axis=0), 0.0)
+    overshoots = 3.0 + s   # moves the level the wrong way: penalised by 1
+    a, b = less_common_level(nominal, overshoots, [0])
+    assert np.allclose(a.mean(axis=0), 0.0) and np.allclose(b.mean(axis=0), 1.0)
+    crosses = -1.0 + s     # opposite signs: nothing in common, both kept as they are
+    a, b = less_common_level(nominal, crosses, [0])
+    np.testing.assert_array_equal(a, nominal)
+    np.testing.assert_array_equal(b, crosses)
+    # an output not listed keeps its level (a given operating point)
+    a, b = less_common_level(nominal, moves, [])
+    np.testing.assert_array_equal(a, nominal)
