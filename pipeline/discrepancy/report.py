@@ -234,7 +234,9 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
             "the gap.")
 
 
-def candidate_records(doc: Mapping[str, Any], limit: int = 8) -> list[dict[str, str]]:
+def candidate_records(doc: Mapping[str, Any], limit: int = 8, *,
+                      effect: Callable[[Mapping[str, Any]], str] | None = None
+                      ) -> list[dict[str, str]]:
     """The best ``limit`` candidates as rows of text (report.md's table and the Prefect
     candidates artifact print these).
 
@@ -244,30 +246,31 @@ def candidate_records(doc: Mapping[str, Any], limit: int = 8) -> list[dict[str, 
         The run's ``discrepancy.json`` document.
     limit : int
         Rows kept, best first.
+    effect : callable (candidate) -> str, optional
+        Writes the effect's cell; default plain text (:func:`effect_markup` without
+        markup), report.md passes :func:`effect_text`.
     """
-    return [{"effect": effect_markup(c, code=str, plain=str), "delta_bic": fmt_number(c.get("delta_bic")),
+    effect = effect or (lambda c: effect_markup(c, code=str, plain=str))
+    return [{"effect": effect(c), "delta_bic": fmt_number(c.get("delta_bic")),
              "holdout_z": fmt_number(c.get("holdout_z"), 3),
              "holdout_gap": fmt_number(c.get("holdout_gap")),
              "gap_reduction": f"{100 * json_number(c.get('gap_reduction')):.1f} %",
              "holdout_rms_p": fmt_number(c.get("holdout_rms_p"), 2),
              "passed": str(c.get("passed_by")) if c.get("passed") is True else "no"}
-            for c in _candidate_docs(doc)[:limit]]
-
-
-def _candidate_docs(doc: Mapping[str, Any]) -> list[Mapping[str, Any]]:
-    return [c for c in doc.get("candidates") or [] if isinstance(c, Mapping)]
+            for c in doc.get("candidates") or [] if isinstance(c, Mapping)][:limit]
 
 
 def _candidates(doc: Mapping[str, Any]) -> list[str]:
-    rows = candidate_records(doc)
+    rows = candidate_records(doc, effect=effect_text)  # effect_text escapes its own cell
     if not rows:
         return []
     rule = pass_rule(doc)
     lines = ["", "## Candidates (best first)", ""] + ([rule, ""] if rule else [])
     lines += ["| # | effect | ΔBIC | held-out z | held-out gap | gap reduction | RMS p | passed |",
               "|---|---|---|---|---|---|---|---|"]
-    lines += [f"| {k} | " + " | ".join([effect_text(c)] + [md_cell(v) for v in list(r.values())[1:]])
-              + " |" for k, (c, r) in enumerate(zip(_candidate_docs(doc), rows), 1)]
+    lines += [f"| {k} | {r['effect']} | "
+              + " | ".join(md_cell(v) for key, v in r.items() if key != "effect") + " |"
+              for k, r in enumerate(rows, 1)]
     return lines
 
 

@@ -76,7 +76,8 @@ class AgreementResult:
         False-alarm rate of the Wald test.
     gain_statistic, gain_p_value : float
         The gain part: chi^2 of the windows' final values with ``n_windows - 1`` df, at
-        the false-alarm rate :data:`GAIN_AGREEMENT_ALPHA`.    informative : bool
+        the false-alarm rate :data:`GAIN_AGREEMENT_ALPHA`.
+    informative : bool
         Whether the windows could tell: a change of :data:`DETECTABLE_GAIN_CHANGE` is
         detectable, or the pair has no response to compare.  Decided here once, whatever
         the verdict; the verdict is ``insufficient_data`` for a pair that does not fail

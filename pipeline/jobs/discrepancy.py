@@ -67,6 +67,8 @@ __all__ = [
     "DiscrepancyData",
     "DiscrepancyReport",
     "check_job",
+    "core_config",
+    "free_outputs",
     "load_discrepancy_model",
     "prepare_discrepancy",
     "analyse",
@@ -186,7 +188,7 @@ def _output_offsets_from_nominal(cfg, model: Model, inputs: dict, measured: dict
 
     if not outputs:
         return {}
-    core = _core_config(cfg)
+    core = core_config(cfg)
     sim = simulate(model, {u: inputs[u] for u in model.inputs}, dt_s=dt_s,
                    initial=core.initial).signals
     n = next(iter(measured.values())).size
@@ -272,9 +274,32 @@ def prepare_discrepancy(cfg, rec: Recording, model: Model) -> DiscrepancyData:
     return DiscrepancyData(inputs, measured, dt_s, t[a:b], op, summary, rec.files)
 
 
-def _core_config(cfg) -> DiscrepancyConfig:
+def core_config(cfg) -> DiscrepancyConfig:
+    """The job's ``discrepancy`` core settings as the core's :class:`DiscrepancyConfig`.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    """
     settings = cfg.discrepancy.core_settings() if cfg.discrepancy is not None else {}
     return DiscrepancyConfig(**settings)
+
+
+def free_outputs(cfg, measured) -> tuple[str, ...]:
+    """The outputs measured from their mean (``discrepancy.operating_point``): their
+    constant follows the model, profiled out of every prediction.
+
+    Parameters
+    ----------
+    cfg : JobConfig
+        The validated job.
+    measured : iterable of str
+        The measured outputs, in order.
+    """
+    op_mode = cfg.discrepancy.operating_point if cfg.discrepancy is not None else "mean"
+    return () if op_mode == "none" else tuple(
+        o for o in measured if not (isinstance(op_mode, dict) and o in op_mode))
 
 
 def check_job(cfg) -> tuple[Model, str]:
@@ -287,7 +312,7 @@ def check_job(cfg) -> tuple[Model, str]:
         The validated job (with its ``model:`` or ``discrepancy.simulator_outputs``).
     """
     model, source = load_discrepancy_model(cfg)
-    _core_config(cfg)
+    core_config(cfg)
     return model, source
 
 
@@ -307,14 +332,10 @@ def analyse(cfg, model: Model, data: DiscrepancyData, *,
         Called at the start of each stage of the core.
     """
     seed = cfg.discrepancy.seed if cfg.discrepancy is not None else 0
-    op_mode = cfg.discrepancy.operating_point if cfg.discrepancy is not None else "mean"
-    # outputs measured from their mean: their constant follows the model
-    free = () if op_mode == "none" else tuple(
-        o for o in data.measured if not (isinstance(op_mode, dict) and o in op_mode))
     return analyse_discrepancy(model, inputs=data.inputs, measured=data.measured,
-                               dt_s=data.dt_s, config=_core_config(cfg), seed=seed,
+                               dt_s=data.dt_s, config=core_config(cfg), seed=seed,
                                progress=progress, clock=time.perf_counter,
-                               free_offsets=free)
+                               free_offsets=free_outputs(cfg, data.measured))
 
 
 def series_table(result: DiscrepancyResult) -> pl.DataFrame:

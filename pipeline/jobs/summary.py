@@ -129,14 +129,15 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
     agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
         [[None] * len(ins) for _ in outs]
     x0, res, innov = _residual_series(prep, all_est)
+    config = cfg.model_dump(mode="json")  # the resolved job, as the run's manifest holds it
+    units = signal_units(config, prep.recording.quality)
     pairs, metrics, whiteness, xcorr = _pairs(cfg, prep, sr, all_est, agreement,
-                                              len(window_ests), x0, innov)
+                                              len(window_ests), x0, innov, units)
     checks = _checks(cfg, prep, sr, all_est, window_status, pairs, whiteness, xcorr)
     # the run's status is the plant-level answer (checks.windows_disagree), the
     # question the search's N_d stopping rule asks; the pairs' verdicts keep their rates
     status = "windows_disagree" if windows_disagree(agreement) else "ok"
-    report = RunSummary.from_checks(checks, job=cfg.job, status=status,
-                                    config=job_config(cfg))
+    report = RunSummary.from_checks(checks, job=cfg.job, status=status, config=config)
     return Summary(steps, _signals_table(prep), _residuals_table(prep, res), metrics, report)
 
 
@@ -154,15 +155,16 @@ def _residual_series(prep: Prepared, all_est: StepResponseEstimate):
 
 
 def _pairs(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstimate,
-           agreement: list, n_windows: int, x0: np.ndarray, innov: np.ndarray):
+           agreement: list, n_windows: int, x0: np.ndarray, innov: np.ndarray,
+           units: dict):
     """Per pair its results, warnings and metric rows; per output the whiteness of its
-    prediction errors; per pair the input cross-correlation check."""
+    prediction errors; per pair the input cross-correlation check (``units``: per signal,
+    :func:`pipeline.readouts.run_summary.signal_units`)."""
     from pipeline.readouts.lti_fit import model_record, reported_model
     from pipeline.identification.verdicts import end_jump_z, pair_warnings
 
     ins, outs = prep.inputs, prep.outputs
     tags = cfg.tags()
-    units = signal_units(job_config(cfg), prep.recording.quality)
     pairs = []
     metrics = []
     xcorr = {}
@@ -408,15 +410,3 @@ def _signals_table(prep: Prepared) -> LongTable:
                         pl.col("time").cast(pl.Datetime("us", "UTC")))
 
     return LongTable(n * len(rec.names), make)
-
-
-def job_config(cfg) -> dict:
-    """The part of the validated job the summary reads (its signals, for their units), as
-    the plain mapping a stored run's manifest holds.
-
-    Parameters
-    ----------
-    cfg : JobConfig
-        The validated job.
-    """
-    return {"signals": cfg.signals.model_dump()}

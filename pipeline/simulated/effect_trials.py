@@ -461,7 +461,7 @@ def _visible_effects(model: Model, names: tuple[str, ...], nominal: Any,
         if len(shown) == len(effects) and all(
                 v >= MIN_VISIBILITY and r >= TRIAL_GAP_REDUCTION for v, r in shown) and (
                 len(effects) == 1 or each_needed(model, effects, truth, without, nominal,
-                                                  inputs, dt_s=dt_s, rel=rel, n=n)):
+                                                 inputs, dt_s=dt_s, rel=rel, n=n)):
             return tuple(effects), truth, redraws, shown[0][0]
         redraws += 1
     raise ConfigError(
@@ -475,7 +475,6 @@ def expected_gap(model: Model, truth: Mapping[str, np.ndarray],
     """Expected held-out gap of a model predicting `predicted` for a plant whose
     noise-free outputs are `truth` (noise std ``rel * std(truth)``): each output's
     expected mean square over its held-out variance, pooled as the workflow's ``gap``.
-
 
     Parameters
     ----------

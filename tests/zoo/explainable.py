@@ -29,11 +29,15 @@ import numpy as np
 from pipeline.adapters.config import load_job
 from pipeline.discrepancy.analyse import discrepancy_problem
 from pipeline.discrepancy.chain import predict_with_effects
-from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.effects import Effect
 from pipeline.discrepancy.select import holdout_gap
 from pipeline.errors import PipelineError
-from pipeline.jobs.discrepancy import load_discrepancy_model, prepare_discrepancy
+from pipeline.jobs.discrepancy import (
+    core_config,
+    free_outputs,
+    load_discrepancy_model,
+    prepare_discrepancy,
+)
 from pipeline.jobs.recording import load_recording
 from tests.zoo.trial import ZooTrial, write_trial
 
@@ -49,9 +53,9 @@ def model_gap_reduction(trial: ZooTrial, job: Path | None = None) -> float:
         cfg = load_job(job if job is not None else write_trial(trial, Path(tmp)))
         model, _ = load_discrepancy_model(cfg)
         data = prepare_discrepancy(cfg, load_recording(cfg), model)
-    config = DiscrepancyConfig()  # the zoo's jobs set only the seed
+    config = core_config(cfg)
     P, _, resid = discrepancy_problem(model, data.inputs, data.measured, data.dt_s, config,
-                                      lambda *_: None, tuple(data.measured))
+                                      lambda *_: None, free_outputs(cfg, data.measured))
     effect = Effect(trial.effect.name, trial.effect.location, dict(trial.effect.parameters))
     try:
         pred = predict_with_effects(model, [effect], data.inputs, dt_s=data.dt_s,

@@ -34,6 +34,8 @@ _SECTIONS = (("step-matrix", "Step responses"), ("gains", "Gains"),
              ("grades", "Quality grades"), ("fit", "Measured vs predicted (held out)"),
              ("residuals", "Residual correlations"), ("frequency", "Frequency responses"),
              ("search", "N_p / N_d search"), ("data-quality", "Data quality"))
+
+
 def _header(run: StoredRun, summary: RunSummary, banner: str) -> str:
     m = run.manifest
     facts = [f"run <b>{esc(m.get('run_id'))}</b>"]

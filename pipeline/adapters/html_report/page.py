@@ -7,7 +7,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import math
 import traceback
 import warnings
 from collections.abc import Callable, Iterable, Sequence
@@ -16,10 +15,10 @@ from typing import Any
 import matplotlib
 from matplotlib.figure import Figure
 
-from pipeline.discrepancy.report import fmt_number, json_number
+from pipeline.discrepancy.report import fmt_number
 
 __all__ = ["esc", "table", "figure_svg", "figure_png", "new_figure", "section", "page",
-           "ratio_unit", "fmt", "fmt_pm", "grade_badge", "SECTION_ERROR_CLASS",
+           "ratio_unit", "fmt", "grade_badge", "SECTION_ERROR_CLASS",
            "WINDOW_COLOURS", "panel_grid"]
 
 SECTION_ERROR_CLASS = "section-error"
@@ -80,21 +79,6 @@ def fmt(value: Any, digits: int = 4) -> str:
         Significant figures.
     """
     return esc(fmt_number(value, digits))
-
-
-def fmt_pm(value: Any, std: Any) -> str:
-    """``value ± std`` (value to 4, σ to 2 significant figures), escaped.
-
-    Parameters
-    ----------
-    value : object
-        The estimate.
-    std : object
-        Its standard deviation.
-    """
-    if math.isnan(json_number(value)):
-        return "–"
-    return f"{fmt(value)} ± {fmt(std, 2)}"
 
 
 def grade_badge(grade: str) -> str:
