@@ -183,6 +183,7 @@ def estimate_step_responses(
     noise="white",
     n_k=0,
     instruments=None,
+    noise_models=None,
 ) -> StepResponseEstimate:
     """Step responses of every output/input pair (eq. 3.12/3.15, 3.28; method.md §10).
 
@@ -216,6 +217,12 @@ def estimate_step_responses(
         disturbances).  When given, the estimate is instrumental-variable (two-stage
         least squares on lags ``0..2 n_p - 1`` of the instruments, refined with the noise
         model of ``noise``): consistent under feedback whatever the noise colour.
+    noise_models : sequence of NoiseModel (n_y,), optional
+        Per output a noise model taken as known, its form and filter: generalised least
+        squares with it (``noise`` is then not used), each output's innovation variance
+        its own fit's.  The search's disjoint windows are estimated with the record's
+        models (:attr:`pipeline.identification.search.SearchResult.window_noise`).  Not
+        with ``instruments``.
 
     Returns
     -------
@@ -232,6 +239,9 @@ def estimate_step_responses(
     y2 = as_2d(y, "y")
     x2 = as_2d(x, "x")
     npm = n_p_matrix(n_p, y2.shape[1], x2.shape[1])
+    if noise_models:
+        return _with_noise_models(x2, y2, npm, noise_models, dt=dt, integrating=integrating,
+                                  mask=mask, n_k=n_k, instruments=instruments)
     order = noise_order(noise)
     if order == 0 and instruments is None:
         ne = normal_equations(x2, y2, n_p_max=int(npm.max()), integrating=integrating,
@@ -243,6 +253,23 @@ def estimate_step_responses(
                            instruments=instruments, n_lags=n_lags,
                            level_form=instruments is None)
     return estimate_from_context(ctx, n_p=npm, n_k=nkm, dt=dt, noise=noise)
+
+
+def _with_noise_models(x2, y2, npm, models, *, dt: float, integrating, mask, n_k,
+                       instruments) -> StepResponseEstimate:
+    """Generalised least squares with each output's noise model taken as known."""
+    if instruments is not None:
+        raise ConfigError("noise_models fixes the noise filters of a direct fit; "
+                          "instrumental variables refit their own (pass one or the other)")
+    if len(models) != y2.shape[1]:
+        raise ConfigError(f"noise_models holds {len(models)} models for {y2.shape[1]} "
+                          "outputs; give one per output")
+    ctx = lag_gram_context(x2, y2, integrating=integrating, mask=mask,
+                           n_lags=lags_needed(npm, False, max(m.order for m in models)))
+    return estimate_from_context(ctx, n_p=npm, n_k=n_k_matrix(n_k, npm), dt=dt,
+                                 forms=[m.form for m in models],
+                                 d_fixed=[np.r_[1.0, m.coefficients] for m in models],
+                                 use_instruments=False)
 
 
 

@@ -21,6 +21,8 @@ from pipeline.estimation.step_result import StepResponseEstimate
 __all__ = [
     "AgreementResult",
     "pair_agreement",
+    "predicted_detectable_change",
+    "surely_uninformative",
     "window_agreement",
     "windows_agree",
     "windows_disagree",
@@ -48,6 +50,16 @@ was detected in about half the records."""
 DETECTION_POWER = 0.9
 _DETECT_SIGMAS = float(scipy.stats.norm.ppf(1 - AGREEMENT_ALPHA / 2)
                        + scipy.stats.norm.ppf(DETECTION_POWER))
+PREDICTION_MARGIN = 2.0
+""":func:`predicted_detectable_change` calls windows surely uninformative only when a pair
+would need more than this factor of the window's information (variance) to detect the
+:data:`DETECTABLE_GAIN_CHANGE`: the record's covariance scaled to a window predicted
+the windows' detectable change to within 0.90-1.05x on a stationary 20 x 20 record, and
+the margin leaves room for windows that hold more of the record's excitation than their
+share."""
+NULL_SIGMAS = 2.0
+"""A pair with every lag within this many standard deviations of zero in every window has
+no response to compare (``_is_null_pair``)."""
 
 
 @dataclass(frozen=True)
@@ -252,7 +264,45 @@ def _gain_homogeneity(steps, covs) -> tuple[float, float]:
 
 def _is_null_pair(steps, stds) -> bool:
     # every window's whole response is within 2 sigma of zero: nothing to compare
-    return all(np.all(np.abs(h) < 2 * np.maximum(s, 1e-300)) for h, s in zip(steps, stds))
+    return all(np.all(np.abs(h) < NULL_SIGMAS * np.maximum(s, 1e-300))
+               for h, s in zip(steps, stds))
+
+
+def predicted_detectable_change(step, std, scale: float) -> float:
+    """The :attr:`AgreementResult.detectable_change` two windows are expected to reach for
+    a pair estimated on the whole record as ``step`` ± ``std``, when each window holds
+    ``1 / scale`` of the record's observations: a window's variance is the record's times
+    ``scale`` (method.md §5: the variance of a lag falls as ``1 / N_d``).  NaN for a pair
+    that may have no response to compare in such windows (its peak within
+    ``2 NULL_SIGMAS`` window standard deviations of zero: a window could then call it
+    null, which is informative).
+
+    Parameters
+    ----------
+    step, std : 1-D arrays (n_p,)
+        The pair's whole-record step response and its standard deviation.
+    scale : float
+        Record observations over window observations (``> 1`` for a window shorter than
+        the record).
+    """
+    s_w = float(np.sqrt(np.max(np.asarray(std, dtype=float) ** 2) * scale))
+    peak = float(np.max(np.abs(step)))
+    if not peak > 2 * NULL_SIGMAS * s_w:
+        return float("nan")
+    return _DETECT_SIGMAS * np.sqrt(2.0) * s_w / peak
+
+
+def surely_uninformative(detectable_change: float) -> bool:
+    """Whether a predicted detectable change (:func:`predicted_detectable_change`) says the
+    windows cannot be informative even with :data:`PREDICTION_MARGIN` times the information
+    predicted (NaN: may be null, so not surely).
+
+    Parameters
+    ----------
+    detectable_change : float
+        Predicted change a pair's windows detect, relative to its peak.
+    """
+    return bool(detectable_change > np.sqrt(PREDICTION_MARGIN) * DETECTABLE_GAIN_CHANGE)
 
 
 def window_agreement(estimates: list[StepResponseEstimate]) -> list[list[AgreementResult]]:

@@ -24,27 +24,16 @@ bias exceeded the band: with AR noise N_p stopped inside the dead time (N_p = 3 
 3-sample delay).  The thesis' white-noise search keeps its rule (N_p·T ≈ the 98 %
 settling time, its last coefficient absorbing the rest; the report flags that jump).
 
-Stage 2 — N_d, by disjoint-window agreement (method.md §5, §11):
-  the window check runs at the orders stage 1 chose — it never shortens them.  It starts
-  at ``N_d = 10 * N_p_max`` observations per window, or at the
-  :data:`WINDOW_MIN_OBS_PER_UNKNOWN` observations per unknown a window needs when that is
-  more (an output of a 20-input plant at N_p 60 has up to 1,200 unknowns), or at the
-  largest two disjoint windows the record holds when that is less; while the windows do
-  not agree (:func:`pipeline.identification.checks.windows_agree`: one question about the whole plant,
-  each pair at ``1/m`` of its false-alarm rate, every pair informative) and two windows of
-  twice the size fit, N_d doubles.  When not even two windows of
-  :data:`WINDOW_MIN_OBS_PER_UNKNOWN` observations per unknown fit, there is no window
-  check (every pair's agreement is ``insufficient_data``) and the all-data estimate
-  stands on its own.  (Until 2026-12-06 a first window of ``10 * N_p`` too small for its
-  unknowns ended the check even where longer windows fit, and N_d doubled while any one
-  pair failed at its own rate, which a plant of many pairs does by chance.)
+Stage 2 — N_d, by disjoint-window agreement (method.md §5, §11): N_d doubles from
+  ``10 * N_p`` until two disjoint windows agree on the whole plant, at the orders stage 1
+  chose (:mod:`pipeline.identification.windows`).
 
 With a noise model (``noise="auto"`` or an AR order, method.md §10) the search runs on the
 lag Gram: the noise model of each output is fitted once at ``n_p_max`` (where the FIR is
 long enough that its residual is the noise), then every candidate order is a generalised
 least-squares fit with that noise filter — so the tail band, the standard deviations
-and the BIC are those of the whitened problem.  The window estimates of stage 2 refit
-their own noise models.
+and the BIC are those of the whitened problem.  The window estimates of stage 2 use the
+same filters (generalised least squares, each window's own innovation variance).
 
 Feedback (method.md §10 (a)): before stage 1, every pair is tested for feedback at
 ``n_p_max`` (:func:`pipeline.identification.feedback.feedback_test`, with the noise model found there —
@@ -80,8 +69,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.identification.checks import window_agreement, windows_agree
-from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
+from pipeline.identification.checks import window_agreement
+from pipeline.identification.windows import (
+    FIRST_WINDOW_PER_LAG,
+    choose_window_length,
+    split_windows_by_length,
+    usable_window_estimates,
+    window_noise_models,
+    window_trials,
+)
+from pipeline.errors import ConfigError, InsufficientDataError
 from pipeline.estimation.estimate import estimate_from_normal_equations, estimate_step_responses
 from pipeline.estimation.gram_estimate import (
     NOISE_AUTO,
@@ -108,9 +105,9 @@ from pipeline.identification.settledness import (
     tail_moving,
 )
 
-__all__ = ["SearchResult", "choose_orders", "search", "split_windows_by_length",
+__all__ = ["SearchResult", "choose_orders", "search",
            "default_n_p_max", "TAIL_FRACTION", "TAIL_BAND", "N_P_MAX_CAP",
-           "OBS_PER_UNKNOWN", "FIRST_WINDOW_PER_LAG"]
+           "OBS_PER_UNKNOWN"]
 
 N_P_MAX_CAP = 300
 """Longest default horizon in lags (the search's cost grows with the square of N_p;
@@ -118,14 +115,6 @@ raise ``search.n_p_max`` or the sample period beyond it)."""
 OBS_PER_UNKNOWN = 5
 """The default longest horizon keeps at least this many observations per unknown of an
 output (``N // (5 * n_x)`` lags): residual degrees of freedom >= 80 % of N."""
-FIRST_WINDOW_PER_LAG = 10
-"""Stage 2's first window holds this many observations per lag of the longest horizon
-(``N_d = 10 N_p``, method.md's starting point); it doubles from there."""
-WINDOW_MIN_OBS_PER_UNKNOWN = 2
-"""A disjoint window is estimated only with at least this many observations per unknown
-of its largest output (half its degrees of freedom left for the residual); fewer, and the
-window check says ``insufficient_data`` instead of shortening the model."""
-
 TAIL_BAND = 0.02
 TAIL_NOISE_SIGMAS = 3.0
 NOISE_MODEL_N_P_MARGIN = 1.4
@@ -204,6 +193,12 @@ class SearchResult:
     left_out: np.ndarray | None = None
     left_out_std: np.ndarray | None = None
     window_estimates: dict = field(default_factory=dict)
+
+    @property
+    def window_noise(self) -> tuple:
+        """The noise models every disjoint window is estimated with
+        (:func:`window_noise_models` of this search's settings)."""
+        return window_noise_models(self.noise, self.instruments, self.noise_model)
 
 
 def _truncate(ne: NormalEquations, m: int) -> NormalEquations:
@@ -398,52 +393,6 @@ def _noise_model_orders(ctx, *, P: int, dt: float, n_p_min: int, n_k, forms, d_f
     return n_p, settled, trace, bic_order
 
 
-def split_windows_by_length(n: int, length: int, count: int | None = None) -> list[tuple[int, int]]:
-    """Disjoint ``(start, stop)`` windows of ``length`` samples spread evenly over ``n``.
-
-    The first window starts at 0 and the last ends at ``n``: windows far apart in time
-    are the strictest test of time invariance (a plant that changed mid-record fails).
-
-    Parameters
-    ----------
-    n : int
-        Samples in the record.
-    length : int
-        Samples per window.
-    count : int, optional
-        Number of windows; default (and at most) as many as fit, ``n // length``.
-    """
-    k = n // length if count is None else min(count, n // length)
-    if k <= 0:
-        return []
-    if k == 1:
-        return [(0, length)]
-    starts = np.round(np.linspace(0, n - length, k)).astype(int)
-    return [(int(a), int(a) + length) for a in starts]
-
-
-def _window_estimates(x, y, mask, windows, n_p, dt, integrating, *, noise="white", n_k=0,
-                      instruments=None) -> list[StepResponseEstimate]:
-    return [estimate_step_responses(x[a:b], y[a:b], n_p=n_p, dt=dt, integrating=integrating,
-                                    mask=None if mask is None else mask[a:b], noise=noise,
-                                    n_k=n_k,
-                                    instruments=None if instruments is None else
-                                    np.asarray(instruments)[a:b])
-            for a, b in windows]
-
-
-def _usable_window_estimates(x, y, mask, windows, n_p, dt, integrating, **kw) -> dict:
-    """Estimates by window of the windows that can be estimated (a bad window is
-    skipped)."""
-    out = {}
-    for w in windows:
-        try:
-            [out[w]] = _window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw)
-        except DataQualityError:
-            continue
-    return out
-
-
 @single_threaded_blas
 def search(
     x,
@@ -511,7 +460,7 @@ def search(
     # progress: stage 1 counts its fits (a noise model: one at n_p_max and ~16
     # candidates and ~16 refinements; white: one nested solve), stage 2 its window
     # lengths (doublings)
-    stage2 = _window_trials(n, FIRST_WINDOW_PER_LAG * max(n_p_min, 1), max(n_p_min, 1),
+    stage2 = window_trials(n, FIRST_WINDOW_PER_LAG * max(n_p_min, 1), max(n_p_min, 1),
                             extra)  # a guess
     steps = _Steps(tick, (1 if fixed is not None or order == 0 else 34) + stage2)
     ctx, est_max, fb = None, None, []
@@ -525,18 +474,21 @@ def search(
         n_p_max=n_p_max, P0=P0, dt=dt, nk=nk, integrating=integrating, mask=mask,
         step=steps.step)
     nk = np.minimum(nk, npm - 1)
-    left, left_std = _left_out(x, y, est_max, npm, fixed=fixed, order=order, P0=P0, dt=dt,
-                               integrating=integrating, mask=mask, nk=nk)
-    kw = {"noise": noise, "n_k": nk, "instruments": instruments}
-    n_d, length, nd_trace, window_ests = _stage2(x, y, mask, npm, dt, integrating, kw,
+    ref = _reference(x, y, est_max, fixed=fixed, order=order, P0=P0, dt=dt,
+                     integrating=integrating, mask=mask, nk=nk, n_y=n_y, n_x=n_x)
+    left, left_std = left_out_of(ref, npm) if fixed is None else \
+        (np.zeros(npm.shape), np.zeros(npm.shape))
+    kw = {"noise": noise, "n_k": nk, "instruments": instruments,
+          "noise_models": window_noise_models(noise, instruments is not None, noise_models)}
+    n_d, length, nd_trace, window_ests = choose_window_length(x, y, mask, npm, dt, integrating, kw,
                                                  n_d_start=n_d_start, extra=extra,
-                                                 steps=steps)
+                                                 steps=steps, ref=ref)
     tick(steps.total, steps.total)
     wins = split_windows_by_length(n, length, max_windows) if length else []
     agreement = []
     if estimate_windows and wins:  # stage 2's windows are not estimated again
         todo = [w for w in wins if w not in window_ests]
-        ests = {**_usable_window_estimates(x, y, mask, todo, npm, dt, integrating, **kw),
+        ests = {**usable_window_estimates(x, y, mask, todo, npm, dt, integrating, **kw),
                 **window_ests}
         agreement = window_agreement([ests[w] for w in wins if w in ests])
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
@@ -553,18 +505,19 @@ def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
                           **stage1)
 
 
-def _left_out(x, y, est_max, npm: np.ndarray, *, fixed, order, P0: int, dt: float,
-              integrating, mask, nk: np.ndarray):
-    """:func:`left_out_of` the reference fit at ``n_p_max`` (the noise-model fit stage 1
-    judged against; for a white search the thesis' least squares there); zeros when the
-    orders were fixed (no reference)."""
+def _reference(x, y, est_max, *, fixed, order, P0: int, dt: float, integrating, mask,
+               nk: np.ndarray, n_y: int, n_x: int) -> StepResponseEstimate | None:
+    """The whole-record fit the horizon's left-out part (:func:`left_out_of`) and stage
+    2's predictions are read from: the noise-model fit at ``n_p_max`` that stage 1
+    judged against (at the fixed orders when they are given), for a white search the
+    thesis' least squares at ``n_p_max``; None for a white search at fixed orders (no
+    reference fitted)."""
+    if order != 0 and est_max is not None:
+        return est_max
     if fixed is not None:
-        return np.zeros(npm.shape), np.zeros(npm.shape)
-    ref = est_max
-    if order == 0 or ref is None:
-        ref = estimate_step_responses(x, y, n_p=P0, dt=dt, integrating=integrating,
-                                      mask=mask, n_k=_clip_n_k(nk, P0, *npm.shape))
-    return left_out_of(ref, npm)
+        return None
+    return estimate_step_responses(x, y, n_p=P0, dt=dt, integrating=integrating,
+                                   mask=mask, n_k=_clip_n_k(nk, P0, n_y, n_x))
 
 
 def _as_columns(a) -> np.ndarray:
@@ -681,83 +634,3 @@ def _at_n_p_max(x, y, *, integrating, mask, P0: int, fixed, nk: np.ndarray, dt: 
     return ctx, est_max, fb
 
 
-def _stage2(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *, n_d_start,
-            extra: int, steps: _Steps) -> tuple[int, int, list, dict]:
-    """Stage 2 at the chosen orders: ``(n_d, window samples, trace, the chosen trial's
-    window estimates)``, ``(0, 0, trace, {})`` when no two windows can be estimated
-    (module doc)."""
-    n = x.shape[0]
-    P = int(npm.max())
-    # 10 N_p observations, at least the 2 per unknown a window needs, at most the
-    # largest two disjoint windows hold
-    need = WINDOW_MIN_OBS_PER_UNKNOWN * int(npm.sum(axis=1).max())
-    n_d = min(max(int(n_d_start or FIRST_WINDOW_PER_LAG * P), need), n // 2 - (P - 1 + extra))
-    if n_d < need:
-        return 0, 0, [{
-            "n_d": max(n_d, 0), "window_samples": max(n_d + P - 1 + extra, 0),
-            "error": f"two disjoint windows of the record's {n} samples hold at most "
-                     f"{max(n_d, 0)} observations each, fewer than the {need} the "
-                     f"{int(npm.sum(axis=1).max())} unknowns of an output need "
-                     f"({WINDOW_MIN_OBS_PER_UNKNOWN} per unknown): no window check"}], {}
-    steps.total = steps.done + _window_trials(n, n_d, P, extra) + 1
-    chosen, nd_trace, ests = _window_length(x, y, mask, npm, dt, integrating, kw, n_d=n_d,
-                                            P=P, extra=extra, step=steps.step)
-    return (*(chosen if chosen is not None else (0, 0)), nd_trace, ests)
-
-
-def _window_trials(n: int, n_d: int, P: int, extra: int) -> int:
-    """Most N_d values stage 2 can try from ``n_d`` (doubling while two windows fit, the
-    last one at the largest that fits)."""
-    most = n // 2 - (P - 1 + extra)
-    return 1 + sum(1 for k in range(1, 30) if 2**(k - 1) * n_d < most)
-
-
-def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,
-                   n_d: int, P: int, extra: int, step
-                   ) -> tuple[tuple[int, int] | None, list, dict]:
-    """Stage 2: N_d doubled from ``n_d`` until two disjoint windows agree or data runs
-    out; the chosen ``(n_d, window samples)`` (None: no two windows fit), the trace and
-    the chosen trial's window estimates by window."""
-    n, n_y, n_x = x.shape[0], y.shape[1], x.shape[1]
-    most = n // 2 - (P - 1 + extra)  # the largest N_d two disjoint windows hold
-    nd_trace: list = []
-    chosen, chosen_ests = None, {}
-    while True:
-        length = n_d + P - 1 + extra
-        wins = split_windows_by_length(n, length, 2)
-        if len(wins) < 2:
-            break
-        step()
-        ests, failed = [], None
-        for w in wins:
-            try:
-                ests += _window_estimates(x, y, mask, [w], npm, dt, integrating, **kw)
-            except DataQualityError as exc:
-                failed = (w, exc)
-                break
-        if failed is not None:
-            # a window may hold too few observations (masks) or an input that does not
-            # move there (singular): record the trial and the window, try longer windows
-            nd_trace.append({"n_d": n_d, "window_samples": length,
-                             "failed_window": list(failed[0]), "error": str(failed[1])})
-            if n_d >= most:
-                break
-            n_d = min(2 * n_d, most)
-            continue
-        agr = window_agreement(ests)
-        nd_trace.append({
-            "n_d": n_d,
-            "window_samples": length,
-            "n_windows": 2,
-            "windows_agree": windows_agree(agr),
-            "pairs": [{"output": i, "input": j, "statistic": agr[i][j].statistic,
-                       "p_value": agr[i][j].p_value, "verdict": agr[i][j].verdict}
-                      for i in range(n_y) for j in range(n_x)],
-        })
-        chosen, chosen_ests = (n_d, length), dict(zip(wins, ests))
-        if nd_trace[-1]["windows_agree"]:
-            break
-        if n_d >= most:
-            break
-        n_d = min(2 * n_d, most)
-    return chosen, nd_trace, chosen_ests

@@ -274,7 +274,7 @@ def estimate_settings(cfg, sr: SearchResult, n_samples: int) -> tuple:
         Samples of the conditioned record (``prep.x.shape[0]``).
     """
     mc = method_choice(cfg, sr, n_samples)
-    return (mc.n_p, sr.n_k, sr.noise, sr.instruments, mc.method)
+    return (mc.n_p, sr.n_k, sr.noise, sr.instruments, mc.method, sr.window_noise)
 
 
 def searched_windows(sr: SearchResult, settings: tuple) -> dict:
@@ -291,7 +291,7 @@ def searched_windows(sr: SearchResult, settings: tuple) -> dict:
     settings : tuple
         :func:`estimate_settings` of the job.
     """
-    n_p, _, _, _, method = settings
+    n_p, _, _, _, method, _ = settings
     if method != "ls" or not np.array_equal(np.broadcast_to(n_p, sr.n_p.shape), sr.n_p):
         return {}
     return dict(sr.window_estimates)
@@ -316,10 +316,12 @@ def method_choice(cfg, sr: SearchResult, n_samples: int):
 
 
 def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
-                    noise="white", use_instruments: bool = False, method: str = "ls"):
+                    noise="white", use_instruments: bool = False, method: str = "ls",
+                    window_noise: tuple = ()):
     """Estimate on one window (``None`` = every usable sample) with the search's choices
-    (``n_p``, ``n_k``, the noise setting and whether to use the instruments:
-    ``SearchResult.n_p, .n_k, .noise, .instruments``) by the job's ``estimation.method``.
+    (``n_p``, ``n_k``, the noise setting, whether to use the instruments and the disjoint
+    windows' noise models: ``SearchResult.n_p, .n_k, .noise, .instruments,
+    .window_noise``) by the job's ``estimation.method``.
 
     A disjoint window whose data cannot be estimated (an input that does not move in it,
     too many masked samples) returns a :class:`WindowFailure` — a bad window is a
@@ -341,6 +343,10 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
         Estimate with ``prep.r`` as instruments (``SearchResult.instruments``; ``ls`` only).
     method : ``"ls"``, ``"correlation"``, ``"tc"`` or ``"dc"``
         The estimator ``estimation.method`` resolved to (:func:`estimate_settings`).
+    window_noise : tuple of NoiseModel
+        The noise models a disjoint window of a least-squares estimate is estimated with
+        (``SearchResult.window_noise``; ``()``: its own); the all-data estimate fits its
+        own.
     """
     a, b = window if window is not None else (0, prep.x.shape[0])
     x, y = as_masked_zero(prep.x[a:b]), as_masked_zero(prep.y[a:b])
@@ -357,7 +363,8 @@ def estimate_window(prep: Prepared, window: tuple[int, int] | None, n_p, n_k=0,
         return estimate_step_responses(
             x, y, n_p=n_p, dt=prep.dt_s,
             integrating=prep.integrating, mask=prep.good_xy[a:b], noise=noise, n_k=n_k,
-            instruments=None if (prep.r is None or not use_instruments) else prep.r[a:b])
+            instruments=None if (prep.r is None or not use_instruments) else prep.r[a:b],
+            noise_models=(window_noise or None) if window is not None else None)
     except DataQualityError as exc:
         exc = _named(exc, prep)
         if window is None:

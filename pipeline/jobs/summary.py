@@ -381,9 +381,10 @@ def _named_trace(trace: list, outs: list[str], ins: list[str],
         t = dict(t)
         if time is not None and "failed_window" in t:
             t["failed_window_time"] = _utc_span(time, *map(int, t["failed_window"]))
-        if "pairs" in t:
-            t["pairs"] = [{**p, "output": outs[p["output"]], "input": ins[p["input"]]}
-                          for p in t["pairs"]]
+        for key in ("pairs", "uninformative"):  # per pair: a trial's, a skipped one's
+            if key in t:
+                t[key] = [{**p, "output": outs[p["output"]], "input": ins[p["input"]]}
+                          for p in t[key]]
         out.append(t)
     return out
 

@@ -15,7 +15,8 @@ from pipeline.identification.checks import (
     windows_disagree,
 )
 from pipeline.errors import InsufficientDataError
-from pipeline.identification.search import search, split_windows_by_length
+from pipeline.identification.search import search
+from pipeline.identification.windows import split_windows_by_length
 from tests.estimation.test_estimate import ar1, simulate
 
 
@@ -263,3 +264,95 @@ def test_search_on_too_short_record_says_what_to_do():
     rng = np.random.default_rng(0)
     with pytest.raises(InsufficientDataError, match=r"too short for the N_p search"):
         search(rng.standard_normal(12), rng.standard_normal(12), dt=1.0)
+
+
+def _gls_by_hand(u: np.ndarray, y: np.ndarray, d: np.ndarray, n_p: int):
+    """Generalised least squares of an FIR with a known AR noise filter ``d``, in plain
+    numpy: filter the output and every lagged input with ``D(q)`` and solve; the step
+    response and its standard deviation (``sigma^2 = RSS / (N - n_p - p)``).  The first
+    observation is sample ``n_p + p``, as in the estimator's lag Gram (which holds
+    ``n_p + p + 1`` lags, method.md §10)."""
+    p = d.size - 1
+    k0 = n_p + p
+    ks = np.arange(k0, u.size)
+    yf = sum(d[i] * y[ks - i] for i in range(p + 1))
+    Phi = np.column_stack([sum(d[i] * u[ks - lag - i] for i in range(p + 1))
+                           for lag in range(n_p)])
+    b, rss = np.linalg.lstsq(Phi, yf, rcond=None)[:2]
+    s2 = float(rss[0]) / (ks.size - n_p - p)
+    cum = np.tril(np.ones((n_p, n_p)))
+    cov = cum @ (s2 * np.linalg.inv(Phi.T @ Phi)) @ cum.T
+    return cum @ b, np.sqrt(np.diag(cov))
+
+
+def test_windows_are_estimated_with_the_record_noise_model():
+    """A noise-model search estimates each disjoint window by generalised least squares
+    with the noise model found on the whole record (SearchResult.window_noise): the same
+    step response and standard deviation as that filter applied by hand."""
+    from tests.plants import open_loop_record
+
+    u, y = open_loop_record(6000, 0.9, 4_100_001)
+    res = search(u, y, dt=1.0, n_p=40, noise="auto")
+    [model] = res.window_noise
+    assert model.order >= 1 and model is res.noise_model[0]
+    d = np.r_[1.0, model.coefficients]
+    assert len(res.window_estimates) == 2
+    for (a, b), est in res.window_estimates.items():
+        step, std = _gls_by_hand(u[a:b], y[a:b], d, 40)
+        np.testing.assert_allclose(est.step[0, 0, :40], step, atol=1e-9 * std.max())
+        np.testing.assert_allclose(est.step_std[0, 0, :40], std, rtol=1e-9)
+        assert est.noise_model[0].coefficients == model.coefficients
+    from pipeline.errors import ConfigError
+    from pipeline.estimation.estimate import estimate_step_responses
+
+    with pytest.raises(ConfigError, match="1 models for 2 outputs"):
+        estimate_step_responses(u, np.column_stack([y, y]), n_p=40, dt=1.0,
+                                noise_models=res.window_noise)
+    with pytest.raises(ConfigError, match="instrumental variables refit their own"):
+        estimate_step_responses(u, y, n_p=40, dt=1.0, noise_models=res.window_noise,
+                                instruments=u)
+
+
+def test_window_lengths_skipped_as_uninformative_are_so_when_estimated():
+    """Stage 2 does not estimate a window length whose windows the whole-record fit
+    predicts to be uninformative (a pair's detectable change above sqrt(2) x 30 %); each
+    skipped length, estimated here anyway, indeed leaves a responding pair unable to
+    detect a 30 % change, and the search still ends where the windows agree."""
+    from pipeline.estimation.estimate import estimate_step_responses
+    from pipeline.identification.checks import window_agreement
+
+    rng = np.random.default_rng(4_100_002)
+    n = 40_000
+    u = np.column_stack([ar1(n, 0.8, rng) for _ in range(2)])
+    y = simulate(ct.tf([1.0], [6.0, 1.0]), u[:, 0], 1.0) \
+        + simulate(ct.tf([-0.5], [3.0, 1.0]), u[:, 1], 1.0)
+    y = y + simulate(ct.tf([1.0], [10.0, 1.0]), 3.0 * rng.standard_normal(n), 1.0)
+    res = search(u, y, dt=1.0, noise="auto")
+    skipped = [t for t in res.nd_trace if "skipped" in t]
+    assert skipped and "pairs" in res.nd_trace[-1]
+    for t in skipped:
+        wins = split_windows_by_length(n, t["window_samples"], 2)
+        ests = [estimate_step_responses(u[a:b], y[a:b], n_p=res.n_p, dt=1.0, n_k=res.n_k,
+                                        noise_models=res.window_noise) for a, b in wins]
+        agr = [a for row in window_agreement(ests) for a in row]
+        assert any(a.verdict == "insufficient_data" for a in agr), t
+        assert {(p["output"], p["input"]) for p in t["uninformative"]} <= \
+            {(0, j) for j, a in enumerate(agr) if a.detectable_change > 0.3}
+    assert res.nd_trace[-1]["windows_agree"] and res.n_d == res.nd_trace[-1]["n_d"]
+
+
+def test_a_window_that_cannot_be_estimated_is_a_recorded_trial():
+    """An input that does not move in the first window (held for its first 3,000
+    samples) makes that window singular: the trial is recorded with the window and the
+    error, and N_d grows until both windows can be estimated."""
+    rng = np.random.default_rng(4_100_003)
+    n = 12_000
+    u = np.column_stack([ar1(n, 0.8, rng) for _ in range(2)])
+    u[:3000, 1] = 0.0
+    y = simulate(ct.tf([1.0], [4.0, 1.0]), u[:, 0], 1.0) \
+        + simulate(ct.tf([2.0], [4.0, 1.0]), u[:, 1], 1.0) + 0.1 * rng.standard_normal(n)
+    res = search(u, y, dt=1.0, n_p=20)
+    failed = [t for t in res.nd_trace if "failed_window" in t]
+    assert failed and failed[0]["failed_window"][0] == 0
+    assert all("singular" in t["error"] for t in failed)
+    assert res.n_d > failed[-1]["n_d"] and res.agreement

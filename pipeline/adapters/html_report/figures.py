@@ -315,6 +315,9 @@ def search_trace_figure(run: StoredRun) -> str:
         if "error" in trial:
             ax.axvline(trial["n_d"], color="#c62828", lw=0.6)
             continue
+        if "skipped" in trial:
+            ax.axvline(trial["n_d"], color="#9e9e9e", lw=0.6, ls="--")
+            continue
         for k, p in enumerate(trial.get("pairs") or []):
             if p.get("p_value") is not None:
                 ax.scatter(trial["n_d"], max(p["p_value"], 1e-300), s=8,
@@ -326,7 +329,8 @@ def search_trace_figure(run: StoredRun) -> str:
            ylabel="agreement p per pair (–)")
     fig.text(0.01, 0.98, "filled: flat tail (and nothing significant beyond); dotted: chosen "
              "N_p; dashed: flat when ≤ 1 / α = 0.01; red vertical: a window that could not be "
-             "estimated", fontsize=8, va="top")
+             "estimated; grey dashed: a length skipped, its windows predicted uninformative",
+             fontsize=8, va="top")
     return figure_svg(fig, "search-trace")
 
 
