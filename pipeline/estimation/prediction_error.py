@@ -176,11 +176,16 @@ def _inv_factor(fac) -> np.ndarray:
     if isinstance(fac, StructuredFactor):
         return fac.inv_factor()
     c, scale = fac
-    # inverted and scaled in place on the one copy np.tril makes
-    Linv, info = scipy.linalg.lapack.dtrtri(np.asfortranarray(np.tril(c[0])), lower=1,
+    # inverted and scaled in place on one Fortran-ordered copy (dtrtri reads and writes
+    # the lower triangle only); the strict upper triangle, which holds what the Cholesky
+    # left there, is zeroed column by column (contiguous in Fortran order) instead of
+    # np.tril + np.asfortranarray, two more passes over the matrix
+    Linv, info = scipy.linalg.lapack.dtrtri(np.array(c[0], order="F"), lower=1,
                                             overwrite_c=1)
     if info != 0:
         raise SingularSystemError("triangular factor is singular")
+    for j in range(1, Linv.shape[1]):
+        Linv[:j, j] = 0.0
     np.divide(Linv, scale[None, :], out=Linv)
     return Linv
 
