@@ -521,12 +521,14 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
     run_id : str, optional
         Id of the run directory; ``None`` lets the store choose one.
     """
-    rid, run_dir, rrd, doc = write_discrepancy_run(cfg, model, source, data, result,
+    rid, run_dir, rrd, _ = write_discrepancy_run(cfg, model, source, data, result,
                                                    timings=timings, run_id=run_id)
     return DiscrepancyReport(cfg.job, rid, run_dir, result.verdict, result.verdict,
                              None if result.effect is None else result.effect.to_dict(),
                              result.gap, data.dt_s, int(result.series.t_s.size), data.files,
-                             rrd, result, timings, summary_markdown(doc))
+                             rrd, result, timings,
+                             # the report.md just written, not rendered a second time
+                             (run_dir / "report.md").read_text(encoding="utf-8"))
 
 
 def run_discrepancy(cfg, *, files: list[Path] | None = None, run_id: str | None = None,
