@@ -356,3 +356,20 @@ def test_a_window_that_cannot_be_estimated_is_a_recorded_trial():
     assert failed and failed[0]["failed_window"][0] == 0
     assert all("singular" in t["error"] for t in failed)
     assert res.n_d > failed[-1]["n_d"] and res.agreement
+
+
+@pytest.mark.parametrize("noise,form", [("white", "level"), ("walk", "differenced")])
+def test_integrating_windows_keep_the_record_form_and_filter(noise, form):
+    """An integrating output: the form the record's fit chose (level form for white level
+    noise, differenced for a random walk) is the form every window is estimated in, with
+    the record's filter."""
+    from tests.plants import open_level_record
+
+    u, y, _ = open_level_record(8000, noise, 11)
+    res = search(u, y, dt=1.0, integrating=True, noise="auto")
+    [model] = res.window_noise
+    assert model.form == form
+    for est in res.window_estimates.values():
+        assert est.noise_model[0].form == form
+        assert est.noise_model[0].coefficients == model.coefficients
+        assert np.all(np.isfinite(est.rate)) and np.all(est.rate_std > 0)
