@@ -53,10 +53,11 @@ _DETECT_SIGMAS = float(scipy.stats.norm.ppf(1 - AGREEMENT_ALPHA / 2)
 PREDICTION_MARGIN = 2.0
 """:func:`predicted_detectable_change` calls windows surely uninformative only when a pair
 would need more than this factor of the window's information (variance) to detect the
-:data:`DETECTABLE_GAIN_CHANGE`: the record's covariance scaled to a window predicted
-the windows' detectable change to within 0.90-1.05x on a stationary 20 x 20 record, and
-the margin leaves room for windows that hold more of the record's excitation than their
-share."""
+:data:`DETECTABLE_GAIN_CHANGE`: the record's covariance scaled to a window (by
+``N / N_d`` and by the inputs' power in the windows against the record's) predicted the
+windows' detectable change to within 0.90-1.05x on a stationary 20 x 20 record, and the
+margin leaves room for what the scaling misses (the spectrum of the inputs, noise that
+changes over the record)."""
 NULL_SIGMAS = 2.0
 """A pair with every lag within this many standard deviations of zero in every window has
 no response to compare (``_is_null_pair``)."""

@@ -15,7 +15,8 @@ unknowns ended the check even where longer windows fit, and N_d doubled while an
 pair failed at its own rate, which a plant of many pairs does by chance.)
 A length whose windows cannot be informative is not estimated: the whole-record
 reference fit (the one the left-out part is read from), its variance scaled by
-``N / N_d`` (method.md §5: a lag's variance falls as ``1 / N_d``), predicts each pair's
+``N / N_d`` (method.md §5: a lag's variance falls as ``1 / N_d``) and by how much less
+each input moves in the windows than in the record (mean squares), predicts each pair's
 detectable change, and a length where some responding pair would need more than
 :data:`pipeline.identification.checks.PREDICTION_MARGIN` times the window's
 information is recorded as ``skipped`` with those pairs (the longest length is always
@@ -250,7 +251,8 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
         if len(wins) < 2:
             break
         step()
-        blocking = _predicted_uninformative(ref, npm, n_d) if n_d < most else []
+        blocking = _predicted_uninformative(
+            ref, npm, n_d, _power_ratio(x, mask, wins)) if n_d < most and ref is not None else []
         if blocking:
             nd_trace.append({"n_d": n_d, "window_samples": length,
                              "skipped": "predicted_insufficient_data",
@@ -292,19 +294,42 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
     return chosen, nd_trace, chosen_ests
 
 
-def _predicted_uninformative(ref: StepResponseEstimate | None, npm: np.ndarray,
-                             n_d: int) -> list[dict]:
+def _predicted_uninformative(ref: StepResponseEstimate | None, npm: np.ndarray, n_d: int,
+                             power_ratio: np.ndarray) -> list[dict]:
     """The pairs whose windows of ``n_d`` observations the reference fit predicts to be
     surely uninformative (:func:`pipeline.identification.checks.surely_uninformative`),
-    with their predicted detectable change; ``[]`` without a reference."""
+    with their predicted detectable change; ``[]`` without a reference.  A pair's
+    variance is the record's scaled by ``N / n_d`` and by how much less its input moves
+    in the windows than in the record (``power_ratio``, per input: the record's mean
+    square over the windows', averaged over the two windows) — a window that holds more
+    than its share of the excitation is predicted as the better one it is."""
     if ref is None:
         return []
-    scale = float(np.max(ref.n_d)) / n_d
+    scale = float(np.max(ref.n_d)) / n_d * power_ratio
     out = []
     for i in range(npm.shape[0]):
         for j in range(npm.shape[1]):
             m = int(npm[i, j])
-            d = predicted_detectable_change(ref.step[i, j, :m], ref.step_std[i, j, :m], scale)
+            d = predicted_detectable_change(ref.step[i, j, :m], ref.step_std[i, j, :m],
+                                            float(scale[j]))
             if surely_uninformative(d):
                 out.append({"output": i, "input": j, "predicted_detectable_change": d})
     return out
+
+
+def _power_ratio(x: np.ndarray, mask, windows) -> np.ndarray:
+    """Per input, the record's mean square over each window's (good samples only; the
+    diagonal of a Gram per observation), averaged over ``windows``; ``inf`` where an input
+    does not move in a window."""
+    def power(a: int, b: int) -> np.ndarray:
+        xs = x[a:b]
+        if mask is None:
+            return np.mean(xs ** 2, axis=0)
+        m = np.asarray(mask)[a:b]
+        good = np.broadcast_to(m[:, None], xs.shape) if m.ndim == 1 else m[:, : xs.shape[1]]
+        return np.sum(np.where(good, xs, 0.0) ** 2, axis=0) / np.maximum(good.sum(axis=0), 1)
+
+    whole = power(0, x.shape[0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = [np.where(p > 0, whole / p, np.inf) for p in (power(a, b) for a, b in windows)]
+    return np.mean(ratios, axis=0)

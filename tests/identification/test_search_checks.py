@@ -313,20 +313,37 @@ def test_windows_are_estimated_with_the_record_noise_model():
                                 instruments=u)
 
 
-def test_window_lengths_skipped_as_uninformative_are_so_when_estimated():
+def _two_input_record(seed: int, *, ends_excited: bool):
+    """Two AR(1) 0.8 inputs through first-order lags (gains 1 and -0.5), coloured noise;
+    with ``ends_excited`` the inputs move 10x more (in amplitude) in the first and last
+    fifths of the record than in between, so the windows at the record's ends hold about
+    2.5x the record's average excitation."""
+    rng = np.random.default_rng(seed)
+    n = 40_000
+    u = np.column_stack([ar1(n, 0.8, rng) for _ in range(2)])
+    if ends_excited:
+        amp = np.full(n, 0.3)
+        amp[: n // 5] = amp[-n // 5:] = 3.0
+        u = u * amp[:, None]
+    y = simulate(ct.tf([1.0], [6.0, 1.0]), u[:, 0], 1.0) \
+        + simulate(ct.tf([-0.5], [3.0, 1.0]), u[:, 1], 1.0)
+    return u, y + simulate(ct.tf([1.0], [10.0, 1.0]), 3.0 * rng.standard_normal(n), 1.0)
+
+
+@pytest.mark.parametrize("seed,ends_excited", [(4_100_002, False), (4_100_007, True)])
+def test_window_lengths_skipped_as_uninformative_are_so_when_estimated(seed, ends_excited):
     """Stage 2 does not estimate a window length whose windows the whole-record fit
-    predicts to be uninformative (a pair's detectable change above sqrt(2) x 30 %); each
+    predicts to be uninformative (a pair's detectable change above sqrt(2) x 30 %, its
+    variance scaled by N / N_d and by how much less its input moves in the windows); each
     skipped length, estimated here anyway, indeed leaves a responding pair unable to
-    detect a 30 % change, and the search still ends where the windows agree."""
+    detect a 30 % change.  With the excitation at the record's ends the windows there
+    know more than N / N_d says: scaled by N / N_d alone, the length where these windows
+    agree (1 320) was skipped and N_d doubled past it."""
     from pipeline.estimation.estimate import estimate_step_responses
     from pipeline.identification.checks import window_agreement
 
-    rng = np.random.default_rng(4_100_002)
-    n = 40_000
-    u = np.column_stack([ar1(n, 0.8, rng) for _ in range(2)])
-    y = simulate(ct.tf([1.0], [6.0, 1.0]), u[:, 0], 1.0) \
-        + simulate(ct.tf([-0.5], [3.0, 1.0]), u[:, 1], 1.0)
-    y = y + simulate(ct.tf([1.0], [10.0, 1.0]), 3.0 * rng.standard_normal(n), 1.0)
+    u, y = _two_input_record(seed, ends_excited=ends_excited)
+    n = u.shape[0]
     res = search(u, y, dt=1.0, noise="auto")
     skipped = [t for t in res.nd_trace if "skipped" in t]
     assert skipped and "pairs" in res.nd_trace[-1]
