@@ -22,6 +22,7 @@ __all__ = [
     "AgreementResult",
     "pair_agreement",
     "predicted_detectable_change",
+    "record_responds",
     "surely_uninformative",
     "window_agreement",
     "windows_agree",
@@ -61,6 +62,11 @@ changes over the record)."""
 NULL_SIGMAS = 2.0
 """A pair with every lag within this many standard deviations of zero in every window has
 no response to compare (``_is_null_pair``)."""
+RESPONSE_SIGMAS = 2 * NULL_SIGMAS
+"""The whole record shows a pair responding when some lag of its step response lies this
+many standard deviations from zero (:func:`record_responds`): twice the null band.
+Windows that are null for such a pair are too short to see it, not evidence that it
+agrees: without this, noisier windows would be null sooner and "agree" at a shorter N_d."""
 
 
 @dataclass(frozen=True)
@@ -159,7 +165,8 @@ def _wald_homogeneity(steps, covs) -> tuple[float, int]:
     return stat, int((len(steps) - 1) * keep.size)
 
 
-def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA) -> AgreementResult:
+def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA,
+                   responds: bool = False) -> AgreementResult:
     """Agreement of one pair's step responses from ``len(steps)`` disjoint windows.
 
     Parameters
@@ -172,6 +179,9 @@ def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA) ->
         which understates the evidence of correlated lags.
     alpha : float
         False-alarm rate.
+    responds : bool
+        Whether the whole record shows the pair responding (:func:`record_responds`):
+        windows null for such a pair are not informative.
     """
     k = len(steps)
     if k < 2:
@@ -195,7 +205,8 @@ def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA) ->
             detect = max(detect, _DETECT_SIGMAS * np.sqrt(np.max(var)) / scale)
     # too noisy to tell (a pair with no response at all has no gain to compare, so it
     # can be judged): a pair that does not fail is then insufficient_data, increase N_d
-    informative = bool(detect <= DETECTABLE_GAIN_CHANGE or _is_null_pair(steps, stds))
+    informative = bool(detect <= DETECTABLE_GAIN_CHANGE
+                       or (not responds and _is_null_pair(steps, stds)))
     if p < alpha or g_p < GAIN_AGREEMENT_ALPHA:
         verdict = "fail"
     elif not informative:
@@ -274,9 +285,8 @@ def predicted_detectable_change(step, std, scale: float) -> float:
     a pair estimated on the whole record as ``step`` ± ``std``, when each window holds
     ``1 / scale`` of the record's observations: a window's variance is the record's times
     ``scale`` (method.md §5: the variance of a lag falls as ``1 / N_d``).  NaN for a pair
-    that may have no response to compare in such windows (its peak within
-    ``2 NULL_SIGMAS`` window standard deviations of zero: a window could then call it
-    null, which is informative).
+    the record does not show responding (:func:`record_responds`): its windows may be
+    null, which is informative.
 
     Parameters
     ----------
@@ -288,7 +298,7 @@ def predicted_detectable_change(step, std, scale: float) -> float:
     """
     s_w = float(np.sqrt(np.max(np.asarray(std, dtype=float) ** 2) * scale))
     peak = float(np.max(np.abs(step)))
-    if not peak > 2 * NULL_SIGMAS * s_w:
+    if not record_responds(step, std):
         return float("nan")
     return _DETECT_SIGMAS * np.sqrt(2.0) * s_w / peak
 
@@ -306,7 +316,23 @@ def surely_uninformative(detectable_change: float) -> bool:
     return bool(detectable_change > np.sqrt(PREDICTION_MARGIN) * DETECTABLE_GAIN_CHANGE)
 
 
-def window_agreement(estimates: list[StepResponseEstimate]) -> list[list[AgreementResult]]:
+def record_responds(step, std) -> bool:
+    """Whether a whole-record step response shows a response: some lag
+    :data:`RESPONSE_SIGMAS` standard deviations from zero.
+
+    Parameters
+    ----------
+    step, std : 1-D arrays
+        The record's step response of a pair and its standard deviation.
+    """
+    s = np.asarray(std, dtype=float)
+    ok = s > 0
+    return bool(np.any(np.abs(np.asarray(step, dtype=float)[ok]) >= RESPONSE_SIGMAS * s[ok]))
+
+
+def window_agreement(estimates: list[StepResponseEstimate],
+                     reference: StepResponseEstimate | None = None
+                     ) -> list[list[AgreementResult]]:
     """Agreement per pair over estimates from disjoint windows.
 
     Returns a nested list ``[output][input]`` of :class:`AgreementResult`.  Each pair is
@@ -318,6 +344,10 @@ def window_agreement(estimates: list[StepResponseEstimate]) -> list[list[Agreeme
     estimates : list of StepResponseEstimate
         Estimates of the same outputs, inputs and orders from disjoint windows (the first
         one's ``n_p`` sets the lags compared); an empty list gives ``[]``.
+    reference : StepResponseEstimate, optional
+        The whole record's estimate: windows null for a pair it shows responding
+        (:func:`record_responds`, over the lags compared) are not informative.  Without
+        it, null windows are.
     """
     if not estimates:
         return []
@@ -330,8 +360,12 @@ def window_agreement(estimates: list[StepResponseEstimate]) -> list[list[Agreeme
             covs = None
             if all(e.step_cov is not None for e in estimates):
                 covs = [e.step_cov[i, j, :n, :n] for e in estimates]
+            m = n if reference is None else min(n, int(reference.n_p[i, j]))
+            responds = reference is not None and record_responds(
+                reference.step[i, j, :m], reference.step_std[i, j, :m])
             row.append(pair_agreement([e.step[i, j, :n] for e in estimates],
-                                      [e.step_std[i, j, :n] for e in estimates], covs))
+                                      [e.step_std[i, j, :n] for e in estimates], covs,
+                                      responds=responds))
         out.append(row)
     return out
 

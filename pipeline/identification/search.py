@@ -490,7 +490,7 @@ def search(
         todo = [w for w in wins if w not in window_ests]
         ests = {**usable_window_estimates(x, y, mask, todo, npm, dt, integrating, **kw),
                 **window_ests}
-        agreement = window_agreement([ests[w] for w in wins if w in ests])
+        agreement = window_agreement([ests[w] for w in wins if w in ests], ref)
     return SearchResult(npm, settled, n_d, length, order_trace, nd_trace, agreement,
                         bic_order, wins, nk, fb, noise_models, noise,
                         instruments is not None, left, left_std, window_ests)
@@ -506,18 +506,16 @@ def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
 
 
 def _reference(x, y, est_max, *, fixed, order, P0: int, dt: float, integrating, mask,
-               nk: np.ndarray, n_y: int, n_x: int) -> StepResponseEstimate | None:
+               nk: np.ndarray, n_y: int, n_x: int) -> StepResponseEstimate:
     """The whole-record fit the horizon's left-out part (:func:`left_out_of`) and stage
     2's predictions are read from: the noise-model fit at ``n_p_max`` that stage 1
     judged against (at the fixed orders when they are given), for a white search the
-    thesis' least squares at ``n_p_max``; None for a white search at fixed orders (no
-    reference fitted)."""
+    thesis' least squares at ``n_p_max`` (at the fixed orders when they are given)."""
     if order != 0 and est_max is not None:
         return est_max
-    if fixed is not None:
-        return None
-    return estimate_step_responses(x, y, n_p=P0, dt=dt, integrating=integrating,
-                                   mask=mask, n_k=_clip_n_k(nk, P0, n_y, n_x))
+    return estimate_step_responses(x, y, n_p=P0 if fixed is None else fixed, dt=dt,
+                                   integrating=integrating, mask=mask,
+                                   n_k=_clip_n_k(nk, P0, n_y, n_x))
 
 
 def _as_columns(a) -> np.ndarray:

@@ -275,7 +275,7 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
                 break
             n_d = min(2 * n_d, most)
             continue
-        agr = window_agreement(ests)
+        agr = window_agreement(ests, ref)
         nd_trace.append({
             "n_d": n_d,
             "window_samples": length,

@@ -126,7 +126,7 @@ def summarise(cfg, prep: Prepared, sr: SearchResult, all_est: StepResponseEstima
     window_status, labelled = _window_table(sr, window_results, prep.time)
     window_ests = [e for _, e in labelled]
     steps = _step_table([("all", all_est)] + labelled, outs, ins)
-    agreement = window_agreement(window_ests) if len(window_ests) >= 2 else \
+    agreement = window_agreement(window_ests, all_est) if len(window_ests) >= 2 else \
         [[None] * len(ins) for _ in outs]
     x0, res, innov = _residual_series(prep, all_est)
     config = cfg.model_dump(mode="json")  # the resolved job, as the run's manifest holds it
