@@ -293,20 +293,21 @@ def predicted_detectable_change(step, std, scale: float) -> float:
     step, std : 1-D arrays (n_p,)
         The pair's whole-record step response and its standard deviation.
     scale : float
-        Record observations over window observations (``> 1`` for a window shorter than
-        the record).
+        A window's variance over the record's: record observations over window
+        observations (``> 1`` for a window shorter than the record), times the record's
+        input power over the windows' (the search's stage 2).
     """
-    s_w = float(np.sqrt(np.max(np.asarray(std, dtype=float) ** 2) * scale))
-    peak = float(np.max(np.abs(step)))
     if not record_responds(step, std):
         return float("nan")
-    return _DETECT_SIGMAS * np.sqrt(2.0) * s_w / peak
+    s_w = float(np.sqrt(np.max(np.asarray(std, dtype=float) ** 2) * scale))
+    return _DETECT_SIGMAS * np.sqrt(2.0) * s_w / float(np.max(np.abs(step)))
 
 
 def surely_uninformative(detectable_change: float) -> bool:
     """Whether a predicted detectable change (:func:`predicted_detectable_change`) says the
     windows cannot be informative even with :data:`PREDICTION_MARGIN` times the information
-    predicted (NaN: may be null, so not surely).
+    predicted (NaN, a pair the record shows no response in: its windows may be null,
+    which is informative, so not surely).
 
     Parameters
     ----------
