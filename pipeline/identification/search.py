@@ -461,7 +461,7 @@ def search(
     # candidates and ~16 refinements; white: one nested solve), stage 2 its window
     # lengths (doublings)
     stage2 = window_trials(n, FIRST_WINDOW_PER_LAG * max(n_p_min, 1), max(n_p_min, 1),
-                            extra)  # a guess
+                           extra)  # a guess
     steps = _Steps(tick, (1 if fixed is not None or order == 0 else 34) + stage2)
     ctx, est_max, fb = None, None, []
     if order != 0 or feedback != "off":
@@ -480,9 +480,9 @@ def search(
         (np.zeros(npm.shape), np.zeros(npm.shape))
     kw = {"noise": noise, "n_k": nk, "instruments": instruments,
           "noise_models": window_noise_models(noise, instruments is not None, noise_models)}
-    n_d, length, nd_trace, window_ests = choose_window_length(x, y, mask, npm, dt, integrating, kw,
-                                                 n_d_start=n_d_start, extra=extra,
-                                                 steps=steps, ref=ref)
+    n_d, length, nd_trace, window_ests = choose_window_length(
+        x, y, mask, npm, dt, integrating, kw, n_d_start=n_d_start, extra=extra, steps=steps,
+        ref=ref)
     tick(steps.total, steps.total)
     wins = split_windows_by_length(n, length, max_windows) if length else []
     agreement = []
@@ -508,9 +508,9 @@ def _orders(x, y, ctx, est_max, *, fixed, n_p_min: int, n_k, **stage1):
 def _reference(x, y, est_max, *, fixed, order, P0: int, dt: float, integrating, mask,
                nk: np.ndarray, n_y: int, n_x: int) -> StepResponseEstimate:
     """The whole-record fit the horizon's left-out part (:func:`left_out_of`) and stage
-    2's predictions are read from: the noise-model fit at ``n_p_max`` that stage 1
-    judged against (at the fixed orders when they are given), for a white search the
-    thesis' least squares at ``n_p_max`` (at the fixed orders when they are given)."""
+    2's predictions and null-window rule are read from, at ``n_p_max`` (at the fixed
+    orders when they are given): the noise-model fit stage 1 judged against, for a white
+    search the thesis' least squares."""
     if order != 0 and est_max is not None:
         return est_max
     return estimate_step_responses(x, y, n_p=P0 if fixed is None else fixed, dt=dt,

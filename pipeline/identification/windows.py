@@ -245,14 +245,15 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
     most = n // 2 - (P - 1 + extra)  # the largest N_d two disjoint windows hold
     nd_trace: list = []
     chosen, chosen_ests = None, {}
+    record_power = _mean_square(x, mask, 0, n)  # once: every length compares with it
     while True:
         length = n_d + P - 1 + extra
         wins = split_windows_by_length(n, length, 2)
         if len(wins) < 2:
             break
         step()
-        blocking = _predicted_uninformative(
-            ref, npm, n_d, _power_ratio(x, mask, wins)) if n_d < most and ref is not None else []
+        blocking = _predicted_uninformative(ref, npm, n_d, record_power, x, mask, wins) \
+            if n_d < most else []
         if blocking:
             nd_trace.append({"n_d": n_d, "window_samples": length,
                              "skipped": "predicted_insufficient_data",
@@ -295,17 +296,22 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
 
 
 def _predicted_uninformative(ref: StepResponseEstimate | None, npm: np.ndarray, n_d: int,
-                             power_ratio: np.ndarray) -> list[dict]:
-    """The pairs whose windows of ``n_d`` observations the reference fit predicts to be
-    surely uninformative (:func:`pipeline.identification.checks.surely_uninformative`),
+                             record_power: np.ndarray, x: np.ndarray, mask,
+                             windows) -> list[dict]:
+    """The pairs whose ``windows`` of ``n_d`` observations the reference fit predicts to
+    be surely uninformative (:func:`pipeline.identification.checks.surely_uninformative`),
     with their predicted detectable change; ``[]`` without a reference.  A pair's
     variance is the record's scaled by ``N / n_d`` and by how much less its input moves
-    in the windows than in the record (``power_ratio``, per input: the record's mean
-    square over the windows', averaged over the two windows) — a window that holds more
-    than its share of the excitation is predicted as the better one it is."""
+    in the windows than in the record (per input, the record's mean square
+    ``record_power`` over each window's, averaged over the windows; infinite where an
+    input does not move in a window) — a window that holds more than its share of the
+    excitation is predicted as the better one it is."""
     if ref is None:
         return []
-    scale = float(np.max(ref.n_d)) / n_d * power_ratio
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.mean([np.where(p > 0, record_power / p, np.inf)
+                         for p in (_mean_square(x, mask, a, b) for a, b in windows)], axis=0)
+    scale = float(np.max(ref.n_d)) / n_d * ratio
     out = []
     for i in range(npm.shape[0]):
         for j in range(npm.shape[1]):
@@ -317,19 +323,12 @@ def _predicted_uninformative(ref: StepResponseEstimate | None, npm: np.ndarray, 
     return out
 
 
-def _power_ratio(x: np.ndarray, mask, windows) -> np.ndarray:
-    """Per input, the record's mean square over each window's (good samples only; the
-    diagonal of a Gram per observation), averaged over ``windows``; ``inf`` where an input
-    does not move in a window."""
-    def power(a: int, b: int) -> np.ndarray:
-        xs = x[a:b]
-        if mask is None:
-            return np.mean(xs ** 2, axis=0)
-        m = np.asarray(mask)[a:b]
-        good = np.broadcast_to(m[:, None], xs.shape) if m.ndim == 1 else m[:, : xs.shape[1]]
-        return np.sum(np.where(good, xs, 0.0) ** 2, axis=0) / np.maximum(good.sum(axis=0), 1)
-
-    whole = power(0, x.shape[0])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratios = [np.where(p > 0, whole / p, np.inf) for p in (power(a, b) for a, b in windows)]
-    return np.mean(ratios, axis=0)
+def _mean_square(x: np.ndarray, mask, a: int, b: int) -> np.ndarray:
+    """Per input, the mean square over the good samples of ``[a, b)`` (the diagonal of a
+    Gram per observation)."""
+    xs = x[a:b]
+    if mask is None:
+        return np.mean(xs ** 2, axis=0)
+    m = np.asarray(mask)[a:b]
+    good = np.broadcast_to(m[:, None], xs.shape) if m.ndim == 1 else m[:, : xs.shape[1]]
+    return np.sum(np.where(good, xs, 0.0) ** 2, axis=0) / np.maximum(good.sum(axis=0), 1)
