@@ -238,7 +238,7 @@ def output_design(ctx: GramContext, i: int, n_p_row: np.ndarray, n_k_row: np.nda
         Future input lags ``M`` added to the regression (0: a causal fit).
     """
     from pipeline.estimation.lag_products import Block
-    from pipeline.estimation.prediction_error import Design
+    from pipeline.estimation.output_fit import Design
 
     n_x = ctx.n_x
     P = int(n_p_row.max())

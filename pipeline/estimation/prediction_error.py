@@ -32,8 +32,6 @@ regressed input on the instruments.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.linalg
 
@@ -46,6 +44,7 @@ from pipeline.estimation.lag_products import (
     signal_gram,
     take,
 )
+from pipeline.estimation.output_fit import Design, OutputFit
 from pipeline.estimation.noise_model import (
     DEFAULT_AR_ORDER_MAX,
     ar_order_by_bic,
@@ -59,7 +58,7 @@ from pipeline.estimation.structured_gls import (
     structured_pays,
 )
 
-__all__ = ["Design", "OutputFit", "NestedGLS", "fit_prediction_error", "fit_fixed_noise",
+__all__ = ["NestedGLS", "fit_prediction_error", "fit_fixed_noise",
            "fit_instrumental", "first_stage_strength", "filtered_normal_equations",
            "WEAK_INSTRUMENT_F"]
 
@@ -68,78 +67,6 @@ WEAK_INSTRUMENT_F = 10.0
 """First-stage F below which an instrument counts as weak (Staiger & Stock's rule of
 thumb): the instrument-based estimate is then biased towards the direct one and its
 covariance is unreliable."""
-
-
-@dataclass(frozen=True)
-class Design:
-    """The regression of one output on a lag Gram.
-
-    Attributes
-    ----------
-    y : Block
-        The fitted signal (one signal at one lag).
-    blocks : tuple of Block
-        Regressor blocks; their unknowns are concatenated in order.
-    sel : ndarray of int
-        Indices of the unknowns actually estimated (per-pair orders, known delays).
-    nuisance : int
-        Per-segment nuisance terms profiled out: 0 none, 1 a constant, 2 a constant and
-        a linear trend (the profiled Grams of :class:`LagGram`).
-    """
-
-    y: Block
-    blocks: tuple[Block, ...]
-    sel: np.ndarray
-    nuisance: int = 0
-
-    @property
-    def m(self) -> int:
-        return int(self.sel.size)
-
-    @property
-    def full_size(self) -> int:
-        return sum(b.size for b in self.blocks)
-
-
-@dataclass(frozen=True)
-class OutputFit:
-    """Result of one output's fit.
-
-    ``b`` (m,) unknowns in ``design.sel`` order; ``cov_factor`` (k, m): the covariance is
-    ``sigma2 * cov_factor' cov_factor`` (so pair blocks cost only their columns);
-    ``d`` the noise filter ``[1, d_1..d_p]``; ``V`` the criterion; ``n_d`` observations.
-    """
-
-    b: np.ndarray
-    cov_factor: np.ndarray
-    sigma2: float
-    d: np.ndarray
-    V: float
-    n_d: int
-    n_par: int
-    iterations: int
-    selection: dict
-    method: str
-
-    @property
-    def order(self) -> int:
-        return int(self.d.size - 1)
-
-    @property
-    def bic(self) -> float:
-        return float(self.n_d * np.log(max(self.V, 1e-300) / self.n_d)
-                     + self.n_par * np.log(self.n_d))
-
-    def cov(self, idx=None) -> np.ndarray:
-        """Covariance ``sigma2 * F' F`` of the unknowns.
-
-        Parameters
-        ----------
-        idx : array of int, optional
-            Positions in ``b`` to return (rows and columns); default all.
-        """
-        F = self.cov_factor if idx is None else self.cov_factor[:, idx]
-        return self.sigma2 * (F.T @ F)
 
 
 # ------------------------------------------------------------------ linear algebra
@@ -243,6 +170,10 @@ class _Problem:
         self._cache: dict[bytes, np.ndarray] = {}
         self._rhs: dict[bytes, tuple] = {}
         self._factors: dict[bytes, tuple] = {}
+        self._last_q: tuple | None = None
+        # (d, J) and U = A~^-1 J of the last Gauss-Newton matrix: when the iteration
+        # stops where it stood, the covariance needs the same U
+        self.last_schur_u: tuple | None = None
         self.single = len(self.blocks) == 1 and design.y.size == 1
         self.full_sel = bool(self.sel.size == design.full_size
                              and np.array_equal(self.sel, np.arange(self.sel.size)))
@@ -344,7 +275,18 @@ class _Problem:
         return self.lg.cache[key]
 
     def residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
-        """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts``."""
+        """``q[a] = sum_k Z(k) e(k - a)`` for ``e = y - U'b``, ``a < shifts`` (the last
+        ``b``'s products are kept: the alternation's last residuals are where
+        Gauss–Newton starts, and one pass over the Gram serves both)."""
+        key = b.tobytes()
+        last = self._last_q
+        if last is not None and last[0] == key and last[1].shape[0] >= shifts:
+            return last[1][:shifts]
+        q = self._residual_products(b, shifts)
+        self._last_q = (key, q)
+        return q
+
+    def _residual_products(self, b: np.ndarray, shifts: int) -> np.ndarray:
         full = np.zeros(self.design.full_size)
         full[self.sel] = b
         if self.single:
@@ -388,9 +330,11 @@ class _Problem:
         return self.lg.n_lags - top
 
 
-def _autocov(prob: _Problem, b: np.ndarray, n_lags: int) -> np.ndarray:
-    """``r(tau) = sum_k e(k) e(k - tau)``, ``tau = 0..n_lags-1`` (one product vector)."""
-    q0 = prob.residual_products(b, 1)[0]
+def _autocov(prob: _Problem, b: np.ndarray, n_lags: int, shifts: int = 1) -> np.ndarray:
+    """``r(tau) = sum_k e(k) e(k - tau)``, ``tau = 0..n_lags-1`` (one product vector;
+    ``shifts`` > 1 computes the products Gauss–Newton would ask for at the same ``b``
+    in the same pass over the Gram)."""
+    q0 = prob.residual_products(b, shifts)[0]
     return np.array([prob.take_e(q0, b, t) for t in range(n_lags)])
 
 
@@ -428,14 +372,24 @@ def _gn_matrices(prob: _Problem, b, d, q, R):
     return J, g_b, g_d
 
 
-def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
-    """``(fac, U, C, sr)`` of the Gauss–Newton matrix ``[[A~, -J], [-J', R11]]`` by block
-    elimination on the factor of ``A~`` (shared with the GLS solve at the same ``d``):
-    ``U = A~^-1 J`` and ``C`` the Cholesky factor of the Schur complement
+def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray,
+           g: np.ndarray | None = None):
+    """``(fac, U, C, sr, w)`` of the Gauss–Newton matrix ``[[A~, -J], [-J', R11]]`` by
+    block elimination on the factor of ``A~`` (shared with the GLS solve at the same
+    ``d``): ``U = A~^-1 J`` and ``C`` the Cholesky factor of the Schur complement
     ``R11 - J'U`` scaled by ``sr = sqrt(diag R11)`` — the trailing block of the scaled
-    Cholesky factor of the whole matrix, so the same rank test applies to its pivots."""
+    Cholesky factor of the whole matrix, so the same rank test applies to its pivots;
+    ``w = A~^-1 g`` solved with ``U`` in one call (None without ``g``)."""
     fac = prob.factor(d)
-    U = _solve(fac, J)
+    key = (np.asarray(d, dtype=float).tobytes(), J.tobytes())
+    if g is None and prob.last_schur_u is not None and prob.last_schur_u[0] == key:
+        U, w = prob.last_schur_u[1], None  # the covariance at the last step's point
+    elif g is None:
+        U, w = _solve(fac, J), None
+    else:
+        Uw = _solve(fac, np.column_stack([J, g]))
+        U, w = Uw[:, :-1], Uw[:, -1]
+    prob.last_schur_u = (key, U)
     sr = np.sqrt(np.clip(np.diag(R11), 1e-300, None))
     Sig = R11 - J.T @ U
     Sig = 0.5 * (Sig + Sig.T) / np.outer(sr, sr)
@@ -452,13 +406,12 @@ def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
         raise SingularSystemError(
             f"normal equations of {prob.what} (noise model) are singular (rank deficient: "
             f"pivot ratio {(piv.min() / piv.max()) ** 2:.2e})")
-    return fac, U, C, sr
+    return fac, U, C, sr, w
 
 
 def _gn_step(prob: _Problem, d, J, R11, g_b, g_d) -> np.ndarray:
     """Solve ``[[A~, -J], [-J', R11]] [x_b; x_d] = [g_b; -g_d]`` (block elimination)."""
-    fac, U, C, sr = _schur(prob, d, J, R11)
-    w = _solve(fac, g_b)
+    fac, U, C, sr, w = _schur(prob, d, J, R11, g_b)
     x_d = scipy.linalg.cho_solve((C, True), (J.T @ w - g_d) / sr, check_finite=False) / sr
     return np.concatenate([w + U @ x_d, x_d])
 
@@ -470,7 +423,7 @@ def _covariance(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray):
     GLS solve) with ``p`` rows ``C^-1 U'`` stacked under it — no second factorisation."""
     if not J.shape[1]:
         return _inv_factor(prob.factor(d))
-    fac, U, C, sr = _schur(prob, d, J, R11)
+    fac, U, C, sr, _ = _schur(prob, d, J, R11)
     extra = scipy.linalg.solve_triangular(C, (U / sr[None, :]).T, lower=True,
                                           check_finite=False)
     if isinstance(fac, StructuredFactor):
@@ -610,6 +563,52 @@ class NestedGLS:
                          0, {}, "gls")
 
 
+def _gauss_newton(prob: _Problem, b: np.ndarray, d: np.ndarray, max_iter: int, tol: float):
+    """Gauss–Newton on ``(b, d)`` from a GLS pair: ``(b, d, q, R, V, iterations)``."""
+    it = 0
+    p = d.size - 1
+    q, R = _criterion_parts(prob, b, d)
+    V = float(d @ R @ d)
+    for it in range(1, max_iter + 1):
+        if p == 0:
+            break
+        J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
+        try:
+            step = _gn_step(prob, d, J, R[1:, 1:], g_b, g_d)
+        except SingularSystemError:
+            break
+        # the step's predicted decrease of V (its Gauss-Newton model) below tol: d is
+        # settled (a step this small would move it by about sqrt(tol * n_d) of its
+        # standard error) and its factor is at hand, so b is made the GLS solution of
+        # this d (as it is already when no step was taken) and no step is taken
+        if step[: b.size] @ g_b - step[b.size :] @ g_d < tol * V:
+            if it > 1:
+                b, _, _ = _gls(prob, d)
+                q, R = _criterion_parts(prob, b, d)
+                V = float(d @ R @ d)
+            break
+        lam = 1.0
+        improved = False
+        while lam > 1e-4:
+            b_try = b + lam * step[: b.size]
+            d_try = d.copy()
+            d_try[1:] += lam * step[b.size :]
+            if is_minimum_phase(d_try):
+                q_t, R_t = _criterion_parts(prob, b_try, d_try)
+                V_t = float(d_try @ R_t @ d_try)
+                if V_t <= V:
+                    improved = True
+                    break
+            lam *= 0.5
+        if not improved:
+            break
+        rel = (V - V_t) / max(V, 1e-300)
+        b, d, q, R, V = b_try, d_try, q_t, R_t, V_t
+        if rel < tol:
+            break
+    return b, d, q, R, V, it
+
+
 def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
                          order: int | None = None,
                          p_max: int = DEFAULT_AR_ORDER_MAX,
@@ -649,53 +648,26 @@ def fit_prediction_error(lg: LagGram, design: Design, *, what: str,
     p_prev = -1
     for _ in range(6):
         if order is None:
-            r = _autocov(prob, b, p_cap + 1)
+            r = _autocov(prob, b, p_cap + 1, d.size)
             p, coef, bic = ar_order_by_bic(r, prob.n_d, p_cap)
             selection = {"criterion": "bic", "bic_by_order": bic}
         else:
-            r = _autocov(prob, b, order + 1)
+            r = _autocov(prob, b, order + 1, d.size)
             coefs, _ = levinson(r, order)
             p, coef = len(coefs) - 1, coefs[-1]
             selection = {"criterion": "fixed"}
         d_new = np.concatenate([[1.0], coef])
-        converged = p == p_prev and np.allclose(d_new, d, atol=1e-4)
+        if p == p_prev and np.allclose(d_new, d, atol=1e-4):
+            # settled: Gauss-Newton starts from the last GLS pair (b, d), whose factor
+            # it reuses, rather than from one more GLS at a filter within 1e-4 of it
+            break
         d = d_new
         b, V, _ = _gls(prob, d)
-        if converged or p == 0:
-            break
-        p_prev = p
-    it = 0
-    p = d.size - 1
-    n_par = _dof(prob, b.size, p)
-    q, R = _criterion_parts(prob, b, d)
-    V = float(d @ R @ d)
-    for it in range(1, max_iter + 1):
         if p == 0:
             break
-        J, g_b, g_d = _gn_matrices(prob, b, d, q, R)
-        try:
-            step = _gn_step(prob, d, J, R[1:, 1:], g_b, g_d)
-        except SingularSystemError:
-            break
-        lam = 1.0
-        improved = False
-        while lam > 1e-4:
-            b_try = b + lam * step[: b.size]
-            d_try = d.copy()
-            d_try[1:] += lam * step[b.size :]
-            if is_minimum_phase(d_try):
-                q_t, R_t = _criterion_parts(prob, b_try, d_try)
-                V_t = float(d_try @ R_t @ d_try)
-                if V_t <= V:
-                    improved = True
-                    break
-            lam *= 0.5
-        if not improved:
-            break
-        rel = (V - V_t) / max(V, 1e-300)
-        b, d, q, R, V = b_try, d_try, q_t, R_t, V_t
-        if rel < tol:
-            break
+        p_prev = p
+    n_par = _dof(prob, b.size, d.size - 1)
+    b, d, q, R, V, it = _gauss_newton(prob, b, d, max_iter, tol)
     J, _, _ = _gn_matrices(prob, b, d, q, R)
     F = _covariance(prob, d, J, R[1:, 1:])
     s2 = V / (prob.n_d - n_par)

@@ -231,3 +231,42 @@ def test_nested_orders_diagnostics_equal_each_orders_own():
         got = est_at(m).diagnostics
         np.testing.assert_allclose(got.condition_number, own.condition_number, rtol=1e-10)
         np.testing.assert_allclose(got.vif, own.vif, rtol=1e-12)
+
+
+@pytest.mark.parametrize("d", [np.array([1.0]), np.array([1.0, -0.9]),
+                               np.array([1.0, -0.7, 0.2])])
+@pytest.mark.parametrize("subset", [False, True])
+def test_structured_factor_is_the_inverse_of_the_filtered_gram(d, subset, monkeypatch):
+    """``A~ = T' G T`` written out (``T`` the filter ``D`` along the lags, as a matrix) and
+    inverted by numpy: the shared-factor solve and covariance factor give its inverse,
+    for every unknown (built a few lags at a time: blocks of 2 lags here) and for a
+    subset (unknowns left out join the projection)."""
+    import pipeline.estimation.structured_gls as sg
+
+    monkeypatch.setattr(sg, "_CHUNK_ROWS", 2 * N_X)
+    rng = np.random.default_rng(12)
+    n_lag, p = 7, d.size - 1
+    L = n_lag + 3
+    Z = rng.standard_normal((400, L * N_X))
+    G = (Z.T @ Z).reshape(L, N_X, L, N_X)
+    n1, m = (n_lag + p) * N_X, n_lag * N_X
+    T = np.zeros((n1, m))
+    for lag in range(n_lag):
+        for a, da in enumerate(d):
+            for j in range(N_X):
+                T[(lag + a) * N_X + j, lag * N_X + j] = da
+    A = T.T @ G.reshape(L * N_X, L * N_X)[:n1, :n1] @ T
+    sel = np.delete(np.arange(m), [4, 10]) if subset else np.arange(m)
+    inv = np.linalg.inv(A[np.ix_(sel, sel)])
+    fac = StructuredFactor(sg.InputGramInverse(G), d, sel, n_lag)
+    F = fac.inv_factor()
+    np.testing.assert_allclose(F.T @ F, inv, rtol=0, atol=1e-9 * np.abs(inv).max())
+    rhs = rng.standard_normal((sel.size, 2))
+    np.testing.assert_allclose(fac.solve(rhs), inv @ rhs, rtol=0,
+                               atol=1e-9 * np.abs(inv @ rhs).max())
+    np.testing.assert_allclose(fac.solve(rhs[:, 0]), inv @ rhs[:, 0], rtol=0,
+                               atol=1e-9 * np.abs(inv @ rhs).max())
+    extra = rng.standard_normal((2, sel.size))
+    Fx = fac.stacked_inv_factor(extra)
+    np.testing.assert_allclose(Fx.T @ Fx, inv + extra.T @ extra, rtol=0,
+                               atol=1e-9 * np.abs(inv).max())
