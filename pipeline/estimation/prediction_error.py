@@ -54,6 +54,7 @@ from pipeline.estimation.noise_model import (
 from pipeline.estimation.structured_gls import (
     InputGramInverse,
     StructuredFactor,
+    nested_cholesky,
     structured_factor,
     structured_pays,
 )
@@ -82,12 +83,16 @@ def _factor(M: np.ndarray, what: str):
         c = scipy.linalg.cho_factor(Ms, lower=True, overwrite_a=True, check_finite=False)
     except np.linalg.LinAlgError:
         raise SingularSystemError(f"normal equations of {what} are singular") from None
-    piv = np.abs(np.diag(c[0]))
+    _rank_test(np.abs(np.diag(c[0])), what)
+    return c, scale
+
+
+def _rank_test(piv: np.ndarray, what: str) -> None:
+    """Raise when a scaled Cholesky factor's squared pivot ratio is below ``_RCOND``."""
     if piv.min() ** 2 < _RCOND * piv.max() ** 2:
         raise SingularSystemError(
             f"normal equations of {what} are singular (rank deficient: pivot ratio "
             f"{(piv.min() / piv.max()) ** 2:.2e})")
-    return c, scale
 
 
 def _solve(fac, rhs):
@@ -266,6 +271,26 @@ class _Problem:
             self._factors.pop(next(iter(self._factors)))
         self._factors[key] = fac
         return fac
+
+    def triangular_factor(self, d: np.ndarray):
+        """The scaled Cholesky factor of ``A~`` (the form :func:`_factor` returns), for
+        the nested orders: from :func:`nested_cholesky` (a banded QR on the inputs'
+        shared factor, ``A~`` never formed) when every unknown of a one-block design is
+        estimated and the shared-factor solve would be used, else by factoring ``A~``."""
+        d = np.asarray(d, dtype=float)
+        blk = self.blocks[0]
+        if self.single and self.full_sel and blk.lag_lo == 0 and d.size > 1 \
+                and structured_pays(blk.n_sig, d, self.sel.size, blk.n_lag):
+            Rt = nested_cholesky(self._ginv(), d, blk.n_lag)
+            if Rt is not None:
+                # A~ = Rt' Rt: diag(A~) are Rt's column norms, and Rt with its columns
+                # scaled is the Cholesky factor of the scaled A~ (transposed: lower)
+                scale = np.sqrt(np.clip(np.einsum("ij,ij->j", Rt, Rt), 1e-300, None))
+                np.divide(Rt, scale[None, :], out=Rt)
+                c = Rt.T
+                _rank_test(np.abs(np.diag(c)), self.what)
+                return (c, True), scale
+        return self.factor(d, dense=True)
 
     def _ginv(self) -> InputGramInverse:
         blk = self.blocks[0]
@@ -505,7 +530,7 @@ class NestedGLS:
         self.prob = _Problem(lg, design, what)
         self.d = np.asarray(d, dtype=float)
         self.c, self.yy = self.prob.rhs(self.d)
-        self.fac = self.prob.factor(self.d, dense=True)
+        self.fac = self.prob.triangular_factor(self.d)
         self.F = _inv_factor(self.fac)
         c0, scale = self.fac
         # the forward half of every order's solve: leading entries of L^-1 (c / scale)

@@ -44,8 +44,8 @@ import numpy as np
 import scipy.linalg
 import scipy.signal
 
-__all__ = ["COND_LIMIT", "InputGramInverse", "StructuredFactor", "structured_factor",
-           "structured_pays"]
+__all__ = ["COND_LIMIT", "InputGramInverse", "StructuredFactor", "nested_cholesky",
+           "structured_factor", "structured_pays"]
 
 COND_LIMIT = 1e8
 """Largest bound ``cond(G) * (max|D| / min|D|)^2`` on the filtered system's condition
@@ -90,14 +90,23 @@ class InputGramInverse:
         piv = np.abs(np.diag(R))
         # LAPACK's 1-norm estimate, and never below what the pivots show
         self.cond = max(float((piv.max() / piv.min()) ** 2), 1.0 / max(rcond, 1e-300))
-        Rinv, info = scipy.linalg.lapack.dtrtri(R, lower=0, overwrite_c=1)
+        Rinv, info = scipy.linalg.lapack.dtrtri(R, lower=0, overwrite_c=0)
         if info != 0:
             return
+        self._Rs, self._sc, self._R = R, sc, None
         # G = (R S)'(R S) with S = diag(sc): (R S)^-1 = S^-1 R^-1, upper triangular, and
         # its leading blocks invert the leading blocks of R S (any fewer lags)
         self.Rinv = np.triu(Rinv)
         np.divide(self.Rinv, sc[:, None], out=self.Rinv)
         self.ok = True
+
+    @property
+    def R(self) -> np.ndarray:
+        """The upper Cholesky factor ``R S`` of the Gram itself (``G = (R S)'(R S)``),
+        row-major, formed on first use."""
+        if self._R is None:
+            self._R = np.ascontiguousarray(self._Rs * self._sc[None, :])
+        return self._R
 
 
 def _filter_rows(X: np.ndarray, d: np.ndarray, out: np.ndarray | None = None,
@@ -315,3 +324,59 @@ def structured_factor(ginv: InputGramInverse | None, d: np.ndarray, sel: np.ndar
             or ginv.cond * _gain_range(d) >= COND_LIMIT:
         return None
     return StructuredFactor(ginv, d, sel, n_lag)
+
+
+def nested_cholesky(ginv: InputGramInverse | None, d: np.ndarray,
+                    n_lag: int) -> np.ndarray | None:
+    """Upper-triangular ``R~`` with ``A~ = R~' R~`` for every unknown of ``n_lag`` lags
+    (``A~ = T' G T``, module docstring), by a QR factorisation of ``M = (R S) T``; None
+    when the inputs' factor is not available or not safely conditioned
+    (:data:`COND_LIMIT`, as for :func:`structured_factor`).
+
+    ``M' M = T' G T = A~``, and ``M`` is upper triangular but for ``p`` lag blocks below
+    its diagonal (``R S`` is upper triangular, ``T`` has ``p`` blocks below its
+    diagonal), so a Householder QR per lag block only mixes ``(p + 1) n_x`` rows:
+    ``~ 2 ((p + 1) n_x)^2 m`` flops per lag against ``m^3 / 3`` for the Cholesky of
+    ``A~``, and ``A~`` itself is never formed.  The leading block of ``R~`` is the
+    Cholesky factor of every leading block of ``A~`` (the nested orders).  Hand-written:
+    LAPACK's banded QR routines take a band stored by diagonals, which a lag-block band
+    of a dense factor is not.
+
+    Parameters
+    ----------
+    ginv : InputGramInverse or None
+        The inputs' Gram factor.
+    d : ndarray (p + 1,)
+        Noise filter ``[1, d_1..d_p]``.
+    n_lag : int
+        Lags ``Q`` of the regressor block (every one of its ``Q n_x`` unknowns).
+    """
+    if ginv is None or not ginv.ok or d[0] != 1.0:
+        return None
+    n_s, p = ginv.n_s, d.size - 1
+    n1, m = (n_lag + p) * n_s, n_lag * n_s
+    if n1 > ginv.Rinv.shape[0] or ginv.cond * _gain_range(d) >= COND_LIMIT:
+        return None
+    R = ginv.R
+
+    def rows(r0: int, c: int) -> np.ndarray:  # lag block r0 of M, columns c..m-1
+        out = d[0] * R[r0 * n_s : (r0 + 1) * n_s, c:m]
+        for a in range(1, p + 1):
+            out += d[a] * R[r0 * n_s : (r0 + 1) * n_s, c + a * n_s : m + a * n_s]
+        return out
+
+    Rt = np.zeros((m, m))
+    band = np.concatenate([rows(r, 0) for r in range(p + 1)])  # lag blocks k..k+p of M
+    for k in range(n_lag):
+        c0, c1 = k * n_s, (k + 1) * n_s
+        # the band's columns are c0..m-1; its first n_s columns are the panel
+        Qk, Rk = np.linalg.qr(band[:, :n_s], mode="complete")
+        rest = Qk.T @ band[:, n_s:]
+        Rt[c0:c1, c0:c1] = Rk[:n_s]
+        Rt[c0:c1, c1:] = rest[:n_s]
+        if k + 1 < n_lag:  # the block's other rows stay, the next lag block of M joins
+            band = np.concatenate([rest[n_s:], rows(k + 1 + p, c1)])
+    sign = np.where(np.diag(Rt) < 0, -1.0, 1.0)
+    Rt *= sign[:, None]
+    return Rt
+

@@ -17,6 +17,7 @@ import numpy as np
 import scipy.stats
 
 from pipeline.estimation.step_result import StepResponseEstimate
+from pipeline.identification.truncation import chi2_sf
 
 __all__ = [
     "AgreementResult",
@@ -190,7 +191,7 @@ def pair_agreement(steps, stds, covs=None, *, alpha: float = AGREEMENT_ALPHA,
     if covs is None:
         covs = [np.diag(np.asarray(s, dtype=float) ** 2) for s in stds]
     stat, df = _wald_homogeneity(steps, covs)
-    p = float(scipy.stats.chi2.sf(stat, df)) if df else 1.0
+    p = float(chi2_sf(stat, df)) if df else 1.0
     g_stat, g_p = _gain_homogeneity(steps, covs)
     spread = 0.0
     detect = 0.0
@@ -271,7 +272,7 @@ def _gain_homogeneity(steps, covs) -> tuple[float, float]:
         return float("nan"), 1.0
     gbar = float(np.sum(g / v) / np.sum(1 / v))
     stat = float(np.sum((g - gbar) ** 2 / v))
-    return stat, float(scipy.stats.chi2.sf(stat, len(g) - 1))
+    return stat, float(chi2_sf(stat, len(g) - 1))
 
 
 def _is_null_pair(steps, stds) -> bool:
@@ -401,7 +402,7 @@ def ljung_box(residual, *, lags: int = 20) -> dict:
     rho = np.array([float(e[k:] @ e[:-k]) / d for k in range(1, lags + 1)]) if d > 0 \
         else np.zeros(lags)
     q = n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, lags + 1)))
-    p = float(scipy.stats.chi2.sf(q, lags))
+    p = float(chi2_sf(q, lags))
     return {"statistic": float(q), "p_value": p, "lags": lags, "white": bool(p >= 0.01),
             "autocorrelation": rho.tolist()}
 
@@ -452,7 +453,7 @@ def cross_correlation_check(x, residual, *, max_lag: int, confidence: float = 0.
     pos = lags >= 0
     frac = float(np.mean(np.abs(r[pos]) > band))
     stat = float(n * np.sum(r[pos] ** 2))
-    p = float(scipy.stats.chi2.sf(stat, int(pos.sum())))
+    p = float(chi2_sf(stat, int(pos.sum())))
     return {"lags": lags.tolist(), "r": r.tolist(), "band": float(band),
             "fraction_outside": frac, "max_abs_r": float(np.max(np.abs(r[pos]))),
             "statistic": stat, "p_value": p, "ok": bool(p >= 1 - confidence)}

@@ -240,7 +240,8 @@ def test_structured_factor_is_the_inverse_of_the_filtered_gram(d, subset, monkey
     """``A~ = T' G T`` written out (``T`` the filter ``D`` along the lags, as a matrix) and
     inverted by numpy: the shared-factor solve and covariance factor give its inverse,
     for every unknown (built a few lags at a time: blocks of 2 lags here) and for a
-    subset (unknowns left out join the projection)."""
+    subset (unknowns left out join the projection); the banded QR gives its Cholesky
+    factor (the search's nested orders)."""
     import pipeline.estimation.structured_gls as sg
 
     monkeypatch.setattr(sg, "_CHUNK_ROWS", 2 * N_X)
@@ -256,6 +257,10 @@ def test_structured_factor_is_the_inverse_of_the_filtered_gram(d, subset, monkey
             for j in range(N_X):
                 T[(lag + a) * N_X + j, lag * N_X + j] = da
     A = T.T @ G.reshape(L * N_X, L * N_X)[:n1, :n1] @ T
+    # the nested orders' factor: numpy's Cholesky factor of A~, every leading block
+    Rt = sg.nested_cholesky(sg.InputGramInverse(G), d, n_lag)
+    np.testing.assert_allclose(Rt, np.linalg.cholesky(A).T, rtol=0,
+                               atol=1e-12 * np.abs(Rt).max())
     sel = np.delete(np.arange(m), [4, 10]) if subset else np.arange(m)
     inv = np.linalg.inv(A[np.ix_(sel, sel)])
     fac = StructuredFactor(sg.InputGramInverse(G), d, sel, n_lag)
