@@ -10,7 +10,8 @@ minimised by
 
 1. least squares (``d = 1``) -> AR order of the residual by BIC (Yule–Walker) ->
    generalised least squares with that ``D`` -> order again, until the order repeats;
-2. Gauss–Newton on ``(b, d)`` jointly at that order until ``V`` stops decreasing.  Every
+2. Gauss–Newton on ``(b, d)`` jointly at that order until a step's predicted decrease
+   of ``V`` is below ``tol V`` (``b`` then made the GLS solution of the final ``d``).  Every
    quantity is a combination of the lag Gram (:mod:`pipeline.estimation.lag_products`):
    ``A~ = sum d_a d_b G[.+a, .+b]``, the Jacobian products ``sum (DU)(k) e(k-a)`` and the
    residual autocovariances come from ``q_a = sum_k Z(k) e(k-a)``.
