@@ -197,6 +197,20 @@ class Effect:
         return self.name in ("deadband", "backlash", "saturation")
 
     @property
+    def measured_source(self) -> tuple[str, str] | None:
+        """``(signal, output)`` for an effect that says a measured signal drives an
+        output (``unmodelled_input``), else None.  Localisation's circular-shift test
+        asks exactly that question of the nominal residual
+        (:func:`pipeline.discrepancy.localise.input_relevance`), with a null that keeps
+        both signals' autocorrelation; the plain held-out RMS test's block bootstrap
+        does not, so a slow signal that happens to follow a slow disturbance in the
+        hold-out passes it (:func:`pipeline.discrepancy.analyse.corroborated`)."""
+        if self.name != "unmodelled_input":
+            return None
+        signal, _, output = self.location.partition("->")
+        return signal, output
+
+    @property
     def is_sensor_correction(self) -> bool:
         """A measurement-side effect (``sensor_bias_drift``): it changes what the sensor
         reports, not the plant -- added to the measured output (:func:`output_offsets`),

@@ -17,6 +17,12 @@ from pipeline.estimation.estimate import estimate_step_responses
 from pipeline.estimation.prediction import residuals as fir_residuals
 from pipeline.models.simulate import simulate
 
+RELEVANCE_ALPHA = 0.05
+"""Level of the circular-shift relevance test (:func:`input_relevance`): a signal with a
+smaller p-value is ``significant`` for an output and in its ``explained_by``; an effect
+whose measured source is not (``Effect.measured_source``) cannot pass on the plain
+held-out RMS test alone."""
+
 
 def lag_filter(x: np.ndarray, tau_samples: float) -> np.ndarray:
     """ZOH first-order lag (unit gain, strictly proper) of x along axis 0.
@@ -263,7 +269,7 @@ def _signal_entry(P: Problem, ff: _FirFit, sp: _Spectra, rel: dict[str, dict[str
     """Localisation entry of signal `name` for output `out` (index `i`)."""
     if name not in ff.fir_signals:  # left out of the FIR regression (collinear)
         entry = dict(rel[name])
-        entry.update(significant=bool(rel[name]["p_value"] < 0.05),
+        entry.update(significant=bool(rel[name]["p_value"] < RELEVANCE_ALPHA),
                      first_significant_lag_s=None, peak_lag_s=None,
                      significant_lags=0, discrepancy_step_final=None,
                      discrepancy_step_final_std=None,
@@ -277,7 +283,7 @@ def _signal_entry(P: Problem, ff: _FirFit, sp: _Spectra, rel: dict[str, dict[str
     sig_lags = np.flatnonzero(z > 3.0)
     entry = dict(rel[name])
     entry.update(
-        significant=bool(rel[name]["p_value"] < 0.05),
+        significant=bool(rel[name]["p_value"] < RELEVANCE_ALPHA),
         first_significant_lag_s=(float(sig_lags[0] * P.dt_s) if sig_lags.size else None),
         peak_lag_s=float(np.argmax(np.abs(dh)) * P.dt_s),
         significant_lags=int(sig_lags.size),
@@ -369,7 +375,7 @@ def _localise_output(P: Problem, ff: _FirFit, sp: _Spectra, resid: np.ndarray, i
         "fir_residual_rms": float(np.sqrt(np.mean(np.nan_to_num(ff.fir_res[:, i]) ** 2))),
         "signals": per_signal,
         "explained_by": [s for s, v in sorted(rel.items(), key=lambda kv: kv[1]["p_value"])
-                         if v["p_value"] < 0.05],
+                         if v["p_value"] < RELEVANCE_ALPHA],
         "lags_n_p": P.n_p,
         "trend": {"mean": float(coef[0]),
                   "drift_per_h": float(2 * coef[1] / duration_h) if duration_h > 0 else 0.0},

@@ -248,3 +248,24 @@ def test_an_actuator_effect_is_credited_for_the_level_it_moves_and_no_more():
     # an output not listed keeps its level (a given operating point)
     a, b = less_common_level(nominal, moves, [])
     np.testing.assert_array_equal(a, nominal)
+
+
+def test_only_an_unmodelled_input_needs_its_source_found_relevant_by_localisation():
+    """``corroborated``: an effect naming a measured signal -> output may pass on the
+    plain held-out test only when localisation's circular-shift p-value of that signal
+    for that output is below the level (0.05); the signal's p-value for another output
+    does not count, and an effect without a measured source is never held back."""
+    from pipeline.discrepancy.analyse import corroborated
+    from pipeline.discrepancy.effects import Effect
+
+    loc = {"y1": {"signals": {"u": {"p_value": 0.01}, "v": {"p_value": 0.44}}},
+           "y2": {"signals": {"u": {"p_value": 0.66}, "v": {"p_value": 0.02}}}}
+    unm = {"k": 1.0, "tau_s": 10.0, "delay_s": 0.0}
+    assert corroborated(Effect("unmodelled_input", "u->y1", unm), loc)
+    assert not corroborated(Effect("unmodelled_input", "v->y1", unm), loc)
+    assert not corroborated(Effect("unmodelled_input", "u->y2", unm), loc)
+    assert corroborated(Effect("unmodelled_input", "v->y2", unm), loc)
+    assert not corroborated(Effect("unmodelled_input", "w->y1", unm), loc)  # not tested
+    assert corroborated(Effect("gain", "y1", {"factor": 1.1}), loc)
+    assert Effect("unmodelled_input", "v->y2", unm).measured_source == ("v", "y2")
+    assert Effect("gain", "y1", {"factor": 1.1}).measured_source is None
