@@ -312,6 +312,17 @@ def test_the_explainable_bar_is_what_the_nominal_model_with_the_truth_closes():
     assert math.isnan(model_gap_reduction(make_trial(hx, None, 8_108_000)))
 
 
+def _discrepancy_json(trial, tmp_path, capsys) -> dict:
+    """``plantdyn discrepancy`` with every default on the trial's export and job, as a
+    user runs it; its ``discrepancy.json``."""
+    from flows.cli import main
+
+    job = write_trial(trial, tmp_path)
+    assert main(["discrepancy", "--no-prefect", "--progress", "never", str(job)]) == 0
+    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
+    return json.loads((run_dir / "discrepancy.json").read_text())
+
+
 def test_a_slow_disturbance_across_the_split_is_not_named_a_sensor_drift(tmp_path, capsys):
     """A null heat exchanger (seed 3 008 003, a tuning seed of the zoo nulls) whose
     unmeasured disturbance ends the fit part high: a bias and drift on the OP and the
@@ -319,13 +330,8 @@ def test_a_slow_disturbance_across_the_split_is_not_named_a_sensor_drift(tmp_pat
     toward that level, and were named.  Judged on shapes (each output's held-out level
     left out, ``select.centred``) they close nothing and the verdict is
     ``no_significant_effect``, through ``plantdyn discrepancy`` with every default."""
-    from flows.cli import main
-
     trial = make_trial(FAMILIES["heat_exchanger"], None, seed=3_008_003)
-    job = write_trial(trial, tmp_path)
-    assert main(["discrepancy", "--no-prefect", "--progress", "never", str(job)]) == 0
-    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
-    d = json.loads((run_dir / "discrepancy.json").read_text())
+    d = _discrepancy_json(trial, tmp_path, capsys)
     assert d["verdict"] == "no_significant_effect", (d["verdict"], d.get("effect"))
     drifts = [c for c in d["candidates"] if c["name"] == "sensor_bias_drift"]
     assert drifts and max(c["gap_reduction"] for c in drifts) > 0.2  # the plain share
@@ -340,13 +346,8 @@ def test_valve_backlash_is_named_with_its_width(tmp_path, capsys):
     read off the closed-loop simulation, whose OP has none of the plant's dither from
     sensor noise: the dither uses up part of the play, so the fitted width is the
     effective one, below the mechanical width (0.5-0.8 of it in the benchmark)."""
-    from flows.cli import main
-
     trial = make_trial(FAMILIES["heat_exchanger"], "backlash", seed=3_005_001)
-    job = write_trial(trial, tmp_path)
-    assert main(["discrepancy", "--no-prefect", "--progress", "never", str(job)]) == 0
-    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
-    d = json.loads((run_dir / "discrepancy.json").read_text())
+    d = _discrepancy_json(trial, tmp_path, capsys)
     truth = trial.effect.to_dict()
     assert d["verdict"] == "effect_found", d["verdict"]
     found = d["effect"]
@@ -375,13 +376,8 @@ def test_a_slow_signal_following_the_disturbance_is_not_named_an_unmodelled_inpu
     agitator power not relevant to the flow's residual (p 0.44), so the plain held-out
     test cannot pass it (``analyse.corroborated``) and the verdict is
     ``no_significant_effect``, through ``plantdyn discrepancy`` with every default."""
-    from flows.cli import main
-
     trial = make_trial(FAMILIES["valve_cooler"], None, seed=8_508_007)
-    job = write_trial(trial, tmp_path)
-    assert main(["discrepancy", "--no-prefect", "--progress", "never", str(job)]) == 0
-    run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
-    d = json.loads((run_dir / "discrepancy.json").read_text())
+    d = _discrepancy_json(trial, tmp_path, capsys)
     assert d["verdict"] == "no_significant_effect", (d["verdict"], d.get("effect"))
     (cand,) = [c for c in d["candidates"]
                if (c["name"], c["location"]) == ("unmodelled_input", "agitator_power->cw_flow")]
