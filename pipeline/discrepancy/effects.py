@@ -202,9 +202,9 @@ class Effect:
         output (``unmodelled_input``), else None.  Localisation's circular-shift test
         asks exactly that question of the nominal residual
         (:func:`pipeline.discrepancy.localise.input_relevance`), with a null that keeps
-        both signals' autocorrelation; the plain held-out RMS test's block bootstrap
-        does not, so a slow signal that happens to follow a slow disturbance in the
-        hold-out passes it (:func:`pipeline.discrepancy.analyse.corroborated`)."""
+        both signals' autocorrelation; the selection's tests do not, so a slow signal
+        that happens to follow a slow disturbance can pass them
+        (:func:`pipeline.discrepancy.analyse.corroborated`)."""
         if self.name != "unmodelled_input":
             return None
         signal, _, output = self.location.partition("->")

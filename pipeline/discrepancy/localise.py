@@ -20,8 +20,8 @@ from pipeline.models.simulate import simulate
 RELEVANCE_ALPHA = 0.05
 """Level of the circular-shift relevance test (:func:`input_relevance`): a signal with a
 smaller p-value is ``significant`` for an output and in its ``explained_by``; an effect
-whose measured source is not (``Effect.measured_source``) cannot pass on the plain
-held-out RMS test alone."""
+whose measured source is not (``Effect.measured_source``) does not pass the selection
+(``analyse.corroborated``)."""
 
 
 def lag_filter(x: np.ndarray, tau_samples: float) -> np.ndarray:
