@@ -104,8 +104,10 @@ def _solve(fac, rhs):
     return scipy.linalg.cho_solve(c, rhs / s, check_finite=False) / s
 
 
-def _inv_factor(fac) -> np.ndarray:
-    """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled)."""
+def _inv_factor(fac, own: bool = False) -> np.ndarray:
+    """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled).  ``own``: the factor is
+    the caller's to overwrite, Fortran-ordered with its strict upper triangle zero (the
+    banded QR's), so it is inverted where it is."""
     if isinstance(fac, StructuredFactor):
         return fac.inv_factor()
     c, scale = fac
@@ -113,12 +115,13 @@ def _inv_factor(fac) -> np.ndarray:
     # the lower triangle only); the strict upper triangle, which holds what the Cholesky
     # left there, is zeroed column by column (contiguous in Fortran order) instead of
     # np.tril + np.asfortranarray, two more passes over the matrix
-    Linv, info = scipy.linalg.lapack.dtrtri(np.array(c[0], order="F"), lower=1,
-                                            overwrite_c=1)
+    Linv, info = scipy.linalg.lapack.dtrtri(c[0] if own else np.array(c[0], order="F"),
+                                            lower=1, overwrite_c=1)
     if info != 0:
         raise SingularSystemError("triangular factor is singular")
-    for j in range(1, Linv.shape[1]):
-        Linv[:j, j] = 0.0
+    if not own:
+        for j in range(1, Linv.shape[1]):
+            Linv[:j, j] = 0.0
     np.divide(Linv, scale[None, :], out=Linv)
     return Linv
 
@@ -277,7 +280,9 @@ class _Problem:
         """The scaled Cholesky factor of ``A~`` (the form :func:`_factor` returns), for
         the nested orders: from :func:`nested_cholesky` (a banded QR on the inputs'
         shared factor, ``A~`` never formed) when every unknown of a one-block design is
-        estimated and the shared-factor solve would be used, else by factoring ``A~``."""
+        estimated and the shared-factor solve would be used, else by factoring ``A~``.
+        Returns ``(factor, own)``: ``own`` when the factor is a new array (Fortran order,
+        strict upper triangle zero) no one else holds."""
         d = np.asarray(d, dtype=float)
         blk = self.blocks[0]
         if self.single and self.full_sel and blk.lag_lo == 0 and d.size > 1 \
@@ -290,8 +295,8 @@ class _Problem:
                 np.divide(Rt, scale[None, :], out=Rt)
                 c = Rt.T
                 _rank_test(np.abs(np.diag(c)), self.what)
-                return (c, True), scale
-        return self.factor(d, dense=True)
+                return ((c, True), scale), True
+        return self.factor(d, dense=True), False
 
     def _ginv(self) -> InputGramInverse:
         blk = self.blocks[0]
@@ -531,13 +536,13 @@ class NestedGLS:
         self.prob = _Problem(lg, design, what)
         self.d = np.asarray(d, dtype=float)
         self.c, self.yy = self.prob.rhs(self.d)
-        self.fac = self.prob.triangular_factor(self.d)
-        self.F = _inv_factor(self.fac)
-        c0, scale = self.fac
+        fac, own = self.prob.triangular_factor(self.d)
+        c0, scale = fac
         # the forward half of every order's solve: leading entries of L^-1 (c / scale)
         self.z = scipy.linalg.solve_triangular(c0[0], self.c / scale, lower=True,
                                                check_finite=False)
         self.piv = np.abs(np.diag(c0[0]))
+        self.F = _inv_factor(fac, own)  # last: a factor of our own is inverted in place
         self._b_at: dict | None = None
 
     def _solutions(self) -> dict:
