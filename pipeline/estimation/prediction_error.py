@@ -81,7 +81,10 @@ def _factor(M: np.ndarray, what: str):
     np.multiply(scale[:, None], scale[None, :], out=Ms)
     np.divide(M, Ms, out=Ms)
     try:
-        c = scipy.linalg.cho_factor(Ms, lower=True, overwrite_a=True, check_finite=False)
+        # scipy.linalg.cholesky (not cho_factor) zeroes the other triangle, which lets
+        # _inv_factor invert a copy without clearing it
+        c = (scipy.linalg.cholesky(Ms, lower=True, overwrite_a=True, check_finite=False),
+             True)
     except np.linalg.LinAlgError:
         raise SingularSystemError(f"normal equations of {what} are singular") from None
     _rank_test(np.abs(np.diag(c[0])), what)
@@ -105,23 +108,19 @@ def _solve(fac, rhs):
 
 
 def _inv_factor(fac, own: bool = False) -> np.ndarray:
-    """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled).  ``own``: the factor is
-    the caller's to overwrite, Fortran-ordered with its strict upper triangle zero (the
-    banded QR's), so it is inverted where it is."""
+    """``F`` with ``M^-1 = F' F`` (columns of ``L^-1`` scaled).  Every factor here has
+    its strict upper triangle zero (:func:`_factor`, the banded QR), which dtrtri leaves
+    as it is.  ``own``: the factor is the caller's to overwrite (Fortran-ordered), so it
+    is inverted where it is instead of in a copy."""
     if isinstance(fac, StructuredFactor):
         return fac.inv_factor()
     c, scale = fac
     # inverted and scaled in place on one Fortran-ordered copy (dtrtri reads and writes
-    # the lower triangle only); the strict upper triangle, which holds what the Cholesky
-    # left there, is zeroed column by column (contiguous in Fortran order) instead of
-    # np.tril + np.asfortranarray, two more passes over the matrix
+    # the lower triangle only)
     Linv, info = scipy.linalg.lapack.dtrtri(c[0] if own else np.array(c[0], order="F"),
                                             lower=1, overwrite_c=1)
     if info != 0:
         raise SingularSystemError("triangular factor is singular")
-    if not own:
-        for j in range(1, Linv.shape[1]):
-            Linv[:j, j] = 0.0
     np.divide(Linv, scale[None, :], out=Linv)
     return Linv
 
