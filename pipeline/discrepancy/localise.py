@@ -372,7 +372,9 @@ def _localise_output(P: Problem, ff: _FirFit, sp: _Spectra, resid: np.ndarray, i
         "residual_mean": float(r_all[:, i].mean()),
         "measured_std": float(np.std(P.y[start:, i])),
         "relative_residual": total_rms / max(float(np.std(P.y[start:, i])), 1e-300),
-        "fir_residual_rms": float(np.sqrt(np.mean(np.nan_to_num(ff.fir_res[:, i]) ** 2))),
+        # over the samples the FIR fit predicts (its warm-up and gaps are NaN, not zero)
+        "fir_residual_rms": float(np.sqrt(np.nanmean(ff.fir_res[:, i] ** 2)))
+        if np.isfinite(ff.fir_res[:, i]).any() else float("nan"),
         "signals": per_signal,
         "explained_by": [s for s, v in sorted(rel.items(), key=lambda kv: kv[1]["p_value"])
                          if v["p_value"] < RELEVANCE_ALPHA],

@@ -72,3 +72,20 @@ def test_no_limit_column_is_the_nominal_fit(problem):
     sse = path.clip_sse(P, np.array([-np.inf]), np.array([np.inf]), first=0)
     whitened = P.whiten_split(P.y[:stop] - P.y_nominal[:stop], P.fit_start, stop)
     assert sse[0] == pytest.approx(sum(float(w @ w) for w in whitened), rel=1e-12)
+
+
+def test_the_fir_residual_rms_is_over_the_samples_the_fir_fit_predicts(problem):
+    """``localization[out]["fir_residual_rms"]`` is the RMS of the FIR regression's
+    residual over the samples it predicts: the warm-up of ``n_p`` lags (zeros in the
+    residual ``localise`` hands on) is not part of it."""
+    from pipeline.discrepancy.localise import localise
+
+    P = problem
+    resid = P.y - P.y_nominal
+    loc, fir_out, _ = localise(P, resid, np.random.default_rng(0))
+    for i, out in enumerate(P.outputs):
+        f = fir_out[i]
+        predicted = f[f != 0.0]
+        assert 0 < predicted.size < f.size  # a warm-up was left out
+        assert loc[out]["fir_residual_rms"] == pytest.approx(
+            float(np.sqrt(np.mean(predicted ** 2))), rel=1e-12)
