@@ -431,11 +431,7 @@ def _schur(prob: _Problem, d: np.ndarray, J: np.ndarray, R11: np.ndarray,
     # a structured factor is used only far from singular (its unit-diagonal pivots lie
     # well inside the bounds), so the scaled Schur pivots are tested against 1
     pivA = np.ones(1) if isinstance(fac, StructuredFactor) else np.diag(fac[0][0])
-    piv = np.abs(np.concatenate([pivA, np.diag(C)]))
-    if piv.min() ** 2 < _RCOND * piv.max() ** 2:
-        raise SingularSystemError(
-            f"normal equations of {prob.what} (noise model) are singular (rank deficient: "
-            f"pivot ratio {(piv.min() / piv.max()) ** 2:.2e})")
+    _rank_test(np.abs(np.concatenate([pivA, np.diag(C)])), f"{prob.what} (noise model)")
     return fac, U, C, sr, w
 
 

@@ -110,6 +110,7 @@ class InputGramInverse:
         row-major, formed on first use."""
         if self._R is None:
             self._R = np.ascontiguousarray(self._Rs * self._sc[None, :])
+            self._Rs = None  # no longer needed: one n x n array held, not two
         return self._R
 
 
@@ -171,6 +172,7 @@ class StructuredFactor:
         n1 = (n_lag + p) * n_s
         self.d = d
         self._n_s = n_s
+        self._n1 = n1
         self._F = None
         self._Ys = None
         R = ginv.Rinv[:n1, :n1]
@@ -181,11 +183,7 @@ class StructuredFactor:
             # impulse response of 1/D weighting R's lags (one pass over R)
             self._R = R
             self.m = sel.size
-            h = np.zeros(n_lag + p)
-            h[0] = 1.0
-            for lag in range(1, h.size):
-                a = min(p, lag)
-                h[lag] = -d[1 : a + 1] @ h[lag - 1 :: -1][:a]
+            h = scipy.signal.lfilter([1.0], d, np.eye(1, n_lag + p)[0])  # 1/D's impulse
             R3 = R.reshape(n_lag + p, n_s, n1)
             Yr = np.empty((p, n_s, n1))
             # R is upper triangular: row (k, j) is zero left of column k n_s + j, so each
@@ -272,10 +270,9 @@ class StructuredFactor:
         extra : ndarray (k, m)
             Rows stacked under ``F``.
         """
-        n1 = self._R.shape[1] if self._Ys is None else self._Ys.shape[1]
-        Ft = np.empty((self.m, n1 + extra.shape[0]))
-        self._write_factor(Ft[:, :n1])
-        Ft[:, n1:] = extra.T
+        Ft = np.empty((self.m, self._n1 + extra.shape[0]))
+        self._write_factor(Ft[:, : self._n1])
+        Ft[:, self._n1 :] = extra.T
         return Ft.T
 
     def inv_factor(self) -> np.ndarray:
@@ -283,8 +280,7 @@ class StructuredFactor:
         columns are the unknowns, which is how the step-response propagation reads it),
         formed once."""
         if self._F is None:
-            n1 = self._R.shape[1] if self._Ys is None else self._Ys.shape[1]
-            Ft = np.empty((self.m, n1))
+            Ft = np.empty((self.m, self._n1))
             self._write_factor(Ft)
             self._F = Ft.T
         return self._F
@@ -327,13 +323,19 @@ def structured_factor(ginv: InputGramInverse | None, d: np.ndarray, sel: np.ndar
     n_lag : int
         Lags ``Q`` of the regressor block.
     """
-    if ginv is None or not ginv.ok or d[0] != 1.0:
-        return None
-    n1 = (n_lag + d.size - 1) * ginv.n_s
-    if n1 > ginv.Rinv.shape[0] or not structured_pays(ginv.n_s, d, sel.size, n_lag) \
-            or ginv.cond * _gain_range(d) >= COND_LIMIT:
+    if not _shared_factor_serves(ginv, d, n_lag) \
+            or not structured_pays(ginv.n_s, d, sel.size, n_lag):
         return None
     return StructuredFactor(ginv, d, sel, n_lag)
+
+
+def _shared_factor_serves(ginv: InputGramInverse | None, d: np.ndarray, n_lag: int) -> bool:
+    """Whether the inputs' shared factor exists, holds the ``n_lag + p`` lags a filter
+    ``d`` needs and is safely conditioned for it (:data:`COND_LIMIT`)."""
+    if ginv is None or not ginv.ok or d[0] != 1.0:
+        return False
+    n1 = (n_lag + d.size - 1) * ginv.n_s
+    return n1 <= ginv.Rinv.shape[0] and ginv.cond * _gain_range(d) < COND_LIMIT
 
 
 def nested_cholesky(ginv: InputGramInverse | None, d: np.ndarray,
@@ -361,12 +363,10 @@ def nested_cholesky(ginv: InputGramInverse | None, d: np.ndarray,
     n_lag : int
         Lags ``Q`` of the regressor block (every one of its ``Q n_x`` unknowns).
     """
-    if ginv is None or not ginv.ok or d[0] != 1.0:
+    if not _shared_factor_serves(ginv, d, n_lag):
         return None
     n_s, p = ginv.n_s, d.size - 1
-    n1, m = (n_lag + p) * n_s, n_lag * n_s
-    if n1 > ginv.Rinv.shape[0] or ginv.cond * _gain_range(d) >= COND_LIMIT:
-        return None
+    m = n_lag * n_s
     R = ginv.R
 
     def rows(r0: int, c: int) -> np.ndarray:  # lag block r0 of M, columns c..m-1

@@ -522,7 +522,7 @@ def finish_discrepancy(cfg, model: Model, source: str, data: DiscrepancyData,
         Id of the run directory; ``None`` lets the store choose one.
     """
     rid, run_dir, rrd, _ = write_discrepancy_run(cfg, model, source, data, result,
-                                                   timings=timings, run_id=run_id)
+                                                 timings=timings, run_id=run_id)
     return DiscrepancyReport(cfg.job, rid, run_dir, result.verdict, result.verdict,
                              None if result.effect is None else result.effect.to_dict(),
                              result.gap, data.dt_s, int(result.series.t_s.size), data.files,
