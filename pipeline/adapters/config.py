@@ -336,6 +336,8 @@ class DiscrepancySection(_Strict):
     lookalike_gap: float | None = None
     max_time_s: float | None = None
     """Time budget of the search chain, s (default 600); ``null`` for none."""
+    open_loops: bool | None = None
+    """Drive the actuator path with each measured controller output (default false)."""
 
     WORKFLOW_KEYS: ClassVar[tuple[str, ...]] = ("simulator_outputs", "operating_point", "seed")
 

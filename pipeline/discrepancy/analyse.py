@@ -17,6 +17,7 @@ from pipeline.discrepancy.localise import RELEVANCE_ALPHA, localise
 from pipeline.discrepancy.problem import (
     Problem,
     check_scales,
+    loops_to_open,
     settling_time,
     sigma_floor,
     validate_signals,
@@ -37,6 +38,7 @@ from pipeline.discrepancy.select import (
     pooled_rms,
     rms_of,
     same_class,
+    worse_outputs,
 )
 from pipeline.discrepancy.effects import (
     EFFECT_PARAMETERS,
@@ -47,7 +49,7 @@ from pipeline.discrepancy.effects import (
     output_offsets,
 )
 from pipeline.errors import InsufficientDataError
-from pipeline.models.model import Model
+from pipeline.models.model import Model, open_at
 from pipeline.estimation.noise_model import fit_ar
 from pipeline.progress import quiet
 from pipeline.models.simulate import simulate
@@ -126,6 +128,13 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     (:mod:`pipeline.discrepancy.chain`)."""
     config = config or DiscrepancyConfig()
     say = progress or quiet
+    user_model = model
+    model, inputs, measured, free_offsets, opened = _opened(model, inputs, measured, dt_s,
+                                                            config, free_offsets)
+    if opened:
+        say("loops", f"loop(s) opened at the measured {', '.join(map(repr, opened))}: the "
+            "measured OP drives the actuator path")
+
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
              also: tuple[Candidate, ...]) -> DiscrepancyResult:
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
@@ -134,14 +143,44 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say,
                   clock=clock)
     links, minor = chain.run()
-    return dataclasses.replace(_chain_result(chain, links, minor), notes=tuple(chain.notes))
+    # the effects sit at blocks the user's model has too: the model to export is the
+    # user's, its loops closed
+    result = _chain_result(chain, links, minor, user_model)
+    if not opened:
+        return dataclasses.replace(result, notes=tuple(chain.notes))
+    return dataclasses.replace(result, opened_loops=opened,
+                               notes=(*chain.notes, _opened_note(opened)))
 
 
-def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
+def _opened(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
+            dt_s: float, config: DiscrepancyConfig, free_offsets: tuple[str, ...]):
+    """The model, inputs, measured outputs and free outputs of the analysis with the
+    loops :func:`~pipeline.discrepancy.problem.loops_to_open` picks opened (each measured
+    OP moves from the outputs to the inputs), and those loops' controller names."""
+    if not config.open_loops or not measured:
+        return model, inputs, measured, free_offsets, ()
+    opened = loops_to_open(model, inputs, measured, dt_s=float(dt_s),
+                           holdout_fraction=config.holdout_fraction)
+    if not opened:
+        return model, inputs, measured, free_offsets, ()
+    return (open_at(model, opened), {**inputs, **{c: measured[c] for c in opened}},
+            {k: v for k, v in measured.items() if k not in opened},
+            tuple(o for o in free_offsets if o not in opened), opened)
+
+
+def _opened_note(opened: tuple[str, ...]) -> str:
+    names = ", ".join(repr(c) for c in opened)
+    return (f"the loop(s) of {names} were opened for the analysis: the measured OP drove "
+            "the blocks after the controller (discrepancy.open_loops), so the gaps and "
+            "the series are of the other outputs; the exported model has the loops "
+            "closed")
+
+
+def _chain_result(chain: Chain, links: list, minor: tuple, export: Model) -> DiscrepancyResult:
     """One result for the chain: the first search's verdict, candidates and
     localisation; every accepted effect in order with the gap after it (final
-    parameters); the final augmented model, series and gap; the minor effects of the
-    search that ended the chain."""
+    parameters); the final augmented model (`export` with the effects), series and gap;
+    the minor effects of the search that ended the chain."""
     first = chain.steps[0]
     timings = dict(first.timings_s)
     for k, s in enumerate(chain.steps[1:], 2):
@@ -150,7 +189,8 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
     diverged = tuple({_fit_key(e): e for s in chain.steps for e in s.diverged}.values())
     first = dataclasses.replace(first, diverged=diverged)
     if not links:
-        return dataclasses.replace(first, effects=(), timings_s=timings,
+        return dataclasses.replace(first, effects=(), timings_s=timings, augmented_model=build(
+                                       export, [first.effect] if first.effect else [], first.dt_s),
                                    n_fit_simulations=n_sims, minor_effects=minor)
     s0, outputs = first.series, list(first.series.measured)
     y = np.column_stack([s0.measured[o] for o in outputs])
@@ -172,7 +212,7 @@ def _chain_result(chain: Chain, links: list, minor: tuple) -> DiscrepancyResult:
         s0, augmented=pred, residual_after={o: s0.measured[o] - pred[o] for o in outputs})
     return dataclasses.replace(
         first, verdict="effect_found", effect=effects[0], lookalikes=(),
-        gap=gap(pred), augmented_model=build(chain.model, effects, first.dt_s),
+        gap=gap(pred), augmented_model=build(export, effects, first.dt_s),
         output_offsets=offsets, series=series, timings_s=timings, n_fit_simulations=n_sims,
         effects=steps, minor_effects=minor, operating_point_shift=shift)
 
@@ -682,14 +722,17 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
             else (c_nom, c_cand)
         _, _, low = holdout_rms_evidence(*judged, seed=seed + k, alpha=PRACTICAL_ALPHA)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
-        if not corroborated(fit.effect, localization):
+        worse = [outputs[i] for i in worse_outputs(*judged, seed=seed + 31 * k,
+                                                   alpha=config.holdout_rms_alpha,
+                                                   margin=config.min_gap_reduction)]
+        if worse or not corroborated(fit.effect, localization):
             whitened = plain = False
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,
             screening_score=fit.screening_score, passed=whitened or plain,
             gap_reduction=1.0 - gap_c / gap_nom if gap_nom > 0 else 0.0,
-            holdout_rms_p=p_rms, gap_reduction_low=low,
+            holdout_rms_p=p_rms, gap_reduction_low=low, worse_on=tuple(worse),
             passed_by=("both" if whitened and plain else "whitened" if whitened
                        else "held-out RMS" if plain else "")))
         shapes[id(candidates[-1])] = c_cand

@@ -102,6 +102,20 @@ class DiscrepancyConfig:
         chain found so far is the result, with a note.  Enforced with the clock the
         caller passes (:func:`analyse_discrepancy`'s ``clock``; a job always passes one).
         None: no budget.  Default :data:`MAX_TIME_S`.
+    open_loops : bool
+        Open every loop whose controller output (a ``pi``/``pid`` block) is measured:
+        the measured OP drives the blocks after the controller instead of the model's
+        own controller (the direct method of closed-loop identification), where the
+        path it then drives settles within the held-out part and the nominal model
+        explains at least half the OP's variance
+        (:func:`pipeline.discrepancy.problem.loops_to_open`).  In closed loop the
+        model's OP lacks what the real controller did against the unmeasured
+        disturbance, so an actuator's nonlinearity is simulated at other times than
+        the plant met it (a valve's travel stop, a deadband).  Default False: opened,
+        the fit is an output-error fit on an input that also carries the controller's
+        answer to that disturbance, and on zoo plants whose OP is largely that answer
+        the opened analysis named effects on nulls (a valve cooler's vessel gain 0.11;
+        docs/design-notes.md, "Session 12").
     """
 
     effects: tuple[str, ...] = EFFECT_NAMES
@@ -123,6 +137,7 @@ class DiscrepancyConfig:
     min_gap_reduction: float = MIN_GAP_REDUCTION
     lookalike_gap: float = 0.10
     max_time_s: float | None = MAX_TIME_S
+    open_loops: bool = False
 
     def __post_init__(self) -> None:
         effects = tuple(self.effects)
@@ -150,6 +165,7 @@ class DiscrepancyConfig:
             ("initial", self.initial in ("rest", "steady"), "'rest' or 'steady'"),
             ("warmup_s", self.warmup_s is None or self.warmup_s >= 0, "None or >= 0"),
             ("max_delay_s", self.max_delay_s is None or self.max_delay_s > 0, "None or > 0"),
+            ("open_loops", isinstance(self.open_loops, bool), "true or false"),
             ("max_time_s", self.max_time_s is None or (
                 math.isfinite(self.max_time_s) and self.max_time_s > 0),
              "null (no budget) or a number of seconds > 0"),

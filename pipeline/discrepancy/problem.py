@@ -10,9 +10,10 @@ from typing import Any
 import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError
-from pipeline.models.model import Model
+from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError, ModelError
+from pipeline.models.model import Model, open_at
 from pipeline.models.simulate import simulate
+from pipeline.models.stability import unstable_parts
 
 
 #: Innovation stds are floored at this fraction of the output's std (:func:`sigma_floor`).
@@ -176,6 +177,123 @@ class Problem:
             w = fir_from(self.ar[i], z[:stop, i], first)
             out.append(w / self.sigma[i])
         return out
+
+
+#: Block types whose measured output opens their loop (:func:`loops_to_open`).
+CONTROLLER_TYPES = ("pi", "pid")
+
+
+def _downstream(model: Model, start: str) -> set[str]:
+    """Blocks of `model` that read `start` directly or through other blocks."""
+    reached, frontier = set(), {start}
+    while frontier:
+        frontier = {b.name for b in model.blocks
+                    if set(b.references()) & frontier and b.name not in reached}
+        reached |= frontier
+    return reached
+
+
+#: A loop is opened only when the nominal model, simulated in closed loop from the
+#: setpoints and loads, explains at least this share of its measured OP's variance over
+#: the fit part (:func:`loops_to_open`).  Why: opened, the path after the controller is
+#: fitted to data whose input (the OP) also carries the controller's answer to the
+#: unmeasured disturbance, and the direct method's output-error bias grows with that
+#: noise-driven share of the input's power (Forssell & Ljung 1999: the bias is
+#: ``(H0 - H) Phi_ue / Phi_u``).  At one half the known excitation and the disturbance
+#: rejection move the OP equally.  On a zoo valve-cooler null whose OP was 66 %
+#: disturbance rejection (share 0.34) the opened analysis named the vessel's gain 0.11;
+#: the zoo's other nulls have 0.88-0.99.
+MIN_OP_EXPLAINED = 0.5
+
+
+def op_explained(model: Model, inputs: Mapping[str, np.ndarray], op: np.ndarray,
+                 name: str, *, dt_s: float, part: slice) -> float:
+    """Share of the measured OP's variance over `part` that `model` (closed loop, from
+    its inputs at rest) explains: ``1 - var(op - sim) / var(op)`` (NaN when it cannot
+    be simulated or the OP does not move).
+
+    Parameters
+    ----------
+    model : Model
+    inputs : mapping of str -> ndarray
+        At least ``model.inputs`` (deviations).
+    op : ndarray (N,)
+        The measured OP (deviation).
+    name : str
+        The controller block.
+    dt_s : float
+        Sample period, s.
+    part : slice
+        Samples compared.
+    """
+    try:
+        sim = simulate(model, {k: inputs[k] for k in model.inputs}, dt_s=dt_s).signals[name]
+    except (ModelError, DataQualityError, ConfigError, KeyError, ValueError):
+        return math.nan
+    m = np.asarray(op, dtype=float)[part]
+    e = m - sim[part]
+    var = float(np.var(m))
+    return 1.0 - float(np.var(e)) / var if var > 0 and np.all(np.isfinite(e)) else math.nan
+
+
+def loops_to_open(model: Model, inputs: Mapping[str, np.ndarray],
+                  measured: Mapping[str, np.ndarray], *, dt_s: float,
+                  holdout_fraction: float) -> tuple[str, ...]:
+    """The controllers whose loops the analysis opens at their measured output.
+
+    A controller block (:data:`CONTROLLER_TYPES`) that is a model output with a measured
+    signal qualifies when
+
+    * with its loop opened (:func:`pipeline.models.model.open_at`), every block its OP
+      then drives settles to 2 % within the held-out part
+      (:func:`pipeline.models.stability.unstable_parts` with growth ``exp(-4)``: no
+      integrator, no time constant above a quarter of it).  The comparison is free-run
+      (output error): an opened path that does not settle accumulates the unmeasured
+      disturbance the controller was rejecting -- an integrating level driven by its
+      measured pump demand drifts without bound -- so the held-out comparison would hinge
+      on the state the path reached, not on the effect.  Closed, the controller keeps
+      such an output bounded;
+    * the nominal model explains at least :data:`MIN_OP_EXPLAINED` of the OP's variance
+      on the fit part (:func:`op_explained`, the samples from a tenth of the record to
+      the hold-out): the OP moves mostly with what the model knows, not with the
+      controller's answer to the unmeasured disturbance.
+
+    Parameters
+    ----------
+    model : Model
+    inputs, measured : mapping of str -> ndarray
+        The analysis's inputs and measured outputs (deviations, one grid).
+    dt_s : float
+        Sample period, s (loops are judged at it).
+    holdout_fraction : float
+        The held-out part's share of the record.
+
+    Returns
+    -------
+    tuple of str
+        In model order; empty when no loop qualifies.
+    """
+    n = min((np.size(v) for v in measured.values()), default=0)
+    holdout_start = int(round(n * (1.0 - holdout_fraction)))
+    fit = slice(n // 10, holdout_start)
+    chosen = []
+    for block in model.blocks:
+        if block.TYPE not in CONTROLLER_TYPES or block.name not in model.outputs \
+                or block.name not in measured or holdout_start - n // 10 < 2:
+            continue
+        try:
+            opened = open_at(model, [block.name])
+        except ModelError:  # nothing left to compare
+            continue
+        driven = _downstream(opened, block.name)
+        slow = unstable_parts(opened, dt_s=dt_s, record_s=(n - holdout_start) * dt_s,
+                              growth_limit=math.exp(-4.0))
+        if any(set(part.blocks) & driven for part in slow):
+            continue
+        if op_explained(model, inputs, measured[block.name], block.name, dt_s=dt_s,
+                        part=fit) >= MIN_OP_EXPLAINED:
+            chosen.append(block.name)
+    return tuple(chosen)
 
 
 def fir_from(a: np.ndarray, z: np.ndarray, first: int) -> np.ndarray:

@@ -60,6 +60,10 @@ class Candidate:
         (:func:`pipeline.discrepancy.select.centred`; the held-out RMS test's block
         bootstrap): what practical significance is judged on
         (:func:`pipeline.discrepancy.select.holdout_rms_evidence`).
+    worse_on : tuple of str
+        Outputs whose held-out errors the candidate makes larger than the model it was
+        added to, beyond chance (:func:`pipeline.discrepancy.select.worse_outputs`): such
+        a candidate fails.
     """
 
     effect: Effect
@@ -75,6 +79,7 @@ class Candidate:
     holdout_rms_p: float = math.nan
     passed_by: str = ""
     gap_reduction_low: float = math.nan
+    worse_on: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
@@ -92,6 +97,7 @@ class Candidate:
             holdout_rms_p=json_float(self.holdout_rms_p),
             passed_by=self.passed_by,
             gap_reduction_low=json_float(self.gap_reduction_low),
+            worse_on=list(self.worse_on),
         )
         return out
 
@@ -214,6 +220,10 @@ class DiscrepancyResult:
     diverged : tuple of Effect
         Fitted candidates whose simulation over the record diverged (an effect that
         destabilises a loop): dropped from the selection, listed with their parameters.
+    opened_loops : tuple of str
+        Controllers whose loops the analysis opened at their measured OP
+        (:func:`pipeline.discrepancy.problem.loops_to_open`): their OPs were inputs, not
+        compared outputs; :attr:`augmented_model` has the loops closed.
     notes : tuple of str
         How the search ended when not by its own rules: the time budget
         (``max_time_s``) ran out, or the chain returned to one it had held.
@@ -246,6 +256,7 @@ class DiscrepancyResult:
     rejected: tuple[Candidate, ...] = ()
     diverged: tuple[Effect, ...] = ()
     notes: tuple[str, ...] = ()
+    opened_loops: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (no long arrays): what ``discrepancy.json`` holds."""
@@ -275,6 +286,7 @@ class DiscrepancyResult:
             "rejected": [c.to_dict() for c in self.rejected],
             "diverged": [e.to_dict() for e in self.diverged],
             "notes": list(self.notes),
+            "opened_loops": list(self.opened_loops),
         }
 
     def __str__(self) -> str:

@@ -193,6 +193,61 @@ def holdout_rms_evidence(nominal: np.ndarray, candidate: np.ndarray, *, seed: in
     return reduction, p_value, min(reduction, float(np.quantile(boot, alpha)))
 
 
+def worse_outputs(nominal: np.ndarray, candidate: np.ndarray, *, seed: int, alpha: float,
+                  margin: float, n_blocks: int = RMS_TEST_BLOCKS,
+                  n_boot: int = RMS_TEST_REPLICATES) -> list[int]:
+    """The outputs on which `candidate` predicts the held-out part worse than `nominal`,
+    beyond chance and by more than `margin`: :func:`holdout_rms_test` with the roles
+    swapped, one output at a time, p-value at most `alpha`, and the output's held-out
+    RMS larger by more than the share `margin` (``R <= -margin`` for that output).
+
+    Why a candidate that does this fails, from the method: the model with the true
+    effect leaves only the disturbances and the noise on every output, so it can be
+    worse than the model without it on no output but by chance.  A candidate that cuts
+    the pooled gap while one output says otherwise fits the other outputs' slow
+    disturbance: with a loop opened at its measured OP, a heat exchanger's outlet
+    temperature carries the unmeasured disturbance the controller was rejecting, and a
+    deadband at the steam valve was named because it happened to move the held-out
+    temperature toward it while it made the steam flow meter's error 15 % larger (zoo
+    tuning seed 3 005 001; the valve's backlash cut that error 77 %).  The margin is the
+    practical bar (``min_gap_reduction``): a change smaller than the workflow would call
+    an effect is no evidence against one -- on the real steam generator the
+    air-scheduled combustion gain, which cuts the held-out O2 error 25 %, leaves the
+    level's and the steam flow's by less than 0.05 % larger, and that systematic
+    hair is "beyond chance" at p 0.001.
+
+    Parameters
+    ----------
+    nominal, candidate : ndarray (M, n_y)
+        Held-out errors (as judged: :func:`centred` or :func:`less_common_level`).
+    seed : int
+        Seeds the bootstraps (output ``i`` uses ``seed + i``).
+    alpha : float
+        One-sided level per output (the held-out RMS test's ``holdout_rms_alpha``).
+    margin : float
+        Smallest relative increase of an output's held-out RMS that counts
+        (``min_gap_reduction``).
+    n_blocks, n_boot : int
+        As :func:`holdout_rms_test`.
+
+    Returns
+    -------
+    list of int
+        Columns, in order; always empty for one output (the pooled tests judge it).
+    """
+    if nominal.ndim < 2 or nominal.shape[1] < 2:
+        return []
+    out = []
+    for i in range(nominal.shape[1]):
+        r, p = holdout_rms_test(candidate[:, [i]], nominal[:, [i]], seed=seed + i,
+                                n_blocks=n_blocks, n_boot=n_boot)
+        # r is the nominal model's reduction against the candidate: 1 - rms_0 / rms_c
+        # (1 when the nominal model's errors are zero there)
+        if p <= alpha and (r >= 1.0 or 1.0 / (1.0 - r) - 1.0 >= margin):
+            out.append(i)
+    return out
+
+
 def centred(e: np.ndarray, columns: Sequence[int]) -> np.ndarray:
     """Held-out errors with the outputs `columns` less their held-out mean: what
     practical significance is judged on.

@@ -52,7 +52,7 @@ from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_d
 from pipeline.discrepancy.report import effect_markup, fmt_number, summary_markdown
 from pipeline.errors import ConfigError, InsufficientDataError
 from pipeline.identification.conditioning import as_masked_zero, interpolate_gaps
-from pipeline.models.model import Model, model_from_dict, model_to_dict
+from pipeline.models.model import Model, model_from_dict, model_to_dict, open_at
 from pipeline.progress import Progress, quiet
 from pipeline.jobs.recording import (
     Recording,
@@ -396,7 +396,9 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
     """Held-out RMS of an augmented-model document re-simulated from scratch.
 
     An independent check that ``model_augmented.yaml`` reproduces the reported
-    ``gap.holdout_rms_after`` (the run records both).
+    ``gap.holdout_rms_after`` (the run records both).  With loops the analysis opened
+    (:attr:`DiscrepancyResult.opened_loops`) the document, loops closed, is opened at
+    the same controllers and driven by their measured OPs, as the analysis compared it.
 
     Parameters
     ----------
@@ -410,18 +412,22 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
     from pipeline.discrepancy.effects import predict_outputs
 
     model = model_from_dict({"model": doc["model"]}, max_blocks=None)
-    sim = predict_outputs(model, None, data.inputs, dt_s=data.dt_s,
-                          outputs=list(data.measured), initial=result.config.initial)
-    n = next(iter(data.measured.values())).size
+    opened = result.opened_loops
+    inputs = {**data.inputs, **{c: data.measured[c] for c in opened}}
+    measured = {o: v for o, v in data.measured.items() if o not in opened}
+    sim = predict_outputs(open_at(model, opened) if opened else model, None, inputs,
+                          dt_s=data.dt_s, outputs=list(measured),
+                          initial=result.config.initial)
+    n = next(iter(measured.values())).size
     meas = doc.get("measurement") or {}
-    offsets = {o: np.zeros(n) for o in data.measured}
+    offsets = {o: np.zeros(n) for o in measured}
     for o, p in meas.items():
         offsets[o] = p["bias"] + p["drift_per_h"] * np.arange(n) * data.dt_s / 3600.0
     h = result.series.holdout_start
     shift = result.operating_point_shift
-    return {o: float(np.sqrt(np.mean((data.measured[o][h:] - shift.get(o, 0.0) - sim[o][h:]
+    return {o: float(np.sqrt(np.mean((measured[o][h:] - shift.get(o, 0.0) - sim[o][h:]
                                       - offsets[o][h:]) ** 2)))
-            for o in data.measured}
+            for o in measured}
 
 
 def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
@@ -470,7 +476,10 @@ def write_discrepancy_run(cfg, model: Model, source: str, data: DiscrepancyData,
         run.write_json("discrepancy.json", out)
         header = (f"{cfg.job} run {run.run_id}: nominal model {model.name!r} "
                   f"+ {result.effect.describe() if result.effect else 'no effect'} "
-                  f"(verdict {result.verdict}).\nRe-simulated held-out RMS {check}.")
+                  f"(verdict {result.verdict}).\nRe-simulated held-out RMS {check}"
+                  + (f", with the loop(s) of {', '.join(result.opened_loops)} opened and "
+                     "driven by the measured OP as the analysis compared them"
+                     if result.opened_loops else "") + ".")
         run.write_text("model_augmented.yaml", dump_yaml(doc, header=header))
         run.write_parquet("discrepancy_series.parquet", series_table(result))
         run.write_report(summary_markdown(out))

@@ -602,3 +602,47 @@ def insert_before(model: Model, name: str, *, block: Block) -> Model:
     position = model.block_names.index(name)
     blocks.insert(position, moved)
     return dataclasses.replace(model, blocks=tuple(blocks))
+
+
+def open_at(model: Model, names: Sequence[str]) -> Model:
+    """The model with its loops opened at blocks `names`: each becomes a model input.
+
+    The blocks called `names` (controllers whose output is measured) are removed, their
+    names join ``model.inputs`` -- so every block that read a controller now reads the
+    measured signal of the same name -- and they leave ``model.outputs``.  Blocks that
+    then feed nothing (a controller's error sum) are removed too.
+
+    Parameters
+    ----------
+    model : Model
+    names : sequence of str
+        Blocks that are outputs of `model`.
+
+    Returns
+    -------
+    Model
+        Validated like any :class:`Model`.
+
+    Raises
+    ------
+    ModelError
+        A name that is not an output block of `model`, or nothing left to compare.
+    """
+    names = tuple(names)
+    for name in names:
+        if name not in model.outputs:
+            raise ModelError(f"model {model.name!r}: cannot open the loop at {name!r}: it is "
+                             f"not one of the outputs {list(model.outputs)}")
+    outputs = tuple(o for o in model.outputs if o not in names)
+    if not outputs:
+        raise ModelError(f"model {model.name!r}: opening the loops at {list(names)} leaves "
+                         "no output to compare")
+    blocks = [b for b in model.blocks if b.name not in names]
+    while True:  # drop what no longer feeds an output (a controller's error sum)
+        read = set(outputs).union(*(b.references() for b in blocks))
+        kept = [b for b in blocks if b.name in read]
+        if len(kept) == len(blocks):
+            break
+        blocks = kept
+    return dataclasses.replace(model, inputs=(*model.inputs, *names), outputs=outputs,
+                               blocks=tuple(blocks))

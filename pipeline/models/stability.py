@@ -219,7 +219,9 @@ def unstable_parts(model: Model, *, dt_s: float, record_s: float | None = None,
         ``growth_limit`` times over the record.
     growth_limit : float
         See `record_s`; without a record, any growth rate above zero (beyond rounding)
-        counts.
+        counts.  Below 1 it asks for the parts that do not *decay* enough over the
+        record: ``exp(-4)`` finds every part whose slowest mode has not settled to 2 %
+        (an integrator, or a time constant above a quarter of `record_s`).
 
     Returns
     -------
@@ -231,7 +233,9 @@ def unstable_parts(model: Model, *, dt_s: float, record_s: float | None = None,
         part = (_block_part(model, members[0]) if len(members) == 1 and
                 model.blocks[members[0]].name not in model.blocks[members[0]].references()
                 else _loop_part(model, members, dt_s))
-        if part is None or part.growth_per_s <= 1e-9 / dt_s:
+        if part is None:
+            continue
+        if record_s is None and part.growth_per_s <= 1e-9 / dt_s:
             continue
         if record_s is not None and part.growth_per_s * record_s <= math.log(growth_limit):
             continue

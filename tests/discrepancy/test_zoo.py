@@ -312,12 +312,12 @@ def test_the_explainable_bar_is_what_the_nominal_model_with_the_truth_closes():
     assert math.isnan(model_gap_reduction(make_trial(hx, None, 8_108_000)))
 
 
-def _discrepancy_json(trial, tmp_path, capsys) -> dict:
-    """``plantdyn discrepancy`` with every default on the trial's export and job, as a
-    user runs it; its ``discrepancy.json``."""
+def _discrepancy_json(trial, tmp_path, capsys, discrepancy: dict | None = None) -> dict:
+    """``plantdyn discrepancy`` on the trial's export and job, as a user runs it, with
+    every default but the `discrepancy` keys given; its ``discrepancy.json``."""
     from flows.cli import main
 
-    job = write_trial(trial, tmp_path)
+    job = write_trial(trial, tmp_path, discrepancy=discrepancy)
     assert main(["discrepancy", "--no-prefect", "--progress", "never", str(job)]) == 0
     run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
     return json.loads((run_dir / "discrepancy.json").read_text())
@@ -354,6 +354,62 @@ def test_valve_backlash_is_named_with_its_width(tmp_path, capsys):
     assert (found["name"], found["location"]) == ("backlash", truth["location"]), found
     assert 0.3 * truth["parameters"]["width"] < found["parameters"]["width"] \
         <= 1.1 * truth["parameters"]["width"], (found, truth)
+
+
+def test_a_valve_stop_is_named_with_its_limit_once_the_measured_op_drives_the_valve(
+        tmp_path, capsys):
+    """A heat-exchanger steam valve that cannot close below -0.038 kg/s about the
+    operating point (seed 8 103 000 of the zoo's session-8 run, spent; the zoo's own
+    integrator), the controller winding down against it.  Simulated in closed loop the
+    model's OP lacks what the real controller did against the unmeasured disturbance,
+    so its stop episodes fall elsewhere: the workflow named a steam gain of 0.70.  With
+    ``discrepancy.open_loops: true`` the measured OP drives the valve, the stop is named
+    at the valve with its limit, and the exported model has the loop closed again with
+    the stop in it; its re-simulation, opened as the analysis compared it, reproduces
+    the reported held-out RMS."""
+    trial = make_trial(FAMILIES["heat_exchanger"], "saturation", seed=8_103_000)
+    truth = trial.effect.to_dict()
+    d = _discrepancy_json(trial, tmp_path, capsys, {"open_loops": True})
+    assert d["opened_loops"] == ["controller"]
+    assert d["outputs"] == ["outlet_temp", "steam", "controller"]
+    assert d["verdict"] == "effect_found", d["verdict"]
+    found = d["effect"]
+    assert (found["name"], found["location"]) == ("saturation", truth["location"]), found
+    assert found["parameters"]["low"] == pytest.approx(truth["parameters"]["low"], rel=0.1)
+    assert found["parameters"]["high"] in (math.inf, "inf")
+    check = d["augmented_model_check"]
+    assert set(check["holdout_rms_resimulated"]) == {"outlet_temp", "steam"}
+    for o, v in check["holdout_rms_reported"].items():
+        assert check["holdout_rms_resimulated"][o] == pytest.approx(v, rel=1e-6)
+    run_dir = next((tmp_path / "storage").glob("*/*/"))
+    exported = yaml.safe_load((run_dir / "model_augmented.yaml").read_text())["model"]
+    kinds = {b["name"]: b["type"] for b in exported["blocks"]}
+    assert kinds["controller"] == "pi" and "saturation" in kinds.values()
+    assert "controller" in exported["outputs"] and "controller" not in exported["inputs"]
+
+
+def test_a_candidate_worse_on_one_output_fails_and_opened_backlash_has_its_width(
+        tmp_path, capsys):
+    """The backlash trial above with ``open_loops: true``: driven by the OP the valve
+    really got (sensor-noise dither included), the play's fitted width is the
+    mechanical one within 25 % (closed: 0.5-0.8 of it).  A deadband at the valve, which
+    moved the held-out outlet temperature toward the unmeasured disturbance while making
+    the steam flow meter's held-out error larger, was named over it before a candidate
+    had to be worse on no output (``select.worse_outputs``); it is now failed with
+    ``worse_on: [steam]``."""
+    trial = make_trial(FAMILIES["heat_exchanger"], "backlash", seed=3_005_001)
+    truth = trial.effect.to_dict()
+    d = _discrepancy_json(trial, tmp_path, capsys, {"open_loops": True})
+    assert d["opened_loops"] == ["controller"] and d["verdict"] == "effect_found"
+    found = d["effect"]
+    assert (found["name"], found["location"]) == ("backlash", truth["location"]), found
+    assert found["parameters"]["width"] == pytest.approx(truth["parameters"]["width"],
+                                                         rel=0.25), (found, truth)
+    (deadband,) = [c for c in d["candidates"]
+                   if (c["name"], c["location"]) == ("deadband", "steam")]
+    assert deadband["worse_on"] == ["steam"] and not deadband["passed"]
+    assert deadband["holdout_rms"]["steam"] > \
+        d["gap"]["per_output"]["steam"]["holdout_rms_before"]
 
 
 def test_nothing_in_production_imports_the_zoo():
