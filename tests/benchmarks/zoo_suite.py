@@ -93,8 +93,9 @@ def _correct(truth: dict[str, Any] | None, found: dict[str, Any] | None) -> bool
 
 
 def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | None = None,
-                  keep: str | None = None) -> dict[str, Any]:
-    """One zoo trial through ``plantdyn discrepancy``; the row the suite tabulates."""
+                  keep: str | None = None, discrepancy: dict | None = None) -> dict[str, Any]:
+    """One zoo trial through ``plantdyn discrepancy``; the row the suite tabulates.
+    `discrepancy`: keys added to the job's ``discrepancy:`` section."""
     from flows.cli import main
 
     try:
@@ -113,7 +114,7 @@ def run_zoo_trial(family: str, effect: str | None, seed: int, hours: float | Non
                 "correct": False, "param_error": float("nan")}
     root = Path(tempfile.mkdtemp(prefix=f"zoo_{family}_"))
     try:
-        job = write_trial(trial, root)
+        job = write_trial(trial, root, discrepancy=discrepancy)
         # the second bar (tests/zoo/explainable.py), read from the same export
         row["model_gap_reduction"] = model_gap_reduction(trial, job)
         out = io.StringIO()
