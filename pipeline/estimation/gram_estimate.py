@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline._threads import thread_map
 from pipeline.errors import (
     ConfigError,
     DataQualityError,
@@ -399,12 +400,15 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
     models = []
     first_stage = check_instruments(ctx, P) if iv else {}
     method = "instrumental_variables" if iv else "prediction_error"
-    for i in range(n_y):
-        fit, design, inp, lag, form, sel = fit_output(
+
+    def one(i: int):
+        return fit_output(
             ctx, i, npm[i], nkm[i], noise=noise,
             form=None if forms is None else forms[i],
             d_fixed=None if d_fixed is None else d_fixed[i],
             sigma2_fixed=None if sigma2_fixed is None else sigma2_fixed[i], instruments=iv)
+
+    for i, (fit, design, inp, lag, form, sel) in enumerate(_by_output(one, n_y)):
         sigma2[i] = fit.sigma2
         rms[i] = np.sqrt(fit.V / fit.n_d)
         fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, inp, lag, npm[i], form, dt)
@@ -421,6 +425,16 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
         diagnostics=diagnostics_of(ne, _shared_white_factor(ctx, P)),
         extra={"first_stage": first_stage} if first_stage else {},
         noise_model=tuple(models), n_k=nkm, step_cov=arr.step_cov)
+
+
+def _by_output(fn, n_y: int) -> list:
+    """``[fn(i) for i in range(n_y)]``: output 0 first (it puts what every output shares
+    -- the white factor, the inputs' inverse factor -- in the Gram's cache), the others
+    side by side (:func:`pipeline._threads.thread_map`)."""
+    if n_y == 0:
+        return []
+    first = fn(0)
+    return [first, *thread_map(fn, range(1, n_y))]
 
 
 def _shared_white_factor(ctx: GramContext, P: int):
@@ -525,11 +539,13 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
     n_x, n_y = ctx.n_x, ctx.n_y
     if "level" in forms:
         return None
-    parts = []
+
+    def part(i: int):
+        design, _, _, _ = output_design(ctx, i, np.full(n_x, P), n_k[i], forms[i])
+        return design, NestedGLS(ctx.lg, design, d_fixed[i], what=f"output {i}")
+
     try:
-        for i in range(n_y):
-            design, _, _, _ = output_design(ctx, i, np.full(n_x, P), n_k[i], forms[i])
-            parts.append((design, NestedGLS(ctx.lg, design, d_fixed[i], what=f"output {i}")))
+        parts = _by_output(part, n_y)
         ne_P = ctx.white_normal_equations(P)
         sc = np.sqrt(np.clip(np.diag(ne_P.A), 1e-300, None))
         As = ne_P.A / np.outer(sc, sc)
@@ -548,11 +564,11 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
         npm = np.full((n_y, n_x), m)
         arr = PairArrays(n_y, n_x, m)
         sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
-        for i, (design, nested) in enumerate(parts):
-            k = int(np.searchsorted(design.sel, m * n_x))
-            fit = nested.fit(k, sigma2_fixed[i])
-            if fit is None:
-                return None
+        ks = [int(np.searchsorted(design.sel, m * n_x)) for design, _ in parts]
+        fits = thread_map(lambda i: parts[i][1].fit(ks[i], sigma2_fixed[i]), range(n_y))
+        if any(fit is None for fit in fits):
+            return None
+        for i, ((design, nested), k, fit) in enumerate(zip(parts, ks, fits, strict=True)):
             sigma2[i] = fit.sigma2
             rms[i] = np.sqrt(fit.V / fit.n_d)
             sel = design.sel[:k]

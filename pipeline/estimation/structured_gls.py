@@ -40,6 +40,8 @@ its rank test) unless the inputs' Gram and the filter are comfortably far from s
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.linalg
 import scipy.signal
@@ -95,6 +97,7 @@ class InputGramInverse:
         if info != 0:
             return
         self._Rs, self._sc, self._R = R, sc, None
+        self._lock = threading.Lock()
         # G = (R S)'(R S) with S = diag(sc): (R S)^-1 = S^-1 R^-1, upper triangular, and
         # its leading blocks invert the leading blocks of R S (any fewer lags).  R came
         # with its lower triangle zeroed and dtrtri writes only the upper one, so the
@@ -108,9 +111,10 @@ class InputGramInverse:
     def R(self) -> np.ndarray:
         """The upper Cholesky factor ``R S`` of the Gram itself (``G = (R S)'(R S)``),
         row-major, formed on first use."""
-        if self._R is None:
-            self._R = np.ascontiguousarray(self._Rs * self._sc[None, :])
-            self._Rs = None  # no longer needed: one n x n array held, not two
+        with self._lock:  # outputs are fitted side by side (pipeline._threads)
+            if self._R is None:
+                self._R = np.ascontiguousarray(self._Rs * self._sc[None, :])
+                self._Rs = None  # no longer needed: one n x n array held, not two
         return self._R
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline._threads import thread_map
 from pipeline.errors import DataQualityError
 from pipeline.estimation.estimate import estimate_step_responses
 from pipeline.estimation.gram_estimate import noise_order
@@ -157,13 +158,15 @@ def usable_window_estimates(x, y, mask, windows, n_p, dt: float, integrating, **
     **kw
         ``noise``, ``n_k``, ``instruments``, ``noise_models`` of :func:`window_estimates`.
     """
-    out = {}
-    for w in windows:
+    def one(w):
         try:
-            [out[w]] = window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw)
+            return window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw)[0]
         except DataQualityError:
-            continue
-    return out
+            return None
+
+    # the windows side by side (pipeline._threads)
+    return {w: est for w, est in zip(windows, thread_map(one, windows), strict=True)
+            if est is not None}
 
 
 def choose_window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,
@@ -260,13 +263,16 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
                              "uninformative": blocking})
             n_d = min(2 * n_d, most)
             continue
-        ests, failed = [], None
-        for w in wins:
+        def one(w):
             try:
-                ests += window_estimates(x, y, mask, [w], npm, dt, integrating, **kw)
+                return window_estimates(x, y, mask, [w], npm, dt, integrating, **kw)[0]
             except DataQualityError as exc:
-                failed = (w, exc)
-                break
+                return w, exc
+
+        # the windows side by side (pipeline._threads); the first that fails is named
+        done = thread_map(one, wins)
+        failed = next((r for r in done if isinstance(r, tuple)), None)
+        ests = [r for r in done if not isinstance(r, tuple)]
         if failed is not None:
             # a window may hold too few observations (masks) or an input that does not
             # move there (singular): record the trial and the window, try longer windows
