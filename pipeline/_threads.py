@@ -88,8 +88,7 @@ def thread_map(fn, items) -> list:
     workers = min(len(items), worker_count())
     if workers <= 1:
         return [fn(item) for item in items]
-    # the limit is per thread for some BLAS builds: set it in each worker
-    with ThreadPoolExecutor(workers, initializer=threadpool_limits,
-                            initargs=(1, "blas")) as pool:
+    # (the BLAS limit is process-wide for the OpenBLAS builds here: set by the caller)
+    with ThreadPoolExecutor(workers) as pool:
         futures = [pool.submit(fn, item) for item in items]
         return [f.result() for f in futures]

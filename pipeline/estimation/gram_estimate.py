@@ -564,11 +564,11 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
         npm = np.full((n_y, n_x), m)
         arr = PairArrays(n_y, n_x, m)
         sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
-        ks = [int(np.searchsorted(design.sel, m * n_x)) for design, _ in parts]
-        fits = thread_map(lambda i: parts[i][1].fit(ks[i], sigma2_fixed[i]), range(n_y))
-        if any(fit is None for fit in fits):
-            return None
-        for i, ((design, nested), k, fit) in enumerate(zip(parts, ks, fits, strict=True)):
+        for i, (design, nested) in enumerate(parts):
+            k = int(np.searchsorted(design.sel, m * n_x))
+            fit = nested.fit(k, sigma2_fixed[i])  # a product: not worth a thread
+            if fit is None:
+                return None
             sigma2[i] = fit.sigma2
             rms[i] = np.sqrt(fit.V / fit.n_d)
             sel = design.sel[:k]
