@@ -25,6 +25,7 @@ process — large matrix products of a caller's own may then run up to 2x slower
 from __future__ import annotations
 
 import functools
+import threading
 
 from threadpoolctl import threadpool_limits
 
@@ -47,6 +48,9 @@ def single_threaded_blas(fn):
         return fn(*args, **kwargs)
 
     return wrapper
+
+
+_MAPPING = threading.local()  # set in the threads of a thread_map
 
 
 def worker_count() -> int:
@@ -86,9 +90,19 @@ def thread_map(fn, items) -> list:
 
     items = list(items)
     workers = min(len(items), worker_count())
-    if workers <= 1:
+    # a piece of a thread_map (a window) maps its own pieces (its outputs) serially:
+    # the cores are taken already
+    if workers <= 1 or getattr(_MAPPING, "inside", False):
         return [fn(item) for item in items]
+
+    def piece(item):
+        _MAPPING.inside = True
+        try:
+            return fn(item)
+        finally:
+            _MAPPING.inside = False
+
     # (the BLAS limit is process-wide for the OpenBLAS builds here: set by the caller)
     with ThreadPoolExecutor(workers) as pool:
-        futures = [pool.submit(fn, item) for item in items]
+        futures = [pool.submit(piece, item) for item in items]
         return [f.result() for f in futures]

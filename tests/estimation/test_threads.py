@@ -3,6 +3,7 @@ same numbers whatever the thread count, errors in item order."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -27,6 +28,19 @@ def test_results_come_in_item_order_and_the_first_failing_item_is_raised():
     with pytest.raises(ValueError, match="item 1"):
         thread_map(fn, range(5))
     assert thread_map(fn, []) == []
+
+
+def test_a_piece_maps_its_own_pieces_on_its_own_thread():
+    """A window's estimate (a piece of a thread_map) fits its outputs serially: the
+    cores are taken by the windows already (two pools of two threads on two cores
+    would share them four ways)."""
+    def outer(k):
+        me = threading.get_ident()
+        return thread_map(lambda j: threading.get_ident() == me, range(3))
+
+    assert thread_map(outer, range(2)) == [[True] * 3] * 2
+    assert not all(thread_map(lambda j: threading.get_ident() == threading.main_thread().ident,
+                              range(4))) or threads.worker_count() == 1
 
 
 def _record(seed=3, n=20_000, n_x=4, n_y=3):
