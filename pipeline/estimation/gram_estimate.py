@@ -402,16 +402,18 @@ def estimate_from_context(ctx: GramContext, *, n_p, n_k, dt: float, noise=NOISE_
     method = "instrumental_variables" if iv else "prediction_error"
 
     def one(i: int):
-        return fit_output(
+        fit, design, inp, lag, form, sel = fit_output(
             ctx, i, npm[i], nkm[i], noise=noise,
             form=None if forms is None else forms[i],
             d_fixed=None if d_fixed is None else d_fixed[i],
             sigma2_fixed=None if sigma2_fixed is None else sigma2_fixed[i], instruments=iv)
+        # the output's rows of the result arrays (no other output writes there)
+        fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, inp, lag, npm[i], form, dt)
+        return fit, design, form, sel
 
-    for i, (fit, design, inp, lag, form, sel) in enumerate(_by_output(one, n_y)):
+    for i, (fit, design, form, sel) in enumerate(_by_output(one, n_y)):
         sigma2[i] = fit.sigma2
         rms[i] = np.sqrt(fit.V / fit.n_d)
-        fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, inp, lag, npm[i], form, dt)
         models.append(NoiseModel("white" if fit.order == 0 else "ar", form, fit.order,
                                  tuple(float(v) for v in fit.d[1:]), float(np.sqrt(fit.sigma2)),
                                  {**fit.selection, **sel, "iterations": fit.iterations},
@@ -564,6 +566,12 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
         npm = np.full((n_y, n_x), m)
         arr = PairArrays(n_y, n_x, m)
         sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
+        if cov_lags is not None:  # each output's moments once, the outputs side by side
+            todo = [i for i, (design, _) in enumerate(parts) if i not in moments
+                    and forms[i] == "direct" and design.sel.size == P * n_x]
+            done = thread_map(lambda i: _nested_moments(parts[i][1].F, P, n_x, cov_lags),
+                              todo)
+            moments.update(zip(todo, done, strict=True))
         for i, (design, nested) in enumerate(parts):
             k = int(np.searchsorted(design.sel, m * n_x))
             fit = nested.fit(k, sigma2_fixed[i])  # a product: not worth a thread
@@ -573,8 +581,6 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             rms[i] = np.sqrt(fit.V / fit.n_d)
             sel = design.sel[:k]
             if cov_lags is not None and forms[i] == "direct" and design.sel.size == P * n_x:
-                if i not in moments:
-                    moments[i] = _nested_moments(nested.F, P, n_x, cov_lags)
                 _fill_nested(arr, i, fit.b, fit.sigma2, m, moments[i], cov_lags)
             else:
                 fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, sel % n_x, sel // n_x,
