@@ -15,9 +15,12 @@ from pipeline.discrepancy.fit import Fit, Fitter, predict_with, refit_nested_lag
 from pipeline.discrepancy.joint import N_JOINT, joint_refit, prior_basis
 from pipeline.discrepancy.localise import RELEVANCE_ALPHA, localise
 from pipeline.discrepancy.problem import (
+    AUTO_WARMUP_MAX_SHARE,
     Problem,
     check_scales,
+    first_holdout_sample,
     loops_to_open,
+    opened_signals,
     settling_time,
     sigma_floor,
     validate_signals,
@@ -163,8 +166,7 @@ def _opened(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any]
                            holdout_fraction=config.holdout_fraction)
     if not opened:
         return model, inputs, measured, free_offsets, ()
-    return (open_at(model, opened), {**inputs, **{c: measured[c] for c in opened}},
-            {k: v for k, v in measured.items() if k not in opened},
+    return (open_at(model, opened), *opened_signals(inputs, measured, opened),
             tuple(o for o in free_offsets if o not in opened), opened)
 
 
@@ -433,10 +435,10 @@ def discrepancy_problem(model: Model, inputs: Mapping[str, Any],
     nominal = simulate(model, drive, dt_s=dt_s, initial=config.initial)
     y_nom = np.column_stack([nominal.signals[o] for o in outputs])
     settling = settling_time(model, dt_s, n)
-    warmup = (min(3.0 * settling, 0.10 * n * dt_s) if config.warmup_s is None
-              else config.warmup_s)
+    warmup = (min(3.0 * settling, AUTO_WARMUP_MAX_SHARE * n * dt_s)
+              if config.warmup_s is None else config.warmup_s)
     fit_start = int(round(warmup / dt_s))
-    holdout_start = int(round(n * (1.0 - config.holdout_fraction)))
+    holdout_start = first_holdout_sample(n, config.holdout_fraction)
     if holdout_start - fit_start < 300:
         raise InsufficientDataError(
             f"fit part has {holdout_start - fit_start} samples after a warm-up of {warmup:g} s "

@@ -179,6 +179,42 @@ class Problem:
         return out
 
 
+#: Longest automatic warm-up, as a share of the record: the analysis skips three times
+#: the model's settling time but never more than this (:func:`pipeline.discrepancy.analyse.
+#: discrepancy_problem`); what runs before the warm-up is known (the operating point,
+#: :func:`loops_to_open`) skips this share, conservatively.
+AUTO_WARMUP_MAX_SHARE = 0.10
+
+
+def first_holdout_sample(n: int, holdout_fraction: float) -> int:
+    """First sample of the held-out last `holdout_fraction` of `n` samples.
+
+    Parameters
+    ----------
+    n : int
+        Samples in the record.
+    holdout_fraction : float
+        ``DiscrepancyConfig.holdout_fraction``.
+    """
+    return int(round(n * (1.0 - holdout_fraction)))
+
+
+def opened_signals(inputs: Mapping[str, Any], measured: Mapping[str, Any],
+                   opened: tuple[str, ...]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The inputs and measured outputs with each opened loop's measured OP moved from
+    the outputs to the inputs (:func:`pipeline.models.model.open_at`'s signals).
+
+    Parameters
+    ----------
+    inputs, measured : mapping of str -> array
+        As the analysis takes them.
+    opened : tuple of str
+        Controllers whose loops are opened (:func:`loops_to_open`).
+    """
+    return ({**inputs, **{c: measured[c] for c in opened}},
+            {k: v for k, v in measured.items() if k not in opened})
+
+
 #: Block types whose measured output opens their loop (:func:`loops_to_open`).
 CONTROLLER_TYPES = ("pi", "pid")
 
@@ -254,8 +290,8 @@ def loops_to_open(model: Model, inputs: Mapping[str, np.ndarray],
       on the state the path reached, not on the effect.  Closed, the controller keeps
       such an output bounded;
     * the nominal model explains at least :data:`MIN_OP_EXPLAINED` of the OP's variance
-      on the fit part (:func:`op_explained`, the samples from a tenth of the record to
-      the hold-out): the OP moves mostly with what the model knows, not with the
+      on the fit part (:func:`op_explained`, the samples from
+      :data:`AUTO_WARMUP_MAX_SHARE` of the record to the hold-out): the OP moves mostly with what the model knows, not with the
       controller's answer to the unmeasured disturbance.
 
     Parameters
@@ -274,19 +310,21 @@ def loops_to_open(model: Model, inputs: Mapping[str, np.ndarray],
         In model order; empty when no loop qualifies.
     """
     n = min((np.size(v) for v in measured.values()), default=0)
-    holdout_start = int(round(n * (1.0 - holdout_fraction)))
-    fit = slice(n // 10, holdout_start)
+    hold = first_holdout_sample(n, holdout_fraction)
+    fit = slice(int(AUTO_WARMUP_MAX_SHARE * n), hold)
+    if fit.stop - fit.start < 2:
+        return ()
     chosen = []
     for block in model.blocks:
         if block.TYPE not in CONTROLLER_TYPES or block.name not in model.outputs \
-                or block.name not in measured or holdout_start - n // 10 < 2:
+                or block.name not in measured:
             continue
         try:
             opened = open_at(model, [block.name])
         except ModelError:  # nothing left to compare
             continue
         driven = _downstream(opened, block.name)
-        slow = unstable_parts(opened, dt_s=dt_s, record_s=(n - holdout_start) * dt_s,
+        slow = unstable_parts(opened, dt_s=dt_s, record_s=(n - hold) * dt_s,
                               growth_limit=math.exp(-4.0))
         if any(set(part.blocks) & driven for part in slow):
             continue

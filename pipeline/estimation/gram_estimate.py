@@ -557,6 +557,9 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
     except (SingularSystemError, np.linalg.LinAlgError, InsufficientDataError):
         return None
     diagnostics_at = _diagnostics_by_order(ne_P, As, white)
+    # outputs whose candidate orders take their covariance from the nested moments
+    nested_direct = [forms[i] == "direct" and design.sel.size == P * n_x
+                     for i, (design, _) in enumerate(parts)]
 
     moments: dict = {}
 
@@ -567,8 +570,7 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
         arr = PairArrays(n_y, n_x, m)
         sigma2, rms, models = np.zeros(n_y), np.zeros(n_y), []
         if cov_lags is not None:  # each output's moments once, the outputs side by side
-            todo = [i for i, (design, _) in enumerate(parts) if i not in moments
-                    and forms[i] == "direct" and design.sel.size == P * n_x]
+            todo = [i for i in range(n_y) if nested_direct[i] and i not in moments]
             done = thread_map(lambda i: _nested_moments(parts[i][1].F, P, n_x, cov_lags),
                               todo)
             moments.update(zip(todo, done, strict=True))
@@ -580,7 +582,7 @@ def nested_fixed_noise(ctx: GramContext, *, P: int, n_k: np.ndarray, dt: float, 
             sigma2[i] = fit.sigma2
             rms[i] = np.sqrt(fit.V / fit.n_d)
             sel = design.sel[:k]
-            if cov_lags is not None and forms[i] == "direct" and design.sel.size == P * n_x:
+            if cov_lags is not None and nested_direct[i]:
                 _fill_nested(arr, i, fit.b, fit.sigma2, m, moments[i], cov_lags)
             else:
                 fill_output(arr, i, fit.b, fit.cov_factor, fit.sigma2, sel % n_x, sel // n_x,

@@ -158,15 +158,22 @@ def usable_window_estimates(x, y, mask, windows, n_p, dt: float, integrating, **
     **kw
         ``noise``, ``n_k``, ``instruments``, ``noise_models`` of :func:`window_estimates`.
     """
+    done = _windows_side_by_side(x, y, mask, windows, n_p, dt, integrating, kw)
+    return {w: r for w, r in zip(windows, done, strict=True)
+            if not isinstance(r, DataQualityError)}
+
+
+def _windows_side_by_side(x, y, mask, windows, n_p, dt: float, integrating, kw: dict
+                          ) -> list:
+    """Each window's estimate, or the :class:`DataQualityError` it raised, in window
+    order; the windows estimated side by side (:func:`pipeline._threads.thread_map`)."""
     def one(w):
         try:
             return window_estimates(x, y, mask, [w], n_p, dt, integrating, **kw)[0]
-        except DataQualityError:
-            return None
+        except DataQualityError as exc:
+            return exc
 
-    # the windows side by side (pipeline._threads)
-    return {w: est for w, est in zip(windows, thread_map(one, windows), strict=True)
-            if est is not None}
+    return thread_map(one, windows)
 
 
 def choose_window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict, *,
@@ -263,16 +270,11 @@ def _window_length(x, y, mask, npm: np.ndarray, dt: float, integrating, kw: dict
                              "uninformative": blocking})
             n_d = min(2 * n_d, most)
             continue
-        def one(w):
-            try:
-                return window_estimates(x, y, mask, [w], npm, dt, integrating, **kw)[0]
-            except DataQualityError as exc:
-                return w, exc
-
-        # the windows side by side (pipeline._threads); the first that fails is named
-        done = thread_map(one, wins)
-        failed = next((r for r in done if isinstance(r, tuple)), None)
-        ests = [r for r in done if not isinstance(r, tuple)]
+        done = _windows_side_by_side(x, y, mask, wins, npm, dt, integrating, kw)
+        # the first window that fails is named
+        failed = next(((w, r) for w, r in zip(wins, done, strict=True)
+                       if isinstance(r, DataQualityError)), None)
+        ests = [r for r in done if not isinstance(r, DataQualityError)]
         if failed is not None:
             # a window may hold too few observations (masks) or an input that does not
             # move there (singular): record the trial and the window, try longer windows

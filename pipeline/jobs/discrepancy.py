@@ -49,6 +49,11 @@ import numpy as np
 import polars as pl
 
 from pipeline.discrepancy import DiscrepancyConfig, DiscrepancyResult, analyse_discrepancy
+from pipeline.discrepancy.problem import (
+    AUTO_WARMUP_MAX_SHARE,
+    first_holdout_sample,
+    opened_signals,
+)
 from pipeline.discrepancy.report import effect_markup, fmt_number, summary_markdown
 from pipeline.errors import ConfigError, InsufficientDataError
 from pipeline.identification.conditioning import as_masked_zero, interpolate_gaps
@@ -192,11 +197,11 @@ def _output_offsets_from_nominal(cfg, model: Model, inputs: dict, measured: dict
     sim = simulate(model, {u: inputs[u] for u in model.inputs}, dt_s=dt_s,
                    initial=core.initial).signals
     n = next(iter(measured.values())).size
-    # the fit part as the core will use it, conservatively: skip the first 10 % (the
-    # core's longest automatic warm-up) unless a warm-up is configured
+    # the fit part as the core will use it, conservatively: skip the core's longest
+    # automatic warm-up unless a warm-up is configured
     start = (int(round(core.warmup_s / dt_s)) if core.warmup_s is not None
-             else int(0.10 * n))
-    stop = int(round(n * (1.0 - core.holdout_fraction)))
+             else int(AUTO_WARMUP_MAX_SHARE * n))
+    stop = first_holdout_sample(n, core.holdout_fraction)
     return {o: float(np.mean(measured[o][start:stop] - sim[o][start:stop])) for o in outputs}
 
 
@@ -413,8 +418,7 @@ def resimulate_holdout_rms(doc: dict, data: DiscrepancyData, result: Discrepancy
 
     model = model_from_dict({"model": doc["model"]}, max_blocks=None)
     opened = result.opened_loops
-    inputs = {**data.inputs, **{c: data.measured[c] for c in opened}}
-    measured = {o: v for o, v in data.measured.items() if o not in opened}
+    inputs, measured = opened_signals(data.inputs, data.measured, opened)
     sim = predict_outputs(open_at(model, opened) if opened else model, None, inputs,
                           dt_s=data.dt_s, outputs=list(measured),
                           initial=result.config.initial)
