@@ -30,7 +30,10 @@ workflow"):
    Saturations are also simulated exactly at five limit pairs per location, because
    inside a loop with integral action they wind up and the first-order picture
    underestimates them.  Only the best ``n_fit_candidates`` classes are fitted
-   exactly (plus the extra_lag partner of a kept inverse_response, which nests it).
+   exactly (plus the extra_lag partner of a kept inverse_response, which nests it, and
+   the dead time a fitted inverse response of magnitude ~1 approximates -- its Padé
+   partner, :func:`pipeline.discrepancy.fit.pade_delay_partners` -- when no dead time
+   of that place was fitted).
 3. **Fit** each kept candidate by nonlinear least squares on the *exact* simulation
    (:func:`scipy.optimize.least_squares`, bounded, multi-start: every start -- the best
    screening grid points plus a coarse grid -- is simulated once and least squares runs

@@ -11,7 +11,13 @@ import numpy as np
 from pipeline._threads import single_threaded_blas
 from pipeline.discrepancy.chain import Chain, build, chain_steps, prune
 from pipeline.discrepancy.config import DiscrepancyConfig
-from pipeline.discrepancy.fit import Fit, Fitter, predict_with, refit_nested_lags
+from pipeline.discrepancy.fit import (
+    Fit,
+    Fitter,
+    pade_delay_partners,
+    predict_with,
+    refit_nested_lags,
+)
 from pipeline.discrepancy.joint import N_JOINT, joint_refit, prior_basis
 from pipeline.discrepancy.localise import RELEVANCE_ALPHA, localise
 from pipeline.discrepancy.problem import (
@@ -331,7 +337,7 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
             revised[id(effect)] = tuple(refitted_prior)
 
     if not prior:
-        for fit in _degenerate_refits(fitted):
+        for fit in _degenerate_refits(fitted, P.dt_s):
             refit(fit, True)
         return fitted, revised
     ranked, seen = [], set()  # best fit of each class (effect, location, schedule signal)
@@ -360,12 +366,12 @@ def _fitted(P: Problem, preds: list, hold_nom: list[np.ndarray], nominal: Model,
 
     for fit, as_is in joint_fits:
         refit(fit, as_is)
-    for fit in _degenerate_refits(fitted):
+    for fit in _degenerate_refits(fitted, P.dt_s):
         refit(fit, True)
     return fitted, revised
 
 
-def _degenerate_refits(fitted: list) -> list[Fit]:
+def _degenerate_refits(fitted: list, dt_s: float) -> list[Fit]:
     """The degenerate forms (:func:`pipeline.discrepancy.effects.degenerate_forms`) of the best fit
     among `fitted` (whitened BIC), started at the values its limit maps to: refitted so
     that :func:`~pipeline.discrepancy.select.decide` can compare the best fit with each
@@ -377,8 +383,19 @@ def _degenerate_refits(fitted: list) -> list[Fit]:
     if not fitted:
         return []
     fit = min(fitted, key=lambda f: f[1])[0]
-    return [Fit(form, len(EFFECT_PARAMETERS[form.name]), fit.screening_score, None)
+    return [Fit(_on_sample_grid(form, dt_s), len(EFFECT_PARAMETERS[form.name]),
+                fit.screening_score, None)
             for form in degenerate_forms(fit.effect)]
+
+
+def _on_sample_grid(effect: Effect, dt_s: float) -> Effect:
+    """A dead time's delay rounded to whole samples (at least one): the mapped delay of
+    a Padé form, ``tau (1 + magnitude)``, is almost never one, and a delay the model
+    cannot simulate was dropped without a word."""
+    if effect.name != "dead_time":
+        return effect
+    delay = max(1, round(effect.parameters["delay_s"] / dt_s)) * dt_s
+    return dataclasses.replace(effect, parameters={"delay_s": float(delay)})
 
 
 #: Classes screened orthogonally to the prior effects' sensitivities that a later search
@@ -545,6 +562,8 @@ def _search(P: Problem, resid: np.ndarray, fir_res: list[np.ndarray], noise: dic
             effect, y_pred = white_fits[class_key(c)]
             _keep_finite(P, preds, c, effect, y_pred, say)
         refit_nested_lags(fitter, preds)
+        for c, effect, y_pred in pade_delay_partners(fitter, preds):
+            _keep_finite(P, preds, c, effect, y_pred, say)
         fits_total += fitter.n_eval
         previous = {class_key(c): e for c, e, _ in preds}
         if not preds or noise_pass == 2:

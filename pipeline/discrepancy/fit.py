@@ -23,7 +23,12 @@ from pipeline.discrepancy.lure import (
     static_path,
 )
 from pipeline.discrepancy.screen import Screen, Screener, near
-from pipeline.discrepancy.effects import Effect, apply_effect, predict_outputs
+from pipeline.discrepancy.effects import (
+    Effect,
+    apply_effect,
+    degenerate_forms,
+    predict_outputs,
+)
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.models.simulate import simulate
 
@@ -613,3 +618,44 @@ def refit_nested_lags(fitter: Fitter, preds: list[tuple[Screen, Effect, np.ndarr
                 y_pred = fitter.predict(refit, full=True)
                 if y_pred is not None:
                     preds[j] = (c_lag, refit, y_pred)
+
+
+def pade_delay_partners(fitter: Fitter, preds: list[tuple[Screen, Effect, np.ndarray]]
+                        ) -> list[tuple[Screen, Effect, np.ndarray | None]]:
+    """The dead times an inverse response among `preds` approximates, fitted as their
+    own class where no dead time of that place was fitted.
+
+    The catalogue declares the all-pass of magnitude ~1 a delay's Padé approximant
+    (:func:`pipeline.discrepancy.effects.degenerate_forms`); selection names the delay
+    unless the inverse response predicts held-out data distinguishably better, and it
+    can only compare the two when both were fitted.  Screening may keep the inverse
+    response alone (zoo heat exchanger 8 101 005: a 14 s steam-valve dead time at 2 s,
+    named an inverse response of magnitude 0.99, tau 5.2 s, with no dead time fitted),
+    and the form as it maps (``tau (1 + magnitude)`` = 10.25 s) is no whole number of
+    samples, so it cannot even be simulated: the class's own fit (integer grid and walk,
+    :meth:`Fitter.fit`) starts from it instead.
+
+    Parameters
+    ----------
+    fitter : Fitter
+        Fitter of the current pass.
+    preds : list of (Screen, Effect, ndarray (N, n_y))
+        Fitted classes with their full-record predictions.
+
+    Returns
+    -------
+    list of (Screen, Effect, ndarray or None)
+        The partners with their full-record predictions (None: the simulation diverges).
+    """
+    out: list[tuple[Screen, Effect, np.ndarray | None]] = []
+    for c_inv, e_inv, _ in [p for p in preds if p[1].name == "inverse_response"]:
+        for form in degenerate_forms(e_inv):
+            if form.name != "dead_time" or any(
+                    e.name == "dead_time" and set(c.members) & set(c_inv.members)
+                    for c, e, _ in [*preds, *out]):
+                continue
+            screen = Screen("dead_time", c_inv.location, c_inv.score, 1,
+                            [dict(form.parameters)], c_inv.direction, list(c_inv.members))
+            effect = fitter.fit(screen)
+            out.append((screen, effect, fitter.predict(effect, full=True)))
+    return out
