@@ -71,7 +71,9 @@ workflow"):
    candidates of different classes within ``lookalike_margin`` of the best BIC are a
    tie: the simplest is named, the others are its ``equivalent_effects``.
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the
-   held-out test while a worse one passes (it is listed as ``rejected``).
+   held-out test while a worse one passes (it is listed as ``rejected``) -- unless the
+   one that passes is a degenerate form of it (a two-sided saturation's one-sided
+   form), which is then named.
 5. **Augment**: the accepted effect is added to the model
    (:func:`pipeline.discrepancy.effects.apply_effect`) and the held-out output-error RMS before and
    after is the ``gap``.

@@ -763,7 +763,10 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     # its best fit only
     unique: list[Candidate] = []
     for c in candidates:
-        if not any(same_class(c.effect, u.effect) for u in unique):
+        # (a degenerate form of a kept fit -- a two-sided saturation's one-sided form --
+        # stays a candidate of its own: the nesting rule compares them)
+        if not any(same_class(c.effect, u.effect) and degenerate_kind(u.effect, c.effect) is None
+                   and degenerate_kind(c.effect, u.effect) is None for u in unique):
             unique.append(c)
     candidates = unique
     passed = [c for c in candidates if c.passed]

@@ -257,6 +257,15 @@ def degenerate_forms(effect: Effect) -> tuple[Effect, ...]:
       delay with the same first moment -- mean time -- as the all-pass, ``2 tau_s`` at
       magnitude 1).
 
+    - ``saturation`` with both limits finite -> ``saturation`` with one of them absent
+      (``-inf`` or ``inf``, its null value; ``"bound"``: inside the class, but a limit
+      acts only in the episodes that reach it, so held-out data that never do cannot
+      show it absent -- they can only reject it, where it clips a signal the plant
+      did not).  A lower limit fitted just under what the fit part reached costs
+      nothing there and clips the held-out part (zoo two tanks 8 103 001: a pump stop
+      at 2.26, fitted 2.31 with a spurious lower limit at -2.2 that wound the level loop
+      up on held-out data).
+
     Every other effect's limit is the nominal model itself (its null value,
     :data:`EFFECT_PARAMETERS`), which the held-out tests against the nominal model
     already cover.
@@ -277,6 +286,8 @@ def degenerate_forms(effect: Effect) -> tuple[Effect, ...]:
 def _declared_forms(effect: Effect) -> list[tuple[Effect, str]]:
     """:func:`degenerate_forms` with each form's kind (:func:`degenerate_kind`): the one
     place the nesting is declared."""
+    if effect.name == "saturation":
+        return _one_sided_forms(effect)
     if effect.name != "inverse_response":
         return []
     tau, magnitude = float(effect.parameters["tau_s"]), float(effect.parameters["magnitude"])
@@ -288,11 +299,30 @@ def _declared_forms(effect: Effect) -> list[tuple[Effect, str]]:
     return forms
 
 
+def _one_sided_forms(effect: Effect) -> list[tuple[Effect, str]]:
+    """A two-sided saturation's one-sided forms: each limit at its null (``-inf``,
+    ``inf``) is the saturation without it (``"bound"``, :func:`degenerate_forms`)."""
+    low, high = float(effect.parameters["low"]), float(effect.parameters["high"])
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return []
+    at = (effect.location, effect.equivalent_locations)
+    return [(Effect("saturation", at[0], {"low": -math.inf, "high": high}, at[1]), "bound"),
+            (Effect("saturation", at[0], {"low": low, "high": math.inf}, at[1]), "bound")]
+
+
+def _limits_absent(effect: Effect) -> tuple[bool, ...]:
+    """Which of a saturation's limits are absent (infinite); () for other effects."""
+    if effect.name != "saturation":
+        return ()
+    return tuple(not math.isfinite(float(effect.parameters[k])) for k in ("low", "high"))
+
+
 def degenerate_kind(richer: Effect, simpler: Effect) -> str | None:
     """How `simpler` is a degenerate form of `richer` (:func:`degenerate_forms`) at a
     place they share: ``"exact"`` (a limit inside the richer class: the lag at
     magnitude 0), ``"approximant"`` (the richer effect approximates the simpler one in
-    a declared band: the Padé form of a delay), or None.
+    a declared band: the Padé form of a delay), ``"bound"`` (a limit at its null: a
+    two-sided saturation without one limit), or None.
 
     Parameters
     ----------
@@ -304,7 +334,8 @@ def degenerate_kind(richer: Effect, simpler: Effect) -> str | None:
     str or None
     """
     for form, kind in _declared_forms(richer):
-        if form.name == simpler.name and form.places & simpler.places:
+        if form.name == simpler.name and form.places & simpler.places \
+                and _limits_absent(form) == _limits_absent(simpler):
             return kind
     return None
 

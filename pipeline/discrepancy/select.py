@@ -469,7 +469,12 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
     other, yet BIC separates them by 168).  A better-BIC candidate that failed on
     held-out data makes the verdict ``no_significant_effect``, with it returned as
     rejected: what the fit part shows is not a stable plant effect (a slow candidate
-    tracking an unmeasured disturbance).
+    tracking an unmeasured disturbance) -- unless the finding is one of its degenerate
+    forms: then the held-out data reject only what the richer one adds (a two-sided
+    saturation's second limit, fitted just beyond the fit part's range, clipping the
+    held-out part).  A ``"bound"`` form (a limit at its null) is never traded for a
+    richer finding that passes: held-out data that never reach the limit say nothing
+    of it.
 
     Parameters
     ----------
@@ -496,9 +501,11 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
         candidate.
     """
     best = findings[0]
+    # a "bound" form (a limit at its null) is never traded for a richer finding: held-out
+    # data that do not reach the limit say nothing of it
     margins = {"exact": 0.0, "approximant": lookalike_gap}
     forms = [c for c in findings[1:]
-             if (kind := degenerate_kind(best.effect, c.effect)) is not None
+             if (kind := degenerate_kind(best.effect, c.effect)) in margins
              and not distinguishable(best, c, margins[kind])]
     nested = []
     if forms:
@@ -508,7 +515,10 @@ def decide(candidates: Sequence[Any], findings: Sequence[Any], *, lookalike_marg
                       and not same_class(c.effect, best.effect)
                       and abs(c.criterion - best.criterion) < lookalike_margin]
     better = candidates[0]
-    if better is not best and not better.passed and better.criterion < best.criterion:
+    # a richer member of the nesting that fails where its form holds is that form with
+    # a parameter the held-out data reject, not a fit-part artefact of its own
+    if better is not best and not better.passed and better.criterion < best.criterion \
+            and degenerate_kind(better.effect, best.effect) is None:
         return "no_significant_effect", None, (better,)
     k_min = min(c.n_parameters for c in group)
     chosen = min((c for c in group if c.n_parameters == k_min), key=lambda c: c.criterion)

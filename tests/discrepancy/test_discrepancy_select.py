@@ -141,6 +141,62 @@ def test_the_catalogue_declares_an_inverse_responses_degenerate_forms():
     assert degenerate_forms(Effect("extra_lag", "fuel", {"tau_s": 5.0})) == ()
 
 
+def test_a_two_sided_saturation_nests_each_one_sided_form():
+    """A saturation's limit at its null (+-inf) is the saturation without it: both
+    one-sided forms of a two-sided fit are declared ("bound") at its places; a one-sided
+    fit has none (its only limit is the null, the nominal model), and a form must
+    lack the same limit to count."""
+    import math
+
+    from pipeline.discrepancy.effects import Effect, degenerate_forms, degenerate_kind
+
+    two = Effect("saturation", "pump", {"low": -2.2, "high": 2.3}, ("outflow1",))
+    assert [(f.location, f.equivalent_locations, f.parameters) for f in
+            degenerate_forms(two)] == [
+        ("pump", ("outflow1",), {"low": -math.inf, "high": 2.3}),
+        ("pump", ("outflow1",), {"low": -2.2, "high": math.inf})]
+    upper = Effect("saturation", "outflow1", {"low": -math.inf, "high": 2.28})
+    lower = Effect("saturation", "pump", {"low": -2.0, "high": math.inf})
+    assert degenerate_kind(two, upper) == "bound" and degenerate_kind(two, lower) == "bound"
+    assert degenerate_kind(two, Effect("saturation", "pump", {"low": -1.0, "high": 1.0})) \
+        is None
+    assert degenerate_kind(two, Effect("saturation", "drum", {"low": -math.inf,
+                                                              "high": 2.3})) is None
+    assert degenerate_forms(upper) == ()
+
+
+def test_a_richer_fit_failing_where_its_form_holds_names_the_form():
+    """The better-BIC candidate failed on held-out data: a rejection (no_significant)
+    unless the finding is one of its degenerate forms -- then the failure says the
+    richer member's extra parameter is not in the plant, and the form is named.  When
+    both pass, a two-sided saturation keeps its name (its forms are "bound")."""
+    import dataclasses
+    import math
+
+    from pipeline.discrepancy.effects import Effect
+    from pipeline.discrepancy.select import decide
+
+    never = lambda a, b, margin: False  # noqa: E731
+    two = _cand("saturation", {"low": -2.2, "high": 2.3}, k=2, delta_bic=935.0,
+                passed=False)
+    one = _cand("saturation", {"low": -math.inf, "high": 2.28}, k=2, delta_bic=917.0)
+    verdict, effect, others = decide([two, one], [one], lookalike_margin=3.0,
+                                     lookalike_gap=0.10, distinguishable=never)
+    assert (verdict, effect.parameters["low"], others) == ("effect_found", -math.inf, ())
+    # not a form of it (another place): still a rejection
+    elsewhere = dataclasses.replace(two, effect=Effect("saturation", "drum",
+                                                       {"low": -2.2, "high": 2.3}))
+    verdict, effect, others = decide([elsewhere, one], [one], lookalike_margin=3.0,
+                                     lookalike_gap=0.10, distinguishable=never)
+    assert (verdict, effect, others) == ("no_significant_effect", None, (elsewhere,))
+    # both hold on held-out data and predict it alike: the one-sided form is not named
+    # over the two-sided fit (held-out data that never reach a limit say nothing of it)
+    held = dataclasses.replace(two, passed=True)
+    verdict, effect, _ = decide([held, one], [held, one], lookalike_margin=3.0,
+                                lookalike_gap=0.10, distinguishable=never)
+    assert (verdict, effect.parameters["low"]) == ("effect_found", -2.2)
+
+
 def _cand(name, params, *, k, delta_bic, passed=True):
     from pipeline.discrepancy.results import Candidate
     from pipeline.discrepancy.effects import Effect

@@ -359,6 +359,29 @@ def test_a_delay_screened_out_is_fitted_beside_its_pade_look_alike(tmp_path, cap
     assert any(c["name"] == "inverse_response" for c in d["candidates"])
 
 
+def test_a_pump_stop_is_named_without_the_lower_limit_the_data_reject(tmp_path, capsys):
+    """A two-tanks pump that cannot deliver more than 2.26 above the operating point
+    (spent seed 8 103 001 of the session-12 zoo rows), the level loop winding up
+    against it.  The best fit adds a lower limit at -2.2, just under what the fit part
+    reached: it costs nothing there and clips the held-out part, whose gap grows 8-fold,
+    so the whole saturation was rejected (``no_significant_effect``).  The one-sided
+    form -- the catalogue's nesting: a limit at its null is the saturation without it --
+    is fitted beside it, holds on held-out data and is named, with the stop within 3 %,
+    through ``plantdyn discrepancy`` with every default."""
+    trial = make_trial(FAMILIES["two_tanks"], "saturation", seed=8_103_001)
+    truth = trial.effect.to_dict()["parameters"]
+    d = _discrepancy_json(trial, tmp_path, capsys)
+    assert d["verdict"] == "effect_found", d["verdict"]
+    found = d["effect"]
+    assert (found["name"], found["location"]) == ("saturation", "pump"), found
+    assert found["parameters"]["low"] in (-math.inf, "-inf")
+    assert found["parameters"]["high"] == pytest.approx(truth["high"], rel=0.03)
+    two_sided = [c for c in d["candidates"] if c["name"] == "saturation"
+                 and c["parameters"]["low"] not in (-math.inf, "-inf")
+                 and c["parameters"]["high"] not in (math.inf, "inf")]
+    assert two_sided and not two_sided[0]["passed"]
+
+
 def test_valve_backlash_is_named_with_its_width(tmp_path, capsys):
     """Valve play that travels with the valve, simulated by the zoo's own integrator
     (the stem's memory in ``tests.zoo.sim``), is named ``backlash`` at the valve by
