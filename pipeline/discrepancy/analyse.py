@@ -542,7 +542,7 @@ def _search(P: Problem, resid: np.ndarray, fir_res: list[np.ndarray], noise: dic
         # residual then updates the noise model.  Duplicates keep their best fit.  Also
         # the two best white-screened classes the AR screening did not keep at all.
         missed = [c for c in white_classes
-                  if not any(k.name == c.name and set(k.members) & set(c.members) for k in kept)]
+                  if not any(k.name == c.name and k.shares_place(c) for k in kept)]
         extra = list(dict.fromkeys([*white_classes[:2], *missed[:2]]))
         kept += [p for p in nested_partners(classes, kept + extra) if p not in kept]
         say("fit", f"exact fits of {len(kept) + len(extra)} candidates: "

@@ -603,7 +603,7 @@ def refit_nested_lags(fitter: Fitter, preds: list[tuple[Screen, Effect, np.ndarr
     """
     for c_inv, e_inv, _ in [p for p in preds if p[1].name == "inverse_response"]:
         for j, (c_lag, e_lag, _) in enumerate(preds):
-            if e_lag.name != "extra_lag" or not set(c_lag.members) & set(c_inv.members):
+            if e_lag.name != "extra_lag" or not c_lag.shares_place(c_inv):
                 continue
             mk = lambda x, e=e_lag: Effect("extra_lag", e.location,  # noqa: E731
                                            {"tau_s": float(math.exp(x[0]))},
@@ -651,7 +651,7 @@ def pade_delay_partners(fitter: Fitter, preds: list[tuple[Screen, Effect, np.nda
     for c_inv, e_inv, _ in [p for p in preds if p[1].name == "inverse_response"]:
         for form in degenerate_forms(e_inv):
             if form.name != "dead_time" or any(
-                    e.name == "dead_time" and set(c.members) & set(c_inv.members)
+                    e.name == "dead_time" and c.shares_place(c_inv)
                     for c, e, _ in [*preds, *out]):
                 continue
             screen = Screen("dead_time", c_inv.location, c_inv.score, 1,

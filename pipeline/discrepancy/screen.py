@@ -65,6 +65,16 @@ class Screen:
     direction: np.ndarray  # whitened direction at the best point (equivalence test)
     members: list[str] = field(default_factory=list)
 
+    def shares_place(self, other: Screen) -> bool:
+        """Whether the two classes act at a common location (their members overlap).
+
+        Parameters
+        ----------
+        other : Screen
+            Another screened class.
+        """
+        return bool(set(self.members) & set(other.members))
+
 
 class Screener:
     """First-order (Born) screening of every candidate on the fit part.
@@ -605,6 +615,6 @@ def nested_partners(classes: list[Screen], chosen: list[Screen]) -> list[Screen]
             continue
         for other in classes:
             if (other.name == "extra_lag" and other not in chosen and other not in out
-                    and set(other.members) & set(c.members)):
+                    and other.shares_place(c)):
                 out.append(other)
     return out
