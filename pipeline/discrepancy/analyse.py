@@ -25,8 +25,7 @@ from pipeline.discrepancy.problem import (
     Problem,
     check_scales,
     first_holdout_sample,
-    loops_to_open,
-    opened_signals,
+    opened_view,
     settling_time,
     sigma_floor,
     validate_signals,
@@ -58,7 +57,7 @@ from pipeline.discrepancy.effects import (
     output_offsets,
 )
 from pipeline.errors import InsufficientDataError
-from pipeline.models.model import Model, open_at
+from pipeline.models.model import Model
 from pipeline.estimation.noise_model import fit_ar
 from pipeline.progress import quiet
 from pipeline.models.simulate import simulate
@@ -138,8 +137,8 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     config = config or DiscrepancyConfig()
     say = progress or quiet
     user_model = model
-    model, inputs, measured, free_offsets, opened = _opened(model, inputs, measured, dt_s,
-                                                            config, free_offsets)
+    model, inputs, measured, free_offsets, opened = opened_view(model, inputs, measured, dt_s,
+                                                                config, free_offsets)
     if opened:
         say("loops", f"loop(s) opened at the measured {', '.join(map(repr, opened))}: the "
             "measured OP drives the actuator path")
@@ -147,7 +146,7 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
              also: tuple[Candidate, ...]) -> DiscrepancyResult:
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
-                     gap_reference(chain.steps, prior), also, free_offsets)
+                     gap_reference(chain.steps, prior), also, free_offsets, opened)
 
     chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say,
                   clock=clock)
@@ -159,21 +158,6 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
         return dataclasses.replace(result, notes=tuple(chain.notes))
     return dataclasses.replace(result, opened_loops=opened,
                                notes=(*chain.notes, _opened_note(opened)))
-
-
-def _opened(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
-            dt_s: float, config: DiscrepancyConfig, free_offsets: tuple[str, ...]):
-    """The model, inputs, measured outputs and free outputs of the analysis with the
-    loops :func:`~pipeline.discrepancy.problem.loops_to_open` picks opened (each measured
-    OP moves from the outputs to the inputs), and those loops' controller names."""
-    if not config.open_loops or not measured:
-        return model, inputs, measured, free_offsets, ()
-    opened = loops_to_open(model, inputs, measured, dt_s=float(dt_s),
-                           holdout_fraction=config.holdout_fraction)
-    if not opened:
-        return model, inputs, measured, free_offsets, ()
-    return (open_at(model, opened), *opened_signals(inputs, measured, opened),
-            tuple(o for o in free_offsets if o not in opened), opened)
 
 
 def _opened_note(opened: tuple[str, ...]) -> str:
@@ -230,11 +214,13 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
           clock: Callable[[], float] | None, base: Model,
           prior: tuple[Effect, ...], gap_reference: float | None = None,
           also: tuple[Candidate, ...] = (),
-          free_offsets: tuple[str, ...] = ()) -> DiscrepancyResult:
+          free_offsets: tuple[str, ...] = (),
+          endogenous: tuple[str, ...] = ()) -> DiscrepancyResult:
     """One search: localise, screen, fit and select the best effect for ``model`` (the
     nominal model `base` with the chain's `prior` effects; locations limited to those with a
     counterpart in the nominal model; the best candidates also refitted jointly with
-    the prior effects, :mod:`pipeline.discrepancy.joint`)."""
+    the prior effects, :mod:`pipeline.discrepancy.joint`).  `endogenous`: the inputs
+    that are measured OPs of opened loops (``Problem.endogenous``)."""
     timings: dict[str, float] = {}
     last = clock() if clock else 0.0
 
@@ -247,6 +233,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         last = now
 
     P, nominal, resid = discrepancy_problem(model, inputs, measured, dt_s, config, say, free_offsets)
+    P.endogenous = endogenous
     P.location_names = (*base.block_names, *base.outputs)
     lap("simulate")
     say("localise", "residual regression, bootstrap, lags, bands, windows, load bins")
@@ -490,7 +477,8 @@ def _initial_noise(P: Problem, fir_res: list[np.ndarray]) -> dict[str, Any]:
         ar.append(a)
         sigma.append(s)
         noise[out] = {"ar_order": p, "ar_coefficients": [float(-c) for c in a[1:]],
-                      "innovation_std": s, "from": "FIR residual"}
+                      "innovation_std": s,
+                      "from": "FIR residual" + (" (opened OPs left out)" if P.endogenous else "")}
     P.ar, P.sigma = ar, np.array(sigma)
     return noise
 

@@ -111,11 +111,12 @@ class DiscrepancyConfig:
         (:func:`pipeline.discrepancy.problem.loops_to_open`).  In closed loop the
         model's OP lacks what the real controller did against the unmeasured
         disturbance, so an actuator's nonlinearity is simulated at other times than
-        the plant met it (a valve's travel stop, a deadband).  Default False: opened,
-        the fit is an output-error fit on an input that also carries the controller's
-        answer to that disturbance, and on zoo plants whose OP is largely that answer
-        the opened analysis named effects on nulls (a valve cooler's vessel gain 0.11;
-        docs/design-notes.md, "Session 12").
+        the plant met it (a valve's travel stop, a deadband).  Opened, the noise model
+        is fitted without the opened OPs (they carry the controller's answer to the
+        disturbance; :func:`pipeline.discrepancy.localise.localise`).  Default False:
+        on a zoo plant whose linear model does not follow its equal-percentage valve
+        the opened analysis named effects on 3 of 8 unseen nulls (docs/design-notes.md,
+        "Session 12" and "Session 14").
     """
 
     effects: tuple[str, ...] = EFFECT_NAMES

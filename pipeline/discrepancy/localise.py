@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -393,7 +394,18 @@ def _localise_output(P: Problem, ff: _FirFit, sp: _Spectra, resid: np.ndarray, i
 
 def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
               ) -> tuple[dict[str, Any], list[np.ndarray], dict[str, np.ndarray]]:
-    """Localisation per output; returns (dict, FIR residual per output, rolling RMS).
+    """Localisation per output; returns (dict, noise residual per output, rolling RMS).
+
+    The noise residual, which the noise model is fitted on, is the residual's FIR
+    regression on the inputs less the endogenous ones (``P.endogenous``: the measured
+    OPs of opened loops).  From the method (§10): driven by a measured OP the direct
+    method is consistent only when the noise model is right, and an OP carries the
+    controller's answer to the noise's past; regressed on it, the residual loses the
+    part of the unmeasured disturbance the controller fed back, the noise model comes
+    out too small and too white, and a gain that cancels that feedback looks like a
+    discrepancy.  On a zoo heat-exchanger null (seed 8 638 003, opened) the exchanger's
+    gain 0.87 had a whitened BIC gain of 2 617 with the OP in the regression and -3.6
+    without it (factor 0.976).
 
     Parameters
     ----------
@@ -406,6 +418,10 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
         Random offsets of the circular-shift bootstrap.
     """
     ff = _fir_fit(P, resid)
+    noise_res = ff.fir_res
+    if P.endogenous:
+        exogenous = {k: v for k, v in P.inputs.items() if k not in P.endogenous}
+        noise_res = _fir_fit(dataclasses.replace(P, inputs=exogenous), resid).fir_res
     sp = _spectra(P)
     window = max(P.n_p, ff.n // 40)
     rolling: dict[str, np.ndarray] = {}
@@ -413,6 +429,6 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
     fir_out = []
     for i, out in enumerate(P.outputs):
         rel = input_relevance(P, resid[:, i], ff.signals, ff.start, rng)
-        fir_out.append(np.nan_to_num(ff.fir_res[:, i]))
+        fir_out.append(np.nan_to_num(noise_res[:, i]))
         loc[out], rolling[out] = _localise_output(P, ff, sp, resid, i, out, rel, window)
     return loc, fir_out, rolling

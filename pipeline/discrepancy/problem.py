@@ -110,6 +110,10 @@ class Problem:
     #: indices of the outputs whose constant is not known (``free_offsets``): every
     #: prediction has it profiled out on the fit part (:meth:`with_free_offsets`)
     free: tuple[int, ...] = ()
+    #: inputs that carry the noise's past: the measured OPs of the loops the analysis
+    #: opened (:func:`loops_to_open`).  The noise model's residual regression leaves
+    #: them out (:func:`pipeline.discrepancy.localise.localise`)
+    endogenous: tuple[str, ...] = ()
 
     def with_free_offsets(self, y: np.ndarray) -> np.ndarray:
         """`y` (predicted outputs from sample 0, at least to the hold-out) with each free
@@ -332,6 +336,37 @@ def loops_to_open(model: Model, inputs: Mapping[str, np.ndarray],
                         part=fit) >= MIN_OP_EXPLAINED:
             chosen.append(block.name)
     return tuple(chosen)
+
+
+def opened_view(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any],
+                dt_s: float, config: DiscrepancyConfig, free_offsets: tuple[str, ...] = ()
+                ) -> tuple[Model, dict[str, Any], dict[str, Any], tuple[str, ...],
+                           tuple[str, ...]]:
+    """What the analysis compares: the model, inputs, measured outputs and free outputs
+    with the loops :func:`loops_to_open` picks opened (each measured OP moved from the
+    outputs to the inputs, ``config.open_loops``), and those loops' controller names
+    (empty: everything as given).
+
+    Parameters
+    ----------
+    model : Model
+    inputs, measured : mapping of str -> array
+        The analysis's inputs and measured outputs (deviations, one grid).
+    dt_s : float
+        Sample period, s.
+    config : DiscrepancyConfig
+        ``open_loops`` and ``holdout_fraction`` are read.
+    free_offsets : tuple of str
+        Outputs whose constant is profiled out.
+    """
+    if not config.open_loops or not measured:
+        return model, dict(inputs), dict(measured), free_offsets, ()
+    opened = loops_to_open(model, inputs, measured, dt_s=float(dt_s),
+                           holdout_fraction=config.holdout_fraction)
+    if not opened:
+        return model, dict(inputs), dict(measured), free_offsets, ()
+    return (open_at(model, opened), *opened_signals(inputs, measured, opened),
+            tuple(o for o in free_offsets if o not in opened), opened)
 
 
 def fir_from(a: np.ndarray, z: np.ndarray, first: int) -> np.ndarray:

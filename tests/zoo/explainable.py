@@ -8,12 +8,14 @@ consequences depend on the operating point (a saturation the controller winds up
 against) can make the linear model with the true parameters predict the held-out part
 worse than the nominal model alone: heat exchanger 8 103 002 — the valve's stop at
 0.052 turned a held-out gap of 0.519 into 1.198, and the limit that explained the data
-best in the model was 0.065 (docs/design-notes.md, "Session 8").
+best in the model was 0.065 (docs/design-notes.md, "Session 8"; in closed loop, the
+default -- with ``open_loops: true`` the true stop closes most of the gap).
 
 :func:`model_gap_reduction` measures that second bar: the held-out gap reduction of the
 nominal model with the true effect exactly, through the workflow's own data preparation,
-warm-up, split and re-centred output constants — what a perfect search on that model
-could at best report.  It uses the library's simulator (the model is the user's, so it
+warm-up, split, re-centred output constants and loops opened at measured OPs where the
+workflow opens them (:func:`pipeline.discrepancy.problem.opened_view`) — what a
+perfect search on that model could at best report.  It uses the library's simulator (the model is the user's, so it
 is what the workflow would simulate); the trial's answer still comes from the zoo's own
 plant.  The suite reports rates among the trials that clear both bars beside the rates
 among the visible ones (:mod:`tests.benchmarks.zoo_suite`).
@@ -30,6 +32,7 @@ from pipeline.adapters.config import load_job
 from pipeline.discrepancy.analyse import discrepancy_problem
 from pipeline.discrepancy.chain import predict_with_effects
 from pipeline.discrepancy.effects import Effect
+from pipeline.discrepancy.problem import opened_view
 from pipeline.discrepancy.select import holdout_gap
 from pipeline.errors import PipelineError
 from pipeline.jobs.discrepancy import (
@@ -54,11 +57,15 @@ def model_gap_reduction(trial: ZooTrial, job: Path | None = None) -> float:
         model, _ = load_discrepancy_model(cfg)
         data = prepare_discrepancy(cfg, load_recording(cfg), model)
     config = core_config(cfg)
-    P, _, resid = discrepancy_problem(model, data.inputs, data.measured, data.dt_s, config,
-                                      lambda *_: None, free_outputs(cfg, data.measured))
+    # the view the workflow compares in: loops opened at measured OPs where it opens them
+    model, inputs, measured, free, _ = opened_view(model, data.inputs, data.measured,
+                                                   data.dt_s, config,
+                                                   free_outputs(cfg, data.measured))
+    P, _, resid = discrepancy_problem(model, inputs, measured, data.dt_s, config,
+                                      lambda *_: None, free)
     effect = Effect(trial.effect.name, trial.effect.location, dict(trial.effect.parameters))
     try:
-        pred = predict_with_effects(model, [effect], data.inputs, dt_s=data.dt_s,
+        pred = predict_with_effects(model, [effect], inputs, dt_s=data.dt_s,
                                     initial=config.initial, outputs=P.outputs)
     except PipelineError:  # the model with the true effect diverges
         return float("-inf")
