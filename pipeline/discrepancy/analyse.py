@@ -603,8 +603,10 @@ def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray
             # std 4.68 on the FIR residual, 4.23 of the real noise).  The residual's
             # variance tells: a candidate that halves the variance of the residual
             # the noise model was fitted on explains what that model took for noise.
+            # Not with a loop opened: there a candidate that cancels the controller's
+            # answer to the disturbance halves the output error too (select's rule).
             k_var = int(np.argmin([float(np.var(e)) for e in residuals]))
-            if float(np.var(residuals[k_var])) < 0.5 * noise_var[i]:
+            if not P.endogenous and float(np.var(residuals[k_var])) < 0.5 * noise_var[i]:
                 k, source = k_var, "residual variance halved by a candidate"
         a_i, s_i, p_i = ars[k]
         if s_i <= sigma_floor(y[:, i]):
@@ -703,7 +705,15 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     verdict, the effect found (or None), the look-alikes and the minor effects.
     ``gap_reference``: the held-out gap practical significance is measured against
     (:func:`gap_reference`; None: this model's); ``localization``: what
-    :func:`corroborated` reads."""
+    :func:`corroborated` reads.
+
+    With a loop opened (``P.endogenous``) a candidate passes by the whitened tests only,
+    never by the plain held-out RMS test alone: the output error of a path the measured
+    OP drives carries the controller's answer to the disturbance, so a candidate that
+    cancels it (a smaller gain, a wide deadband downstream of the valve) cuts the plain
+    held-out error on nulls -- by 66 % on a valve-cooler null (unseen seed 8 648 001, a
+    deadband of width 4.6 at the vessel, whitened held-out z 0.9) -- while the
+    prediction-error criteria with the right noise model are consistent (method §10)."""
     config, y, outputs = P.config, P.y, P.outputs
     candidates = []
     hold_slice = slice(P.holdout_start, P.n)
@@ -736,6 +746,8 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
                                                    margin=config.min_gap_reduction)]
         if worse or not corroborated(fit.effect, localization):
             whitened = plain = False
+        if P.endogenous and not whitened:  # opened: output error is biased (docstring)
+            plain = False
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,

@@ -483,6 +483,28 @@ def test_an_opened_null_keeps_the_disturbance_the_controller_fed_back_in_its_noi
     assert max(c["delta_bic"] for c in d["candidates"]) < d["config"]["bic_margin"]
 
 
+def test_an_opened_loop_takes_no_finding_on_the_plain_held_out_test_alone(tmp_path, capsys):
+    """A null valve cooler (seed 8 648 001 of session 14's unseen run; read while
+    deciding the rule, so spent) with its loop opened at the measured OP.  The vessel
+    temperature's output error is then the whole unmeasured disturbance the controller
+    was answering, and a deadband of width 4.6 at the vessel -- which cancels that
+    answer -- cut its held-out error by 66 % (block-bootstrap p 0.001) and was named,
+    though the whitened held-out part saw nothing (z 0.1).  Opened, a candidate passes by
+    the whitened tests only (``analyse._select``), and the noise model is not refitted on
+    a residual merely because a candidate halved its variance: nothing is named."""
+    trial = make_trial(FAMILIES["valve_cooler"], None, seed=8_648_001)
+    d = _discrepancy_json(trial, tmp_path, capsys, {"open_loops": True})
+    assert d["opened_loops"] == ["controller"]
+    assert d["verdict"] == "no_significant_effect", (d["verdict"], d.get("effect"))
+    (deadband,) = [c for c in d["candidates"]
+                   if (c["name"], c["location"]) == ("deadband", "vessel")]
+    assert deadband["holdout_rms_p"] <= d["config"]["holdout_rms_alpha"]
+    assert deadband["gap_reduction"] > 0.5
+    assert deadband["holdout_z"] < d["config"]["holdout_z_min"] and not deadband["passed"]
+    assert all(n["from"] != "residual variance halved by a candidate"
+               for k, n in d["noise"].items() if isinstance(n, dict))
+
+
 def test_nothing_in_production_imports_the_zoo():
     """The zoo is test material: no module of pipeline/ or flows/ imports ``tests``."""
     import re
