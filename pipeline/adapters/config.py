@@ -337,7 +337,7 @@ class DiscrepancySection(_Strict):
     max_time_s: float | None = None
     """Time budget of the search chain, s (default 600); ``null`` for none."""
     open_loops: bool | None = None
-    """Drive the actuator path with each measured controller output (default false)."""
+    """Drive the actuator path with each measured controller output (default true)."""
 
     WORKFLOW_KEYS: ClassVar[tuple[str, ...]] = ("simulator_outputs", "operating_point", "seed")
 

@@ -29,8 +29,8 @@ sees only the data and the nominal model):
    as a historian export with its model and job YAML and run through
    ``plantdyn discrepancy --no-prefect`` (:mod:`tests.benchmarks.zoo_suite`); per-family
    confusion tables, null verdicts, parameter errors, times.  ``--families``,
-   ``--hours``, ``--keep DIR`` (keep every trial's folder) and ``--open-loops`` (every
-   job with ``discrepancy.open_loops: true``) apply to it.
+   ``--hours``, ``--keep DIR`` (keep every trial's folder) and ``--closed-loops`` (every
+   job with ``discrepancy.open_loops: false``; the default opens them) apply to it.
 
 Printed: the confusion matrices (markdown), correct name and location per effect, the
 null false-positive rate, the median parameter error, the noise-free error removed,
@@ -332,7 +332,7 @@ def main_zoo(args: argparse.Namespace) -> None:
     seed0 = ZOO_SEED0 if args.seed0 is None else args.seed0
     jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours,
                     seed0=seed0)
-    extra = {"open_loops": True} if args.open_loops else None
+    extra = {"open_loops": False} if args.closed_loops else None
     jobs = [(*j, args.keep, extra) for j in jobs]
     results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl)
     print(f"\n## Zoo suite: {trials} trials per (family, effect) + {nulls} nulls per family, "
@@ -496,8 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hours", type=float, default=None,
                         help="zoo: record length (default per family)")
     parser.add_argument("--keep", default=None, help="zoo: keep every trial's folder here")
-    parser.add_argument("--open-loops", action="store_true",
-                        help="zoo: run every trial with discrepancy.open_loops: true")
+    parser.add_argument("--closed-loops", action="store_true",
+                        help="zoo: run every trial with discrepancy.open_loops: false")
     parser.add_argument("--jsonl", default=None, help="zoo: append each trial's row here")
     parser.add_argument("--seed0", type=int, default=None,
                         help="first seed (default: the suite's SUITE_SEED0 or ZOO_SEED0; "

@@ -453,6 +453,8 @@ def test_an_op_exported_as_a_fraction_is_named_with_its_factor(tmp_path, capsys)
 
     doc = yaml.safe_load(job.read_text())
     doc["signals"]["outputs"]["controller"]["scale"] = 100
+    # closed, the OP is a compared output whose analysed series can be read back
+    doc.setdefault("discrepancy", {})["open_loops"] = False
     job.write_text(yaml.safe_dump(doc, sort_keys=False))
     assert main(["discrepancy", str(job), "--no-prefect"]) == 0
     run_dir = Path(capsys.readouterr().out.strip().splitlines()[-1])
