@@ -2,7 +2,11 @@
 
 :func:`analyse_discrepancy` takes a nominal block-diagram model, the measured signals and
 the measured outputs, and runs the workflow of method.md §9 (issue "Discrepancy
-workflow"):
+workflow").  Where a controller's output (OP) is measured its loop is opened first
+(``open_loops``, default true; :func:`pipeline.discrepancy.problem.opened_view`): the
+measured OP drives the actuator path, the noise model is fitted without it and candidates
+pass by the whitened tests only (the direct method of closed-loop identification,
+method §10).  Then:
 
 1. **Localise** (:class:`DiscrepancyResult` ``.localization``, per measured output): the
    residual ``e = measured - simulated`` (nominal model driven by the measured inputs);
