@@ -215,12 +215,12 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
           prior: tuple[Effect, ...], gap_reference: float | None = None,
           also: tuple[Candidate, ...] = (),
           free_offsets: tuple[str, ...] = (),
-          endogenous: tuple[str, ...] = ()) -> DiscrepancyResult:
+          opened_loops: tuple[str, ...] = ()) -> DiscrepancyResult:
     """One search: localise, screen, fit and select the best effect for ``model`` (the
     nominal model `base` with the chain's `prior` effects; locations limited to those with a
     counterpart in the nominal model; the best candidates also refitted jointly with
-    the prior effects, :mod:`pipeline.discrepancy.joint`).  `endogenous`: the inputs
-    that are measured OPs of opened loops (``Problem.endogenous``)."""
+    the prior effects, :mod:`pipeline.discrepancy.joint`).  `opened_loops`: the
+    controllers whose measured OPs are inputs (``Problem.opened_loops``)."""
     timings: dict[str, float] = {}
     last = clock() if clock else 0.0
 
@@ -233,7 +233,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
         last = now
 
     P, nominal, resid = discrepancy_problem(model, inputs, measured, dt_s, config, say, free_offsets)
-    P.endogenous = endogenous
+    P.opened_loops = opened_loops
     P.location_names = (*base.block_names, *base.outputs)
     lap("simulate")
     say("localise", "residual regression, bootstrap, lags, bands, windows, load bins")
@@ -478,7 +478,7 @@ def _initial_noise(P: Problem, fir_res: list[np.ndarray]) -> dict[str, Any]:
         sigma.append(s)
         noise[out] = {"ar_order": p, "ar_coefficients": [float(-c) for c in a[1:]],
                       "innovation_std": s,
-                      "from": "FIR residual" + (" (opened OPs left out)" if P.endogenous else "")}
+                      "from": "FIR residual" + (" (opened OPs left out)" if P.opened_loops else "")}
     P.ar, P.sigma = ar, np.array(sigma)
     return noise
 
@@ -606,7 +606,7 @@ def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray
             # Not with a loop opened: there a candidate that cancels the controller's
             # answer to the disturbance halves the output error too (select's rule).
             k_var = int(np.argmin([float(np.var(e)) for e in residuals]))
-            if not P.endogenous and float(np.var(residuals[k_var])) < 0.5 * noise_var[i]:
+            if not P.opened_loops and float(np.var(residuals[k_var])) < 0.5 * noise_var[i]:
                 k, source = k_var, "residual variance halved by a candidate"
         a_i, s_i, p_i = ars[k]
         if s_i <= sigma_floor(y[:, i]):
@@ -707,7 +707,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     (:func:`gap_reference`; None: this model's); ``localization``: what
     :func:`corroborated` reads.
 
-    With a loop opened (``P.endogenous``) a candidate passes by the whitened tests only,
+    With a loop opened (``P.opened_loops``) a candidate passes by the whitened tests only,
     never by the plain held-out RMS test alone: the output error of a path the measured
     OP drives carries the controller's answer to the disturbance, so a candidate that
     cancels it (a smaller gain, a wide deadband downstream of the valve) cuts the plain
@@ -746,7 +746,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
                                                    margin=config.min_gap_reduction)]
         if worse or not corroborated(fit.effect, localization):
             whitened = plain = False
-        if P.endogenous and not whitened:  # opened: output error is biased (docstring)
+        if P.opened_loops and not whitened:  # opened: output error is biased (docstring)
             plain = False
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,

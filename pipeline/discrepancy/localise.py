@@ -397,9 +397,9 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
     """Localisation per output; returns (dict, noise residual per output, rolling RMS).
 
     The noise residual, which the noise model is fitted on, is the residual's FIR
-    regression on the inputs less the endogenous ones (``P.endogenous``: the measured
-    OPs of opened loops).  From the method (§10): driven by a measured OP the direct
-    method is consistent only when the noise model is right, and an OP carries the
+    regression on the inputs less the measured OPs of opened loops (``P.opened_loops``).
+    From the method (§10): driven by a measured OP the direct method is consistent
+    only when the noise model is right, and an OP carries the
     controller's answer to the noise's past; regressed on it, the residual loses the
     part of the unmeasured disturbance the controller fed back, the noise model comes
     out too small and too white, and a gain that cancels that feedback looks like a
@@ -419,8 +419,8 @@ def localise(P: Problem, resid: np.ndarray, rng: np.random.Generator
     """
     ff = _fir_fit(P, resid)
     noise_res = ff.fir_res
-    if P.endogenous:
-        exogenous = {k: v for k, v in P.inputs.items() if k not in P.endogenous}
+    if P.opened_loops:
+        exogenous = {k: v for k, v in P.inputs.items() if k not in P.opened_loops}
         noise_res = _fir_fit(dataclasses.replace(P, inputs=exogenous), resid).fir_res
     sp = _spectra(P)
     window = max(P.n_p, ff.n // 40)

@@ -110,10 +110,11 @@ class Problem:
     #: indices of the outputs whose constant is not known (``free_offsets``): every
     #: prediction has it profiled out on the fit part (:meth:`with_free_offsets`)
     free: tuple[int, ...] = ()
-    #: inputs that carry the noise's past: the measured OPs of the loops the analysis
-    #: opened (:func:`loops_to_open`).  The noise model's residual regression leaves
-    #: them out (:func:`pipeline.discrepancy.localise.localise`)
-    endogenous: tuple[str, ...] = ()
+    #: controllers whose loops the analysis opened (:func:`loops_to_open`; the result's
+    #: ``opened_loops``): their measured OPs are inputs that carry the noise's past, so
+    #: the noise model's residual regression leaves them out
+    #: (:func:`pipeline.discrepancy.localise.localise`)
+    opened_loops: tuple[str, ...] = ()
 
     def with_free_offsets(self, y: np.ndarray) -> np.ndarray:
         """`y` (predicted outputs from sample 0, at least to the hold-out) with each free
