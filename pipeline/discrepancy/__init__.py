@@ -69,7 +69,11 @@ method §10).  Then:
    candidate that flattens the prediction (e.g. a narrow saturation band) can win (a)
    and (b) while the prediction an engineer looks at gets worse -- found on the steam
    generator, where such a clip of O2 passed (a) and (b) and raised its held-out RMS
-   by 70 %).  A finding must also close ``min_gap_reduction`` of the gap at the lower
+   by 70 %).  The second way a candidate passes is the plain held-out RMS test: its
+   reduction of the gap against what surrogate disturbances of the noise model,
+   continued from the residual at the split, give a correction fixed by the fit part
+   (:func:`pipeline.discrepancy.select.holdout_rms_noise_test`, level
+   ``holdout_rms_alpha``).  A finding must also close ``min_gap_reduction`` of the gap at the lower
    confidence bound of the share it closes, each output's held-out level left out
    (``gap_reduction_low``).  Accepted
    candidates of different classes within ``lookalike_margin`` of the best BIC are a

@@ -41,7 +41,7 @@ from pipeline.discrepancy.select import (
     centred,
     less_common_level,
     holdout_rms_evidence,
-    holdout_rms_test,
+    holdout_rms_noise_test,
     holdout_z_score,
     pooled_rms,
     rms_of,
@@ -733,7 +733,9 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         whitened = bool(dbic >= config.bic_margin and t_hold >= config.holdout_z_min
                         and gap_c < gap_nom)
         e_cand = (y[hold_slice] - fit.y_pred[hold_slice]) / np.array(hold_std)
-        _, p_rms = holdout_rms_test(e_nom, e_cand, seed=seed + k)
+        _, p_rms = holdout_rms_noise_test(
+            e_nom, e_cand, whitening=P.ar, innovation_std=P.sigma,
+            before=resid[P.fit_start:P.holdout_start], scale=hold_std, seed=seed + k)
         c_cand = centred(e_cand, P.free)
         # an actuator's nonlinearity moves a free output's held-out level by its own
         # path: the level it moves is evidence, the level both leave a nuisance
@@ -746,7 +748,9 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
                                                    margin=config.min_gap_reduction)]
         if worse or not corroborated(fit.effect, localization):
             whitened = plain = False
-        if P.opened_loops and not whitened:  # opened: output error is biased (docstring)
+        # opened: the output error is biased (docstring); a drift's held-out level is
+        # told from a persisting disturbance by the noise model only (level_is_evidence)
+        if (P.opened_loops or fit.effect.is_sensor_correction) and not whitened:
             plain = False
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,

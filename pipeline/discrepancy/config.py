@@ -44,10 +44,11 @@ class DiscrepancyConfig:
     holdout_z_min : float
         Minimum held-out z statistic (whitened SSE drop over its null std).
     holdout_rms_alpha : float
-        Level of the plain held-out RMS test (block bootstrap,
-        :func:`pipeline.discrepancy.select.holdout_rms_test`), the second way a candidate
-        passes: when the noise model absorbs slow errors the whitened tests undervalue a
-        large, held-out confirmed improvement.  0.01: about ten candidates are tested per
+        Level of the plain held-out RMS test (the reduction against surrogate
+        disturbances from the noise model,
+        :func:`pipeline.discrepancy.select.holdout_rms_noise_test`), the second way a
+        candidate passes: when the noise model absorbs slow errors the whitened tests
+        undervalue a large, held-out confirmed improvement.  0.01: about ten candidates are tested per
         search, so the chance that any one passes by luck stays near 10 % -- and a lucky
         pass must still shrink the gap by ``min_gap_reduction`` to be a finding.
     lookalike_margin : float

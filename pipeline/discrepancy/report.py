@@ -228,7 +228,7 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
     return (f"Passed: ΔBIC ≥ {fmt_number(cfg.get('bic_margin'))}, held-out z ≥ "
             f"{fmt_number(cfg.get('holdout_z_min'))} and a held-out gap below the nominal "
             f"{fmt_number((doc.get('gap') or {}).get('holdout_rms_before'))} (whitened), "
-            "or a held-out RMS reduction with block-bootstrap p ≤ "
+            "or a held-out RMS reduction beyond the noise model's disturbance at p ≤ "
             f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
             f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
             "the gap.")

@@ -50,8 +50,8 @@ class Candidate:
         it was added to the candidate closes on held-out data (practical significance:
         at least ``min_gap_reduction`` for a finding).
     holdout_rms_p : float
-        Block-bootstrap p-value of "no held-out RMS reduction"
-        (:func:`pipeline.discrepancy.select.holdout_rms_test`).
+        p-value of "no held-out RMS reduction" against the noise model's surrogate
+        disturbances (:func:`pipeline.discrepancy.select.holdout_rms_noise_test`).
     passed_by : str
         Which acceptance passed: ``"whitened"``, ``"held-out RMS"``, ``"both"`` or ``""``.
     gap_reduction_low : float

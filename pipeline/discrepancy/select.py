@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter, lfiltic
 
 from pipeline.discrepancy.problem import Problem
 from pipeline.discrepancy.effects import Effect, degenerate_kind
@@ -90,7 +91,10 @@ def holdout_rms_test(nominal: np.ndarray, candidate: np.ndarray, *, seed: int,
     non-overlapping blocks resampled with replacement, both models' errors together, so
     the errors' autocorrelation within a block and the pairing are kept; Künsch 1989).
     The candidate was fitted on the fit part only, so under "no real improvement" ``R``
-    is centred at or below 0.
+    is centred at or below 0.  Blocks are exchangeable only when the errors forget
+    faster than a block: the selection's detection uses
+    :func:`holdout_rms_noise_test` (the noise model's surrogates); this form judges
+    :func:`worse_outputs` and gives the practical bound (:func:`holdout_rms_evidence`).
 
     Parameters
     ----------
@@ -191,6 +195,78 @@ def holdout_rms_evidence(nominal: np.ndarray, candidate: np.ndarray, *, seed: in
         return reduction, 1.0, reduction
     p_value = (1.0 + float(np.sum(~(boot > 0.0)))) / (1.0 + n_boot)
     return reduction, p_value, min(reduction, float(np.quantile(boot, alpha)))
+
+
+def holdout_rms_noise_test(nominal: np.ndarray, candidate: np.ndarray, *,
+                           whitening: Sequence[np.ndarray], innovation_std: Sequence[float],
+                           before: np.ndarray, scale: Sequence[float], seed: int,
+                           n_sim: int = RMS_TEST_REPLICATES) -> tuple[float, float]:
+    """Plain held-out evidence against the noise model: is the gap reduction ``R`` of
+    :func:`holdout_rms_test` more than the unmeasured disturbance would give it?
+
+    The candidate's correction on the held-out part, ``c = e_0 - e_c``, is fixed by the
+    fit part and the inputs.  Without an effect the nominal model's held-out error is
+    the disturbance, whose model the workflow has fitted (each output's AR noise model,
+    package doc step 3).  So ``R``'s distribution under "no effect" is that of
+    ``1 - sqrt(sum (s - c)^2 / sum s^2)`` over surrogate held-out disturbances ``s``:
+    white innovations of the fitted std through each output's AR model, continued from
+    the nominal residual's last values before the split (the disturbance persists
+    across it), plus the fit part's mean residual.  A block bootstrap of the held-out
+    errors instead treats blocks as exchangeable: when the disturbance is slower than a
+    block, a candidate whose correction follows a slow input that the disturbance
+    happens to track over the whole hold-out passes at p 0.001 -- two-tank nulls
+    (unseen seeds 8 668 000, 8 668 001 and 8 668 008: a 6 % gain at the tank's outflow,
+    a deadband of 0.015 there and an operating-point gain, 13-22 % of the held-out gap,
+    whitened BIC -1.7 to +3.3) against p 0.016-0.038 here; the steam generator's
+    air-scheduled combustion gain (25 % of the held-out O2 error) keeps p 0.001.
+
+    Parameters
+    ----------
+    nominal, candidate : ndarray (M, n_y)
+        Held-out errors, each output divided by `scale`.
+    whitening : sequence of ndarray
+        Each output's AR whitening filter ``[1, d_1, .., d_p]``
+        (:func:`pipeline.estimation.noise_model.fit_ar`).
+    innovation_std : sequence of float
+        Each output's innovation std, in the output's units.
+    before : ndarray (K, n_y)
+        The nominal model's residual on the fit part, in the outputs' units (its last
+        values start the surrogates; its mean is their level).
+    scale : sequence of float
+        The held-out std each output is divided by.
+    seed : int
+        Seeds the surrogates.
+    n_sim : int
+        Surrogate hold-outs.
+
+    Returns
+    -------
+    reduction, p_value : float
+        ``R`` and ``(1 + #{R_s >= R}) / (1 + n_sim)`` (``0.0, 1.0`` when the nominal
+        errors are zero).
+    """
+    e0 = np.atleast_2d(np.asarray(nominal, dtype=float).T).T
+    e1 = np.atleast_2d(np.asarray(candidate, dtype=float).T).T
+    t0 = float(np.sum(e0 ** 2))
+    if t0 <= 0.0:
+        return 0.0, 1.0
+    reduction = 1.0 - math.sqrt(float(np.sum(e1 ** 2)) / t0)
+    rng = np.random.default_rng(seed)
+    m = e0.shape[0]
+    s0, s1 = np.zeros(n_sim), np.zeros(n_sim)
+    for i in range(e0.shape[1]):
+        d = np.asarray(whitening[i], dtype=float)
+        level = float(np.mean(before[:, i]))
+        w = rng.standard_normal((n_sim, m)) * float(innovation_std[i])
+        if d.size > 1:
+            past = (before[-(d.size - 1):, i] - level)[::-1]
+            zi = np.tile(lfiltic([1.0], d, past), (n_sim, 1))
+            w = lfilter([1.0], d, w, axis=1, zi=zi)[0]
+        s = (w + level) / scale[i]
+        s0 += np.sum(s ** 2, axis=1)
+        s1 += np.sum((s - (e0[:, i] - e1[:, i])) ** 2, axis=1)
+    replicates = 1.0 - np.sqrt(s1 / s0)
+    return reduction, (1.0 + float(np.sum(replicates >= reduction))) / (1.0 + n_sim)
 
 
 def worse_outputs(nominal: np.ndarray, candidate: np.ndarray, *, seed: int, alpha: float,

@@ -332,15 +332,18 @@ def test_a_slow_disturbance_across_the_split_is_not_named_a_sensor_drift(tmp_pat
     """A null heat exchanger (seed 3 008 003, a tuning seed of the zoo nulls) whose
     unmeasured disturbance ends the fit part high: a bias and drift on the OP and the
     steam flow, fitted on the fit part, cut their held-out error by 57 % by moving
-    toward that level, and were named.  Judged on shapes (each output's held-out level
-    left out, ``select.centred``) they close nothing and the verdict is
+    toward that level, and were named.  The level a drift predicts is its evidence
+    (``Effect.level_is_evidence``), so its share stays large; what tells it from the
+    disturbance persisting across the split is the noise model: the whitened held-out
+    test fails, a drift does not pass by the plain test alone, and the verdict is
     ``no_significant_effect``, through ``plantdyn discrepancy`` with every default."""
     trial = make_trial(FAMILIES["heat_exchanger"], None, seed=3_008_003)
     d = _discrepancy_json(trial, tmp_path, capsys)
     assert d["verdict"] == "no_significant_effect", (d["verdict"], d.get("effect"))
     drifts = [c for c in d["candidates"] if c["name"] == "sensor_bias_drift"]
     assert drifts and max(c["gap_reduction"] for c in drifts) > 0.2  # the plain share
-    assert all(c["gap_reduction_low"] < 0.05 for c in drifts)
+    assert all(c["holdout_z"] < d["config"]["holdout_z_min"] and not c["passed"]
+               for c in drifts)
 
 
 def test_a_delay_screened_out_is_fitted_beside_its_pade_look_alike(tmp_path, capsys):
@@ -507,6 +510,41 @@ def test_an_opened_loop_takes_no_finding_on_the_plain_held_out_test_alone(tmp_pa
                for k, n in d["noise"].items() if isinstance(n, dict))
 
 
+def test_a_slow_input_the_disturbance_happens_to_track_is_not_a_finding(tmp_path, capsys):
+    """A null two-tank plant (seed 8 668 008 of session 14's unseen run, read while
+    deciding the rule, so spent).  Over this record the unmeasured draw from tank 2
+    happens to follow the inflow, so a 6 % smaller outflow gain of tank 1 cut the
+    held-out error of the level loop by 22 % (whitened BIC -1.7) and passed the plain
+    held-out test of a 20-block bootstrap at p 0.001: blocks of 8 min, a disturbance of
+    30 min.  Against surrogate disturbances of the noise model, continued from the
+    residual at the split (``select.holdout_rms_noise_test``), the same reduction is
+    what the disturbance gives (p above the 1 % level): nothing is named."""
+    trial = make_trial(FAMILIES["two_tanks"], None, seed=8_668_008)
+    d = _discrepancy_json(trial, tmp_path, capsys)
+    assert d["verdict"] == "no_significant_effect", (d["verdict"], d.get("effect"))
+    (gain,) = [c for c in d["candidates"] if (c["name"], c["location"]) == ("gain", "outflow1")]
+    assert gain["gap_reduction"] > 0.15
+    assert gain["holdout_rms_p"] > d["config"]["holdout_rms_alpha"] and not gain["passed"]
+
+
+def test_a_drifting_flow_meter_is_named_by_the_level_its_ramp_predicts(tmp_path, capsys):
+    """A valve cooler whose cooling-water flow meter drifts (seed 8 106 002, a spent
+    zoo row).  The flow is measured from its mean (its constant profiled), so on the
+    hold-out the fitted ramp shows mostly as a level: with each output's level left out
+    the drift closed 2-6 % of the gap at the bound and was minor, though the whitened
+    criteria had it beyond doubt.  Its level counts as evidence
+    (``Effect.level_is_evidence``; it passes by the whitened tests only): the drift is
+    named at the meter, its rate within 20 % of the injected one."""
+    trial = make_trial(FAMILIES["valve_cooler"], "sensor_bias_drift", seed=8_106_002)
+    truth = trial.effect.parameters["drift_per_h"]
+    d = _discrepancy_json(trial, tmp_path, capsys)
+    assert d["verdict"] == "effect_found", (d["verdict"], d.get("effect"))
+    effect = d["effects"][0]
+    assert (effect["name"], effect["location"]) == ("sensor_bias_drift", "cw_flow")
+    assert effect["passed_by"] in ("whitened", "both")
+    assert abs(effect["parameters"]["drift_per_h"] / truth - 1) < 0.2
+
+
 def test_nothing_in_production_imports_the_zoo():
     """The zoo is test material: no module of pipeline/ or flows/ imports ``tests``."""
     import re
@@ -518,11 +556,11 @@ def test_nothing_in_production_imports_the_zoo():
     assert not offenders, offenders
 
 
-@pytest.mark.parametrize("family, seed, signal, output, discrepancy", [
-    ("valve_cooler", 8_508_007, "agitator_power", "cw_flow", {"open_loops": False}),
-    ("heat_exchanger", 8_618_010, "bypass_flow", "outlet_temp", None)])
+@pytest.mark.parametrize("family, seed, signal, output, discrepancy, plain_passes", [
+    ("valve_cooler", 8_508_007, "agitator_power", "cw_flow", {"open_loops": False}, False),
+    ("heat_exchanger", 8_618_010, "bypass_flow", "outlet_temp", None, True)])
 def test_a_slow_signal_following_the_disturbance_is_not_named_an_unmodelled_input(
-        family, seed, signal, output, discrepancy, tmp_path, capsys):
+        family, seed, signal, output, discrepancy, plain_passes, tmp_path, capsys):
     """Two null plants (fresh-null seeds, read while deciding the rule) where a slow
     measured signal fitted as an unmodelled input cut the held-out error (block-bootstrap
     p <= 0.01) and was named: agitator power on cooling-water flow by the plain held-out
@@ -532,12 +570,16 @@ def test_a_slow_signal_following_the_disturbance_is_not_named_an_unmodelled_inpu
     neither passes (``analyse.corroborated``) and the verdict is
     ``no_significant_effect``, through ``plantdyn discrepancy`` with every default (the
     valve cooler's loop kept closed: opened, as by default, the agitator-power
-    candidate is not among those fitted and the null is quiet as well)."""
+    candidate is not among those fitted and the null is quiet as well).  Since session
+    15 the plain test judges against the noise model's surrogate disturbances
+    (``select.holdout_rms_noise_test``), and the agitator power's reduction is within
+    what they give (p 0.057); the bypass flow's still passes it."""
     trial = make_trial(FAMILIES[family], None, seed=seed)
     d = _discrepancy_json(trial, tmp_path, capsys, discrepancy)
     assert d["verdict"] == "no_significant_effect", (d["verdict"], d.get("effect"))
     (cand,) = [c for c in d["candidates"]
                if (c["name"], c["location"]) == ("unmodelled_input", f"{signal}->{output}")]
-    assert cand["holdout_rms_p"] <= 0.01 and cand["gap_reduction"] > 0.05
+    assert cand["gap_reduction"] > 0.05
+    assert (cand["holdout_rms_p"] <= d["config"]["holdout_rms_alpha"]) == plain_passes
     assert not cand["passed"]
     assert d["localization"][output]["signals"][signal]["p_value"] >= 0.05
