@@ -197,6 +197,10 @@ def holdout_rms_evidence(nominal: np.ndarray, candidate: np.ndarray, *, seed: in
     return reduction, p_value, min(reduction, float(np.quantile(boot, alpha)))
 
 
+#: Surrogate values :func:`holdout_rms_noise_test` holds at once (32 MB of float64).
+SURROGATE_VALUES = 4_000_000
+
+
 def holdout_rms_noise_test(nominal: np.ndarray, candidate: np.ndarray, *,
                            whitening: Sequence[np.ndarray], innovation_std: Sequence[float],
                            before: np.ndarray, scale: Sequence[float], seed: int,
@@ -254,17 +258,24 @@ def holdout_rms_noise_test(nominal: np.ndarray, candidate: np.ndarray, *,
     rng = np.random.default_rng(seed)
     m = e0.shape[0]
     s0, s1 = np.zeros(n_sim), np.zeros(n_sim)
+    # surrogates a block of replicates at a time (memory: a long hold-out times 999
+    # would not fit); rows are drawn in order, so the blocks change no number
+    rows = max(1, min(n_sim, SURROGATE_VALUES // max(m, 1)))
     for i in range(e0.shape[1]):
         d = np.asarray(whitening[i], dtype=float)
         level = float(np.mean(before[:, i]))
-        w = rng.standard_normal((n_sim, m)) * float(innovation_std[i])
+        zi = None
         if d.size > 1:
-            past = (before[-(d.size - 1):, i] - level)[::-1]
-            zi = np.tile(lfiltic([1.0], d, past), (n_sim, 1))
-            w = lfilter([1.0], d, w, axis=1, zi=zi)[0]
-        s = (w + level) / scale[i]
-        s0 += np.sum(s ** 2, axis=1)
-        s1 += np.sum((s - (e0[:, i] - e1[:, i])) ** 2, axis=1)
+            zi = lfiltic([1.0], d, (before[-(d.size - 1):, i] - level)[::-1])
+        c = e0[:, i] - e1[:, i]
+        for start in range(0, n_sim, rows):
+            block = slice(start, min(start + rows, n_sim))
+            w = rng.standard_normal((block.stop - start, m)) * float(innovation_std[i])
+            if zi is not None:
+                w = lfilter([1.0], d, w, axis=1, zi=np.tile(zi, (w.shape[0], 1)))[0]
+            s = (w + level) / scale[i]
+            s0[block] += np.sum(s ** 2, axis=1)
+            s1[block] += np.sum((s - c) ** 2, axis=1)
     replicates = 1.0 - np.sqrt(s1 / s0)
     return reduction, (1.0 + float(np.sum(replicates >= reduction))) / (1.0 + n_sim)
 

@@ -147,6 +147,25 @@ def test_the_noise_model_null_keeps_its_level_where_the_disturbance_outlasts_blo
     assert blocks > hi, f"block bootstrap {blocks}/{n}"
 
 
+def test_the_noise_model_null_draws_its_surrogates_in_blocks_without_changing_them(
+        monkeypatch):
+    """Surrogates are drawn a block of replicates at a time to bound memory on long
+    hold-outs; rows come from the generator in order, so any block size gives the same
+    p-value (a mid-range one, where any change of the draws would show)."""
+    import pipeline.discrepancy.select as select
+
+    rng = np.random.default_rng(3)
+    e0 = rng.standard_normal((900, 2))
+    e1 = 0.998 * e0 - 0.03 * rng.standard_normal((900, 2))
+    kw = dict(whitening=[np.array([1.0, -0.9]), np.array([1.0, -1.2, 0.3])],
+              innovation_std=[0.5, 0.2], before=rng.standard_normal((3000, 2)),
+              scale=[1.0, 0.5], seed=7)
+    whole = holdout_rms_noise_test(e0, e1, **kw)
+    assert 0.02 < whole[1] < 0.98
+    monkeypatch.setattr(select, "SURROGATE_VALUES", 900 * 37)  # blocks of 37 replicates
+    assert holdout_rms_noise_test(e0, e1, **kw) == whole
+
+
 def test_the_noise_model_null_finds_a_real_slow_effect_and_scales_pool():
     """Power, with known answers: the model lacks the slow input's path (gain 1, the
     disturbance's std), the candidate has it exactly; its held-out reduction (median
