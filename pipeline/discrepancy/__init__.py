@@ -6,7 +6,9 @@ workflow").  Where a controller's output (OP) is measured its loop is opened fir
 (``open_loops``, default true; :func:`pipeline.discrepancy.problem.opened_view`): the
 measured OP drives the actuator path, the noise model is fitted without it and candidates
 pass by the whitened tests only (the direct method of closed-loop identification,
-method §10).  Then:
+method §10) -- and, where the closed loop can judge them, must also narrow the held-out
+gap of the loop closed again and driven by the setpoints and loads alone
+(:mod:`pipeline.discrepancy.closed_loop`, the instruments of method §10(c)).  Then:
 
 1. **Localise** (:class:`DiscrepancyResult` ``.localization``, per measured output): the
    residual ``e = measured - simulated`` (nominal model driven by the measured inputs);

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -10,6 +11,7 @@ import numpy as np
 
 from pipeline._threads import single_threaded_blas
 from pipeline.discrepancy.chain import Chain, build, chain_steps, prune
+from pipeline.discrepancy.closed_loop import ClosedLoop
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.fit import (
     Fit,
@@ -19,7 +21,7 @@ from pipeline.discrepancy.fit import (
     refit_nested_lags,
 )
 from pipeline.discrepancy.joint import N_JOINT, joint_refit, prior_basis
-from pipeline.discrepancy.localise import RELEVANCE_ALPHA, localise
+from pipeline.discrepancy.localise import corroborated, localise
 from pipeline.discrepancy.problem import (
     AUTO_WARMUP_MAX_SHARE,
     Problem,
@@ -136,17 +138,21 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
     (:mod:`pipeline.discrepancy.chain`)."""
     config = config or DiscrepancyConfig()
     say = progress or quiet
-    user_model = model
-    model, inputs, measured, free_offsets, opened = opened_view(model, inputs, measured, dt_s,
-                                                                config, free_offsets)
+    user_model, closed = model, None
+    model, inputs_k, measured_k, free_k, opened = opened_view(model, inputs, measured, dt_s,
+                                                              config, free_offsets)
     if opened:
         say("loops", f"loop(s) opened at the measured {', '.join(map(repr, opened))}: the "
             "measured OP drives the actuator path")
+        # (the hold-out bounds are each search's own: set in _step)
+        closed = ClosedLoop(user_model, inputs, measured, float(dt_s),
+                            0, 0, tuple(free_offsets), config.initial)
+    inputs, measured, free_offsets = inputs_k, measured_k, free_k
 
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
              also: tuple[Candidate, ...]) -> DiscrepancyResult:
         return _step(model_k, inputs, measured_k, dt_s, config, seed, say, clock, model, prior,
-                     gap_reference(chain.steps, prior), also, free_offsets, opened)
+                     gap_reference(chain.steps, prior), also, free_offsets, opened, closed)
 
     chain = Chain(model, inputs, measured, float(dt_s), config, free_offsets, step, say,
                   clock=clock)
@@ -215,12 +221,14 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
           prior: tuple[Effect, ...], gap_reference: float | None = None,
           also: tuple[Candidate, ...] = (),
           free_offsets: tuple[str, ...] = (),
-          opened_loops: tuple[str, ...] = ()) -> DiscrepancyResult:
+          opened_loops: tuple[str, ...] = (),
+          closed: ClosedLoop | None = None) -> DiscrepancyResult:
     """One search: localise, screen, fit and select the best effect for ``model`` (the
     nominal model `base` with the chain's `prior` effects; locations limited to those with a
     counterpart in the nominal model; the best candidates also refitted jointly with
     the prior effects, :mod:`pipeline.discrepancy.joint`).  `opened_loops`: the
-    controllers whose measured OPs are inputs (``Problem.opened_loops``)."""
+    controllers whose measured OPs are inputs (``Problem.opened_loops``); `closed`: their
+    loops closed, what every candidate is also checked on (``Problem.closed``)."""
     timings: dict[str, float] = {}
     last = clock() if clock else 0.0
 
@@ -234,6 +242,10 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
 
     P, nominal, resid = discrepancy_problem(model, inputs, measured, dt_s, config, say, free_offsets)
     P.opened_loops = opened_loops
+    if closed is not None:
+        P.closed = dataclasses.replace(closed, fit_start=P.fit_start,
+                                       holdout_start=P.holdout_start, prior=prior,
+                                       opened=opened_loops)
     P.location_names = (*base.block_names, *base.outputs)
     lap("simulate")
     say("localise", "residual regression, bootstrap, lags, bands, windows, load bins")
@@ -662,43 +674,6 @@ def gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
     return None
 
 
-def corroborated(effect: Effect, localization: dict[str, Any]) -> bool:
-    """Whether an effect may pass the statistical tests at all: always, unless it names
-    a measured signal driving an output (``Effect.measured_source``) that localisation's
-    circular-shift test did not find relevant to that output at
-    :data:`~pipeline.discrepancy.localise.RELEVANCE_ALPHA`.  One that is not counts as
-    failed, so with the best BIC it makes the verdict ``no_significant_effect``
-    (:func:`pipeline.discrepancy.select.decide`).
-
-    Neither acceptance path has the right null for such a claim.  The plain test's block
-    bootstrap of held-out errors treats blocks as exchangeable, which a slow unmeasured
-    disturbance is not over a hold-out of a few of its time constants; the whitened BIC
-    and held-out z compare fits of a lag of the signal that can follow the same
-    disturbance by chance in both parts of the record.  On fresh zoo nulls three false
-    alarms were such inputs: recycle flow -> composition in the blend (seed 8 508 019,
-    plain test only, whitened BIC -28, relevance p 0.66), agitator power ->
-    cooling-water flow (8 508 007, plain only, BIC +6.8, p 0.44) and bypass flow ->
-    outlet temperature with a 1 152 s lag (8 618 010, both paths, BIC +104, p 0.96).
-    The circular-shift test asks the claim's own question with a null that keeps both
-    signals' autocorrelation; every true unmodelled input of the fresh zoo trials
-    8 607 000 had p 0.01, its floor.
-
-    Parameters
-    ----------
-    effect : Effect
-        The candidate's effect.
-    localization : dict
-        :func:`pipeline.discrepancy.localise.localise`'s result (per output, per signal
-        ``p_value``).
-    """
-    source = effect.measured_source
-    if source is None:
-        return True
-    signal, output = source
-    entry = localization.get(output, {}).get("signals", {}).get(signal)
-    return entry is not None and entry["p_value"] < RELEVANCE_ALPHA
-
-
 def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: int,
             gap_reference: float | None, localization: dict[str, Any]):
     """Held-out comparison of the fitted candidates: the sorted unique candidates, the
@@ -713,7 +688,10 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     cancels it (a smaller gain, a wide deadband downstream of the valve) cuts the plain
     held-out error on nulls -- by 66 % on a valve-cooler null (unseen seed 8 648 001, a
     deadband of width 4.6 at the vessel, whitened held-out z 0.9) -- while the
-    prediction-error criteria with the right noise model are consistent (method §10)."""
+    prediction-error criteria with the right noise model are consistent (method §10).
+    They are not enough either where the controlled output's error is nearly all the
+    disturbance, so an opened candidate must also narrow the held-out gap of the loop
+    closed again and driven by the instruments only (:mod:`pipeline.discrepancy.closed_loop`)."""
     config, y, outputs = P.config, P.y, P.outputs
     candidates = []
     hold_slice = slice(P.holdout_start, P.n)
@@ -752,6 +730,9 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         # told from a persisting disturbance by the noise model only (level_is_evidence)
         if (P.opened_loops or fit.effect.is_sensor_correction) and not whitened:
             plain = False
+        closed = P.closed.check(fit.effect, P.model) if P.closed else math.nan
+        if closed <= 0.0:  # opened: it must narrow the closed loop's gap too (closed_loop)
+            whitened = plain = False
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,
@@ -759,7 +740,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
             gap_reduction=1.0 - gap_c / gap_nom if gap_nom > 0 else 0.0,
             holdout_rms_p=p_rms, gap_reduction_low=low, worse_on=tuple(worse),
             passed_by=("both" if whitened and plain else "whitened" if whitened
-                       else "held-out RMS" if plain else "")))
+                       else "held-out RMS" if plain else ""), closed_loop_gap_reduction=closed))
         shapes[id(candidates[-1])] = c_cand
     order = np.argsort([c.criterion for c in candidates], kind="stable")
     candidates = [candidates[i] for i in order]

@@ -204,6 +204,15 @@ class Effect:
         return self.name in ("deadband", "backlash", "saturation", "sensor_bias_drift")
 
     @property
+    def keeps_linear(self) -> bool:
+        """An effect that adds a linear time-invariant path (a gain, a delay, a lag, an
+        inverse response, a measured input through a lag): a linear model stays linear
+        with it, so its closed-loop response is a function of the external signals
+        alone (:mod:`pipeline.discrepancy.closed_loop`)."""
+        return self.name in ("gain", "dead_time", "extra_lag", "inverse_response",
+                             "unmodelled_input")
+
+    @property
     def measured_source(self) -> tuple[str, str] | None:
         """``(signal, output)`` for an effect that says a measured signal drives an
         output (``unmodelled_input``), else None.  Localisation's circular-shift test
@@ -211,7 +220,7 @@ class Effect:
         (:func:`pipeline.discrepancy.localise.input_relevance`), with a null that keeps
         both signals' autocorrelation; the selection's tests do not, so a slow signal
         that happens to follow a slow disturbance can pass them
-        (:func:`pipeline.discrepancy.analyse.corroborated`)."""
+        (:func:`pipeline.discrepancy.localise.corroborated`)."""
         if self.name != "unmodelled_input":
             return None
         signal, _, output = self.location.partition("->")

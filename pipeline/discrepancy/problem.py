@@ -115,6 +115,10 @@ class Problem:
     #: the noise model's residual regression leaves them out
     #: (:func:`pipeline.discrepancy.localise.localise`)
     opened_loops: tuple[str, ...] = ()
+    #: with loops opened, the user's model closed and the record as measured, with the
+    #: chain's effects so far: every candidate must narrow its held-out gap too
+    #: (:class:`pipeline.discrepancy.closed_loop.ClosedLoop`); None when nothing is opened
+    closed: Any = None
 
     def with_free_offsets(self, y: np.ndarray) -> np.ndarray:
         """`y` (predicted outputs from sample 0, at least to the hold-out) with each free
@@ -224,8 +228,15 @@ def opened_signals(inputs: Mapping[str, Any], measured: Mapping[str, Any],
 CONTROLLER_TYPES = ("pi", "pid")
 
 
-def _downstream(model: Model, start: str) -> set[str]:
-    """Blocks of `model` that read `start` directly or through other blocks."""
+def downstream(model: Model, start: str) -> set[str]:
+    """Blocks of `model` that read `start` directly or through other blocks.
+
+    Parameters
+    ----------
+    model : Model
+    start : str
+        A block or input name.
+    """
     reached, frontier = set(), {start}
     while frontier:
         frontier = {b.name for b in model.blocks
@@ -328,7 +339,7 @@ def loops_to_open(model: Model, inputs: Mapping[str, np.ndarray],
             opened = open_at(model, [block.name])
         except ModelError:  # nothing left to compare
             continue
-        driven = _downstream(opened, block.name)
+        driven = downstream(opened, block.name)
         slow = unstable_parts(opened, dt_s=dt_s, record_s=(n - hold) * dt_s,
                               growth_limit=math.exp(-4.0))
         if any(set(part.blocks) & driven for part in slow):

@@ -231,7 +231,10 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
             "or a held-out RMS reduction beyond the noise model's disturbance at p ≤ "
             f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
             f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
-            "the gap.")
+            "the gap." + (" With the loop(s) opened, a candidate must also narrow the "
+                          "held-out gap of the loop closed again and driven by the "
+                          "setpoints and loads alone (closed-loop check)."
+                          if doc.get("opened_loops") else ""))
 
 
 def candidate_records(doc: Mapping[str, Any], limit: int = 8, *,
@@ -256,7 +259,9 @@ def candidate_records(doc: Mapping[str, Any], limit: int = 8, *,
              "holdout_gap": fmt_number(c.get("holdout_gap")),
              "gap_reduction": f"{100 * json_number(c.get('gap_reduction')):.1f} %",
              "holdout_rms_p": fmt_number(c.get("holdout_rms_p"), 2),
-             "passed": str(c.get("passed_by")) if c.get("passed") is True else "no"}
+             "passed": str(c.get("passed_by")) if c.get("passed") is True else (
+                 "no (closed loop)" if json_number(c.get("closed_loop_gap_reduction")) <= 0
+                 else "no")}
             for c in doc.get("candidates") or [] if isinstance(c, Mapping)][:limit]
 
 

@@ -64,6 +64,12 @@ class Candidate:
         Outputs whose held-out errors the candidate makes larger than the model it was
         added to, beyond chance (:func:`pipeline.discrepancy.select.worse_outputs`): such
         a candidate fails.
+    closed_loop_gap_reduction : float
+        With loops opened: the share of the closed loop's held-out gap the
+        candidate removes (:meth:`pipeline.discrepancy.closed_loop.ClosedLoop.gap_reduction`;
+        a checked candidate that does not narrow it fails); NaN when not checked (no
+        loop opened, a sensor correction, an actuator nonlinearity seen outside the
+        controlled variables).
     """
 
     effect: Effect
@@ -80,6 +86,7 @@ class Candidate:
     passed_by: str = ""
     gap_reduction_low: float = math.nan
     worse_on: tuple[str, ...] = ()
+    closed_loop_gap_reduction: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
@@ -98,6 +105,7 @@ class Candidate:
             passed_by=self.passed_by,
             gap_reduction_low=json_float(self.gap_reduction_low),
             worse_on=list(self.worse_on),
+            closed_loop_gap_reduction=json_float(self.closed_loop_gap_reduction),
         )
         return out
 

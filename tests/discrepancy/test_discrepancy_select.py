@@ -427,7 +427,7 @@ def test_only_an_unmodelled_input_needs_its_source_found_relevant_by_localisatio
     plain held-out test only when localisation's circular-shift p-value of that signal
     for that output is below the level (0.05); the signal's p-value for another output
     does not count, and an effect without a measured source is never held back."""
-    from pipeline.discrepancy.analyse import corroborated
+    from pipeline.discrepancy.localise import corroborated
     from pipeline.discrepancy.effects import Effect
 
     loc = {"y1": {"signals": {"u": {"p_value": 0.01}, "v": {"p_value": 0.44}}},

@@ -159,6 +159,11 @@ class Family:
     #: parameter ranges of the draws (tests.zoo.trial.draw_effect)
     ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
     params: dict[str, float] = field(default_factory=dict)
+    #: signals whose operating point the nominal model is written about (the job's
+    #: ``discrepancy.operating_point``; the others are measured from their mean): a
+    #: model that is nonlinear in a signal is linearised at a stated point, not at
+    #: whatever mean one record has
+    operating_point: dict[str, float] = field(default_factory=dict)
 
     @property
     def exo_names(self) -> tuple[str, ...]:

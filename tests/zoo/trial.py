@@ -341,7 +341,8 @@ def job_dict(trial: ZooTrial, *, discrepancy: dict[str, Any] | None = None) -> d
     ----------
     trial : ZooTrial
     discrepancy : dict, optional
-        Extra keys of the job's ``discrepancy:`` section (default: only ``seed``).
+        Extra keys of the job's ``discrepancy:`` section (default: only ``seed``, and
+        the family's ``operating_point`` where it states one).
     """
     f = trial.family
     inputs = {**f.setpoints, **f.loads, f.extra[0]: f.extra[1]}
@@ -354,7 +355,10 @@ def job_dict(trial: ZooTrial, *, discrepancy: dict[str, Any] | None = None) -> d
         "sampling": {"dt_s": f.dt_s},
         "rerun": {"enabled": False},
         "model": "model.yaml",
-        "discrepancy": {"seed": int(trial.seed), **(discrepancy or {})},
+        "discrepancy": {"seed": int(trial.seed),
+                        **({"operating_point": dict(f.operating_point)}
+                           if f.operating_point else {}),
+                        **(discrepancy or {})},
     }
 
 

@@ -207,14 +207,15 @@ def _candidates(doc: Mapping[str, Any]) -> str:
             fmt(c.get("screening_score")), fmt(c.get("holdout_z"), 3), fmt(c.get("holdout_gap")),
             esc(", ".join(f"{o}: {fmt(v)}" for o, v in (c.get("holdout_rms") or {}).items())),
             _pct(c.get("gap_reduction")), fmt(c.get("holdout_rms_p"), 2),
+            _pct(c.get("closed_loop_gap_reduction")),
             "yes" if c.get("passed") is True else "no", esc(c.get("passed_by") or "–")])
     rule = pass_rule(doc)
     return ((f"<p>{esc(rule)}</p>" if rule else "")
             + table(["#", "effect", "location", "parameters", "equivalent locations",
                      "parameters (n)", "ΔBIC", "criterion", "screening score", "held-out z",
-                     "held-out gap", "held-out RMS", "gap_reduction", "RMS p", "passed",
-                     "passed_by"], rows, table_id="candidates-table",
-                    numeric=(0, 5, 6, 7, 8, 9, 10, 12, 13)))
+                     "held-out gap", "held-out RMS", "gap_reduction", "RMS p",
+                     "closed-loop gap reduction", "passed", "passed_by"], rows,
+                    table_id="candidates-table", numeric=(0, 5, 6, 7, 8, 9, 10, 12, 13, 14)))
 
 
 def _signals_table(o: str, loc: Mapping[str, Any]) -> str:
