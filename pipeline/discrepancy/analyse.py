@@ -146,7 +146,7 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
             "measured OP drives the actuator path")
         # (the hold-out bounds are each search's own: set in _step)
         closed = ClosedLoop(user_model, inputs, measured, float(dt_s),
-                            0, 0, tuple(free_offsets), config.initial)
+                            0, 0, tuple(free_offsets), config.initial, opened=opened)
     inputs, measured, free_offsets = inputs_k, measured_k, free_k
 
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
@@ -244,8 +244,7 @@ def _step(model: Model, inputs: Mapping[str, Any], measured: Mapping[str, Any], 
     P.opened_loops = opened_loops
     if closed is not None:
         P.closed = dataclasses.replace(closed, fit_start=P.fit_start,
-                                       holdout_start=P.holdout_start, prior=prior,
-                                       opened=opened_loops)
+                                       holdout_start=P.holdout_start, prior=prior)
     P.location_names = (*base.block_names, *base.outputs)
     lap("simulate")
     say("localise", "residual regression, bootstrap, lags, bands, windows, load bins")

@@ -60,13 +60,12 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import scipy.signal
 
-from pipeline.discrepancy.chain import build
-from pipeline.discrepancy.effects import Effect, original_location, output_offsets
+from pipeline.discrepancy.chain import predict_with_effects
+from pipeline.discrepancy.effects import Effect, original_location
 from pipeline.discrepancy.problem import downstream
 from pipeline.discrepancy.select import pooled_rms, rms_of
 from pipeline.errors import PipelineError
 from pipeline.models.model import Model
-from pipeline.models.simulate import simulate
 
 
 @dataclasses.dataclass
@@ -169,24 +168,18 @@ class ClosedLoop:
         effects : sequence of Effect
             In nominal names, applied in order.
         """
-        process = [e for e in effects if not e.is_sensor_correction]
         try:
             with np.errstate(all="ignore"), warnings.catch_warnings():
                 # as in pipeline.discrepancy.fit.predict_with
                 warnings.simplefilter("ignore", scipy.signal.BadCoefficients)
-                model = build(self.model, process, self.dt_s)
-                sim = simulate(model, {u: self.inputs[u] for u in model.inputs},
-                               dt_s=self.dt_s, initial=self.initial).signals
+                pred = predict_with_effects(self.model, effects, self.inputs, dt_s=self.dt_s,
+                                            initial=self.initial, outputs=list(self.measured))
         except PipelineError:
             return None
-        n = next(iter(self.measured.values())).size
         fit = slice(self.fit_start, self.holdout_start)
         columns = []
         for o in self.measured:
-            pred = np.asarray(sim[o], dtype=float)
-            for effect in effects:
-                pred = pred + output_offsets(effect, n=n, dt_s=self.dt_s, outputs=[o])[o]
-            e = self.measured[o] - pred
+            e = self.measured[o] - pred[o]
             if not np.all(np.isfinite(e)) or np.max(np.abs(e)) > 1e12:
                 return None
             columns.append(e - float(np.mean(e[fit])) if o in self.free else e)
