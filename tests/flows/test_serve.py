@@ -187,9 +187,20 @@ def test_cron_schedule_fires_under_plantdyn_serve(tmp_path, server_home):
     with open(tmp_path / "serve.stdout.log", "wb") as out, open(err_log, "wb") as err:
         proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "serve", str(job)],
                                 env=env, stdout=out, stderr=err)
+    store = ResultStore(tmp_path / "storage")
+
+    def recorded() -> bool:
+        """The run is complete once its ledger row is final: the manifest is written
+        first and the ``ok`` after it (an interrupt between them leaves a ``running``
+        claim that the next night adopts, ``tests/flows/test_flows.py`` covers that), so
+        waiting for the manifest alone races the ledger."""
+        if not manifest.is_file() or not (tmp_path / "storage" / "plant").is_dir():
+            return False
+        return store.processed("plant")["status"].to_list() == ["ok"]
+
     try:
         deadline = time.monotonic() + 150
-        while not manifest.is_file() and proc.poll() is None and time.monotonic() < deadline:
+        while not recorded() and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.5)
         fired = manifest.is_file()
     finally:
@@ -202,7 +213,7 @@ def test_cron_schedule_fires_under_plantdyn_serve(tmp_path, server_home):
     log = err_log.read_text()
     assert fired, f"no scheduled run within 150 s; serve stderr:\n{log}"
     assert proc.returncode == 0, log  # stopped by SIGINT, cleanly
-    assert ResultStore(tmp_path / "storage").processed("plant")["status"].to_list() == ["ok"]
+    assert store.processed("plant")["status"].to_list() == ["ok"]
     match = SERVER_LINE.search(log)
     assert match, log
     port, pid = int(match[1]), int(match[2])
