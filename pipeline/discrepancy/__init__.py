@@ -7,7 +7,8 @@ workflow").  Where a controller's output (OP) is measured its loop is opened fir
 measured OP drives the actuator path, the noise model is fitted without it and candidates
 pass by the whitened tests only (the direct method of closed-loop identification,
 method §10) -- and, where the closed loop can judge them, must also narrow the held-out
-gap of the loop closed again and driven by the setpoints and loads alone
+one-step prediction error of the loop closed again and driven by the setpoints and loads
+alone
 (:mod:`pipeline.discrepancy.closed_loop`, the instruments of method §10(c)).  Then:
 
 1. **Localise** (:class:`DiscrepancyResult` ``.localization``, per measured output): the
@@ -77,7 +78,8 @@ gap of the loop closed again and driven by the setpoints and loads alone
    (:func:`pipeline.discrepancy.select.holdout_rms_noise_test`, level
    ``holdout_rms_alpha``).  A finding must also close ``min_gap_reduction`` of the gap at the lower
    confidence bound of the share it closes, each output's held-out level left out
-   (``gap_reduction_low``).  Accepted
+   (``gap_reduction_low``: surrogates of the candidate's own residual's noise model,
+   :func:`pipeline.discrepancy.select.holdout_rms_noise_bound`).  Accepted
    candidates of different classes within ``lookalike_margin`` of the best BIC are a
    tie: the simplest is named, the others are its ``equivalent_effects``.
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the

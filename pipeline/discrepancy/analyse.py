@@ -42,7 +42,7 @@ from pipeline.discrepancy.select import (
     PRACTICAL_ALPHA,
     centred,
     less_common_level,
-    holdout_rms_evidence,
+    holdout_rms_noise_bound,
     holdout_rms_noise_test,
     holdout_z_score,
     pooled_rms,
@@ -146,7 +146,8 @@ def _analyse(model: Model, *, inputs: Mapping[str, Any], measured: Mapping[str, 
             "measured OP drives the actuator path")
         # (the hold-out bounds are each search's own: set in _step)
         closed = ClosedLoop(user_model, inputs, measured, float(dt_s),
-                            0, 0, tuple(free_offsets), config.initial, opened=opened)
+                            0, 0, tuple(free_offsets), config.initial, opened=opened,
+                            ar_order_max=config.ar_order_max)
     inputs, measured, free_offsets = inputs_k, measured_k, free_k
 
     def step(prior: tuple[Effect, ...], model_k: Model, measured_k: Mapping[str, Any],
@@ -673,6 +674,18 @@ def gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
     return None
 
 
+def _practical_bound(P: Problem, y_pred: np.ndarray, judged: tuple[np.ndarray, np.ndarray],
+                     hold_std: list[float], seed: int) -> float:
+    """The lower bound of a candidate's share of the held-out gap
+    (:func:`~pipeline.discrepancy.select.holdout_rms_noise_bound`): surrogates of its
+    own fit-part residual's AR noise model, the same seed for every candidate."""
+    before = P.y[P.fit_start:P.holdout_start] - y_pred[P.fit_start:P.holdout_start]
+    ars = [fit_ar(e, P.config.ar_order_max) for e in before.T]
+    return holdout_rms_noise_bound(
+        *judged, whitening=[a[0] for a in ars], innovation_std=[a[1] for a in ars],
+        before=before, scale=hold_std, free=P.free, seed=seed, alpha=PRACTICAL_ALPHA)
+
+
 def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: int,
             gap_reference: float | None, localization: dict[str, Any]):
     """Held-out comparison of the fitted candidates: the sorted unique candidates, the
@@ -718,7 +731,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         # path: the level it moves is evidence, the level both leave a nuisance
         judged = less_common_level(e_nom, e_cand, P.free) if fit.effect.level_is_evidence \
             else (c_nom, c_cand)
-        _, _, low = holdout_rms_evidence(*judged, seed=seed + k, alpha=PRACTICAL_ALPHA)
+        low = _practical_bound(P, fit.y_pred, judged, hold_std, seed)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
         worse = [outputs[i] for i in worse_outputs(*judged, seed=seed + 31 * k,
                                                    alpha=config.holdout_rms_alpha,
@@ -730,8 +743,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         if (P.opened_loops or fit.effect.is_sensor_correction) and not whitened:
             plain = False
         closed = P.closed.check(fit.effect, P.model) if P.closed else math.nan
-        if closed <= 0.0:  # opened: it must narrow the closed loop's gap too (closed_loop)
-            whitened = plain = False
+        whitened, plain = (False, False) if closed <= 0.0 else (whitened, plain)  # closed_loop
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,
@@ -739,7 +751,8 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
             gap_reduction=1.0 - gap_c / gap_nom if gap_nom > 0 else 0.0,
             holdout_rms_p=p_rms, gap_reduction_low=low, worse_on=tuple(worse),
             passed_by=("both" if whitened and plain else "whitened" if whitened
-                       else "held-out RMS" if plain else ""), closed_loop_gap_reduction=closed))
+                       else "held-out RMS" if plain else ""),
+            closed_loop_prediction_error_reduction=closed))
         shapes[id(candidates[-1])] = c_cand
     order = np.argsort([c.criterion for c in candidates], kind="stable")
     candidates = [candidates[i] for i in order]
@@ -760,7 +773,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     def practical(c: Candidate) -> bool:
         # the share of the gap it closes, at its lower confidence bound: a point
         # estimate of a few percent is within what a slow disturbance moves between
-        # stretches of the hold-out (select.holdout_rms_evidence)
+        # stretches of the hold-out (select.holdout_rms_noise_bound)
         return c.gap_reduction_low * gap_nom >= bar
 
     findings = [c for c in passed if practical(c)]

@@ -231,9 +231,10 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
             "or a held-out RMS reduction beyond the noise model's disturbance at p ≤ "
             f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
             f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
-            "the gap." + (" With the loop(s) opened, a candidate must also narrow the "
-                          "held-out gap of the loop closed again and driven by the "
-                          "setpoints and loads alone (closed-loop check)."
+            "the gap at the 95 % lower bound of its share." + (
+                " With the loop(s) opened, a candidate must also narrow the held-out "
+                "one-step prediction error of the loop closed again and driven by the "
+                "setpoints and loads alone (closed-loop check)."
                           if doc.get("opened_loops") else ""))
 
 
@@ -258,9 +259,11 @@ def candidate_records(doc: Mapping[str, Any], limit: int = 8, *,
              "holdout_z": fmt_number(c.get("holdout_z"), 3),
              "holdout_gap": fmt_number(c.get("holdout_gap")),
              "gap_reduction": f"{100 * json_number(c.get('gap_reduction')):.1f} %",
+             "gap_reduction_low": f"{100 * json_number(c.get('gap_reduction_low')):.1f} %",
              "holdout_rms_p": fmt_number(c.get("holdout_rms_p"), 2),
              "passed": str(c.get("passed_by")) if c.get("passed") is True else (
-                 "no (closed loop)" if json_number(c.get("closed_loop_gap_reduction")) <= 0
+                 "no (closed loop)"
+                 if json_number(c.get("closed_loop_prediction_error_reduction")) <= 0
                  else "no")}
             for c in doc.get("candidates") or [] if isinstance(c, Mapping)][:limit]
 
@@ -271,8 +274,9 @@ def _candidates(doc: Mapping[str, Any]) -> list[str]:
         return []
     rule = pass_rule(doc)
     lines = ["", "## Candidates (best first)", ""] + ([rule, ""] if rule else [])
-    lines += ["| # | effect | ΔBIC | held-out z | held-out gap | gap reduction | RMS p | passed |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += ["| # | effect | ΔBIC | held-out z | held-out gap | gap reduction | "
+              "gap reduction, 95 % lower bound | RMS p | passed |",
+              "|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {k} | {r['effect']} | "
               + " | ".join(md_cell(v) for key, v in r.items() if key != "effect") + " |"
               for k, r in enumerate(rows, 1)]

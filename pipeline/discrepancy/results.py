@@ -56,17 +56,18 @@ class Candidate:
         Which acceptance passed: ``"whitened"``, ``"held-out RMS"``, ``"both"`` or ``""``.
     gap_reduction_low : float
         One-sided 95 % lower confidence bound of the share of the held-out gap the
-        candidate closes, each output's held-out level left out
-        (:func:`pipeline.discrepancy.select.centred`; the held-out RMS test's block
-        bootstrap): what practical significance is judged on
-        (:func:`pipeline.discrepancy.select.holdout_rms_evidence`).
+        candidate closes, free outputs' held-out levels left out
+        (:func:`pipeline.discrepancy.select.centred`), from surrogate disturbances of
+        the candidate's own residual's noise model: what practical significance is
+        judged on (:func:`pipeline.discrepancy.select.holdout_rms_noise_bound`).
     worse_on : tuple of str
         Outputs whose held-out errors the candidate makes larger than the model it was
         added to, beyond chance (:func:`pipeline.discrepancy.select.worse_outputs`): such
         a candidate fails.
-    closed_loop_gap_reduction : float
-        With loops opened: the share of the closed loop's held-out gap the
-        candidate removes (:meth:`pipeline.discrepancy.closed_loop.ClosedLoop.gap_reduction`;
+    closed_loop_prediction_error_reduction : float
+        With loops opened: the share of the closed loop's held-out one-step prediction
+        error the candidate removes
+        (:meth:`pipeline.discrepancy.closed_loop.ClosedLoop.prediction_error_reduction`;
         a checked candidate that does not narrow it fails); NaN when not checked (no
         loop opened, a sensor correction, an actuator nonlinearity seen outside the
         controlled variables).
@@ -86,7 +87,7 @@ class Candidate:
     passed_by: str = ""
     gap_reduction_low: float = math.nan
     worse_on: tuple[str, ...] = ()
-    closed_loop_gap_reduction: float = math.nan
+    closed_loop_prediction_error_reduction: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready mapping (``name``, ``location``, ``parameters``, ``criterion``, ...)."""
@@ -105,7 +106,7 @@ class Candidate:
             passed_by=self.passed_by,
             gap_reduction_low=json_float(self.gap_reduction_low),
             worse_on=list(self.worse_on),
-            closed_loop_gap_reduction=json_float(self.closed_loop_gap_reduction),
+            closed_loop_prediction_error_reduction=json_float(self.closed_loop_prediction_error_reduction),
         )
         return out
 

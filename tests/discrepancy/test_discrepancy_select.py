@@ -18,7 +18,12 @@ import pytest
 import scipy.signal as ss
 from scipy.stats import binom
 
-from pipeline.discrepancy.select import holdout_rms_noise_test, holdout_rms_test, worse_outputs
+from pipeline.discrepancy.select import (
+    holdout_rms_noise_bound,
+    holdout_rms_noise_test,
+    holdout_rms_test,
+    worse_outputs,
+)
 
 M = 3333  # the held-out third of a 1e4-sample record
 PHI = 0.95
@@ -193,6 +198,50 @@ def test_the_noise_model_null_finds_a_real_slow_effect_and_scales_pool():
     zero = np.zeros((10, 1))
     assert holdout_rms_noise_test(zero, zero, whitening=whitening, innovation_std=std,
                                   before=zero, scale=[1.0], seed=1) == (0.0, 1.0)
+
+
+def test_the_practical_bound_is_calibrated_when_the_candidate_is_right():
+    """Known answers: the model lacks the slow input's path (gain 1), the candidate has
+    it exactly, so its held-out error is the AR(1) disturbance alone.  The bound is the
+    5 % quantile of the share ``R`` over surrogate disturbances continued from the fit
+    part, so the ``R`` measured falls below it (the bound is then ``R`` itself) in about
+    5 % of records: within the central 99 % interval of Binomial(150, 0.05) (12 of 150
+    when written).  A candidate whose correction is a tenth of that path, applied where
+    there is no effect, never clears the 5 % bar, however its chance correlation with
+    the disturbance falls (its largest bound 0.0014 when written); the bound never
+    exceeds the ``R`` measured."""
+    phi = np.exp(-1 / 360)
+    kw = dict(whitening=[np.array([1.0, -phi])], innovation_std=[np.sqrt(1 - phi * phi)],
+              scale=[1.0], free=(), alpha=0.05, n_sim=199)
+    n, below, cleared = 150, 0, 0
+    for seed, e, x, fit, hold in _slow_records(n):
+        y = e + x
+        e0, e1 = y[hold][:, None], e[hold][:, None]
+        r = 1 - np.sqrt(np.sum(e1 ** 2) / np.sum(e0 ** 2))
+        low = holdout_rms_noise_bound(e0, e1, before=e[fit][:, None], seed=seed, **kw)
+        assert low <= r
+        below += low == r
+        wrong = e[hold] - 0.1 * x[hold]
+        cleared += holdout_rms_noise_bound(e[hold][:, None], wrong[:, None],
+                                           before=e[fit][:, None], seed=seed, **kw) >= 0.05
+    lo, hi = binom.ppf(0.005, n, 0.05), binom.ppf(0.995, n, 0.05)
+    assert lo <= below <= hi, f"R below its bound in {below}/{n} records"
+    assert cleared == 0, cleared
+
+
+def test_the_practical_bound_leaves_a_free_outputs_level_out():
+    """A correction that only moves a free output's level closes nothing there (the
+    level is a nuisance, ``centred``): with the errors centred as judged, the bound is
+    0; the same correction on an output with a given level is judged as it is."""
+    rng = np.random.default_rng(4)
+    e = rng.standard_normal((500, 1))
+    kw = dict(whitening=[np.array([1.0])], innovation_std=[1.0], before=e, scale=[1.0],
+              seed=1, alpha=0.05, n_sim=199)
+    shifted = e + 2.0
+    from pipeline.discrepancy.select import centred
+    assert holdout_rms_noise_bound(centred(shifted, [0]), centred(e, [0]), free=[0],
+                                   **kw) == pytest.approx(0.0, abs=1e-12)
+    assert holdout_rms_noise_bound(shifted, e, free=[], **kw) > 0.5
 
 
 def test_outputs_pool_and_degenerate_inputs_give_no_evidence():

@@ -586,10 +586,12 @@ def test_an_opened_candidate_that_widens_the_closed_loop_gap_is_not_a_finding(
     (BIC +211, held-out z 5.7) and was named: the vessel temperature's opened error is
     the disturbance the controller answered through the OP, and a smaller vessel gain
     cancels part of that answer.  Closed again and driven by the setpoint and feed
-    only, the same model widens the held-out gap (by 46 %; by 29 % once the job states
-    the OP's operating point, where the gain still passes the whitened tests: BIC
-    +198, z 6.1); a candidate must narrow it (``closed_loop.ClosedLoop``), so nothing
-    is named."""
+    only, the same model widens the held-out output-error gap (by 46 %; by 29 % once
+    the job states the OP's operating point, where the gain still passes the whitened
+    tests: BIC +198, z 6.1) and the one-step prediction error the check compares (by
+    1.7 % when written: whitened, most of what remains is the disturbance's
+    innovations); a candidate must narrow it (``closed_loop.ClosedLoop``), so nothing is
+    named."""
     trial = make_trial(FAMILIES["valve_cooler"], None, seed=8_678_005)
     d = _discrepancy_json(trial, tmp_path, capsys)
     assert d["opened_loops"] == ["controller"]
@@ -597,7 +599,7 @@ def test_an_opened_candidate_that_widens_the_closed_loop_gap_is_not_a_finding(
     (gain,) = [c for c in d["candidates"] if (c["name"], c["location"]) == ("gain", "vessel")]
     assert gain["delta_bic"] >= d["config"]["bic_margin"]
     assert gain["holdout_z"] >= d["config"]["holdout_z_min"]
-    assert gain["closed_loop_gap_reduction"] < -0.2 and not gain["passed"]
+    assert gain["closed_loop_prediction_error_reduction"] < 0.0 and not gain["passed"], gain
 
 
 def test_nothing_in_production_imports_the_zoo():

@@ -114,7 +114,8 @@ def test_wrong_model_gain_is_named_and_the_augmented_model_resimulates(make_job,
                                atol=1e-12)
     report = (run_dir / "report.md").read_text()
     assert "effect_found" in report and "`gain` at `y`" in report
-    assert "| effect | ΔBIC | held-out z | held-out gap | gap reduction | RMS p | passed |" in report
+    assert ("| effect | ΔBIC | held-out z | held-out gap | gap reduction | gap reduction, 95 % "
+            "lower bound | RMS p | passed |") in report
 
 
 def test_external_simulator_outputs_get_output_effects(tmp_path, capsys):
@@ -286,7 +287,8 @@ def test_flow_equals_direct_run(prefect_harness, make_job):
     for line, row in zip(table, rows, strict=True):
         cells = [c.strip() for c in line.strip("|").split(" | ")]
         assert cells[2:] == [row[k] for k in ("delta_bic", "holdout_z", "holdout_gap",
-                                               "gap_reduction", "holdout_rms_p", "passed")]
+                                               "gap_reduction", "gap_reduction_low",
+                                               "holdout_rms_p", "passed")]
         assert cells[1].replace("`", "") == row["effect"]
 
 

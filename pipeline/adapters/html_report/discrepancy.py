@@ -206,16 +206,19 @@ def _candidates(doc: Mapping[str, Any]) -> str:
             esc(c.get("n_parameters")), fmt(c.get("delta_bic")), fmt(c.get("criterion")),
             fmt(c.get("screening_score")), fmt(c.get("holdout_z"), 3), fmt(c.get("holdout_gap")),
             esc(", ".join(f"{o}: {fmt(v)}" for o, v in (c.get("holdout_rms") or {}).items())),
-            _pct(c.get("gap_reduction")), fmt(c.get("holdout_rms_p"), 2),
-            _pct(c.get("closed_loop_gap_reduction")),
+            _pct(c.get("gap_reduction")), _pct(c.get("gap_reduction_low")),
+            fmt(c.get("holdout_rms_p"), 2),
+            _pct(c.get("closed_loop_prediction_error_reduction")),
             "yes" if c.get("passed") is True else "no", esc(c.get("passed_by") or "–")])
     rule = pass_rule(doc)
     return ((f"<p>{esc(rule)}</p>" if rule else "")
             + table(["#", "effect", "location", "parameters", "equivalent locations",
                      "parameters (n)", "ΔBIC", "criterion", "screening score", "held-out z",
-                     "held-out gap", "held-out RMS", "gap_reduction", "RMS p",
-                     "closed-loop gap reduction", "passed", "passed_by"], rows,
-                    table_id="candidates-table", numeric=(0, 5, 6, 7, 8, 9, 10, 12, 13, 14)))
+                     "held-out gap", "held-out RMS", "gap_reduction",
+                     "gap_reduction, 95 % lower bound", "RMS p",
+                     "closed-loop prediction-error reduction", "passed", "passed_by"], rows,
+                    table_id="candidates-table",
+                    numeric=(0, 5, 6, 7, 8, 9, 10, 12, 13, 14, 15)))
 
 
 def _signals_table(o: str, loc: Mapping[str, Any]) -> str:
