@@ -205,10 +205,10 @@ def test_the_practical_bound_is_calibrated_when_the_candidate_is_right():
     it exactly, so its held-out error is the AR(1) disturbance alone.  The bound is the
     5 % quantile of the share ``R`` over surrogate disturbances continued from the fit
     part, so the ``R`` measured falls below it (the bound is then ``R`` itself) in about
-    5 % of records: within the central 99 % interval of Binomial(150, 0.05) (12 of 150
+    5 % of records: within the central 99 % interval of Binomial(150, 0.05) (7 of 150
     when written).  A candidate whose correction is a tenth of that path, applied where
     there is no effect, never clears the 5 % bar, however its chance correlation with
-    the disturbance falls (its largest bound 0.0014 when written); the bound never
+    the disturbance falls (its largest bound 0.001 when written); the bound never
     exceeds the ``R`` measured."""
     phi = np.exp(-1 / 360)
     kw = dict(whitening=[np.array([1.0, -phi])], innovation_std=[np.sqrt(1 - phi * phi)],

@@ -178,9 +178,9 @@ def test_discrepancy_job_runs_end_to_end_on_the_real_record(tmp_path, capsys):
     # combustion gain through -- the 25 % what-if below -- while the whitened winners
     # (an O2 lag / dead time) close ~1 % and are minor.  Whether the gain is the finding
     # is the practical bar's: its share of the pooled gap at the 95 % lower bound
-    # (select.holdout_rms_noise_bound; 0.047 when written, the point estimate 0.157:
-    # the hold-out runs at lower load, and a slow O2 disturbance could shift the
-    # held-out level as the gain does).
+    # (select.holdout_rms_noise_bound; 0.054 when written, the point estimate 0.157:
+    # the hold-out runs at lower load, and a slow O2 disturbance could shift much of
+    # the held-out level the gain does).
     (gain,) = [c for c in d["candidates"] if (c["name"], c["location"]) == (
         "operating_point_gain", "combustion") and c["parameters"]["signal"] == "air"]
     assert gain["passed"] and gain["passed_by"] in ("held-out RMS", "both")
