@@ -736,14 +736,14 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         worse = [outputs[i] for i in worse_outputs(*judged, seed=seed + 31 * k,
                                                    alpha=config.holdout_rms_alpha,
                                                    margin=config.min_gap_reduction)]
-        if worse or not corroborated(fit.effect, localization):
+        # opened, a candidate must also narrow the closed loop's error (closed_loop)
+        closed = P.closed.check(fit.effect, P.model) if P.closed else math.nan
+        if worse or not corroborated(fit.effect, localization) or closed <= 0.0:
             whitened = plain = False
         # opened: the output error is biased (docstring); a drift's held-out level is
         # told from a persisting disturbance by the noise model only (level_is_evidence)
         if (P.opened_loops or fit.effect.is_sensor_correction) and not whitened:
             plain = False
-        closed = P.closed.check(fit.effect, P.model) if P.closed else math.nan
-        whitened, plain = (False, False) if closed <= 0.0 else (whitened, plain)  # closed_loop
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,

@@ -235,7 +235,7 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
                 " With the loop(s) opened, a candidate must also narrow the held-out "
                 "one-step prediction error of the loop closed again and driven by the "
                 "setpoints and loads alone (closed-loop check)."
-                          if doc.get("opened_loops") else ""))
+                if doc.get("opened_loops") else ""))
 
 
 def candidate_records(doc: Mapping[str, Any], limit: int = 8, *,

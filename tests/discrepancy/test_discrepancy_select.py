@@ -19,6 +19,7 @@ import scipy.signal as ss
 from scipy.stats import binom
 
 from pipeline.discrepancy.select import (
+    centred,
     holdout_rms_noise_bound,
     holdout_rms_noise_test,
     holdout_rms_test,
@@ -238,7 +239,6 @@ def test_the_practical_bound_leaves_a_free_outputs_level_out():
     kw = dict(whitening=[np.array([1.0])], innovation_std=[1.0], before=e, scale=[1.0],
               seed=1, alpha=0.05, n_sim=199)
     shifted = e + 2.0
-    from pipeline.discrepancy.select import centred
     assert holdout_rms_noise_bound(centred(shifted, [0]), centred(e, [0]), free=[0],
                                    **kw) == pytest.approx(0.0, abs=1e-12)
     assert holdout_rms_noise_bound(shifted, e, free=[], **kw) > 0.5
