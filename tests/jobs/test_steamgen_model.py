@@ -176,8 +176,8 @@ def test_discrepancy_job_runs_end_to_end_on_the_real_record(tmp_path, capsys):
     # Issue 12 build 5: the whitened criteria take slow O2 errors for noise (the AR
     # noise model is near a unit root); the held-out RMS test lets the air-scheduled
     # combustion gain through -- the 25 % what-if below -- while the whitened winners
-    # (an O2 lag / dead time) close ~1 % and are minor.  Whether the gain is the finding
-    # is the practical bar's: its share of the pooled gap at the 95 % lower bound
+    # (an O2 lag / dead time) close ~1 % and are minor.  The gain clears the practical
+    # bar, not by a wide margin: its share of the pooled gap at the 95 % lower bound
     # (select.holdout_rms_noise_bound; 0.054 when written, the point estimate 0.157:
     # the hold-out runs at lower load, and a slow O2 disturbance could shift much of
     # the held-out level the gain does).
@@ -185,16 +185,13 @@ def test_discrepancy_job_runs_end_to_end_on_the_real_record(tmp_path, capsys):
         "operating_point_gain", "combustion") and c["parameters"]["signal"] == "air"]
     assert gain["passed"] and gain["passed_by"] in ("held-out RMS", "both")
     assert gain["holdout_rms_p"] <= 0.01 and gain["gap_reduction"] > 0.1
-    found = gain["gap_reduction_low"] >= d["config"]["min_gap_reduction"]
-    assert (d["verdict"] == "effect_found") == found
-    if found:
-        effect = d["effects"][0]
-        assert (effect["name"], effect["location"]) == ("operating_point_gain", "combustion")
-        assert d["gap"]["per_output"]["o2"]["reduction"] > 0.2  # 3.625 -> 2.715 (25.1 %)
-        assert d["gap"]["holdout_rms_after"] < before
-    else:
-        assert ("operating_point_gain", "combustion") in [
-            (m["name"], m["location"]) for m in d["minor_effects"]]
+    assert gain["gap_reduction_low"] >= d["config"]["min_gap_reduction"]
+    assert d["verdict"] == "effect_found"
+    effect = d["effects"][0]
+    assert (effect["name"], effect["location"], effect["parameters"]["signal"]) == (
+        "operating_point_gain", "combustion", "air")
+    assert d["gap"]["per_output"]["o2"]["reduction"] > 0.2  # 3.625 -> 2.715 (25.1 %)
+    assert d["gap"]["holdout_rms_after"] < before
     assert all(m["gap_reduction_low"] < d["config"]["min_gap_reduction"]
                for m in d["minor_effects"])
     # the localisation names, per output, which inputs explain the residual
