@@ -76,10 +76,12 @@ alone
    reduction of the gap against what surrogate disturbances of the noise model,
    continued from the residual at the split, give a correction fixed by the fit part
    (:func:`pipeline.discrepancy.select.holdout_rms_noise_test`, level
-   ``holdout_rms_alpha``).  A finding must also close ``min_gap_reduction`` of the gap at the lower
-   confidence bound of the share it closes, each output's held-out level left out
-   (``gap_reduction_low``: surrogates of the candidate's own residual's noise model,
-   :func:`pipeline.discrepancy.select.holdout_rms_noise_bound`).  Accepted
+   ``holdout_rms_alpha``).  A finding must also close ``min_gap_reduction`` of some
+   output's held-out gap at the lower confidence bound of the share it closes, each
+   output's held-out level left out (``gap_reduction_low``: surrogates of the
+   candidate's own residual's noise model,
+   :func:`pipeline.discrepancy.practical.holdout_rms_noise_bound`, the largest share over
+   the outputs, :func:`pipeline.discrepancy.practical.practical_share`).  Accepted
    candidates of different classes within ``lookalike_margin`` of the best BIC are a
    tie: the simplest is named, the others are its ``equivalent_effects``.
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the

@@ -34,15 +34,14 @@ from pipeline.discrepancy.problem import (
 )
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, DiscrepancySeries
 from pipeline.discrepancy.screen import class_key, kept_classes, nested_partners, screen_all
+from pipeline.discrepancy.practical import practical_bound, practical_gaps, practical_share
 from pipeline.discrepancy.select import (
     criteria,
     decide,
     distinguishable,
     holdout_gap,
-    PRACTICAL_ALPHA,
     centred,
     less_common_level,
-    holdout_rms_noise_bound,
     holdout_rms_noise_test,
     holdout_z_score,
     pooled_rms,
@@ -637,8 +636,9 @@ def _update_noise(P: Problem, preds: list, noise: dict, noise_var: np.ndarray
 
 
 def gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
-                  ) -> float | None:
-    """The held-out gap a search's findings must close ``min_gap_reduction`` of: the gap
+                  ) -> dict[str, Any] | None:
+    """The held-out gap a search's findings must close ``min_gap_reduction`` of (the
+    result's ``gap``: pooled and ``per_output``, :func:`practical.practical_share`): the gap
     the NOMINAL model's dynamics leave with the chain's sensor corrections
     (``sensor_bias_drift``) -- the gap of the latest search whose model held sensor
     corrections only (the first search's when a process effect came first).  None: the
@@ -670,45 +670,34 @@ def gap_reference(steps: Sequence[DiscrepancyResult], prior: Sequence[Effect]
         return None
     for s in reversed(steps):  # the first search (no prior) always qualifies
         if sensors_only(s.revised_prior):
-            return s.gap["holdout_rms_before"]
+            return s.gap
     return None
 
 
-def _practical_bound(P: Problem, y_pred: np.ndarray, judged: tuple[np.ndarray, np.ndarray],
-                     hold_std: list[float], seed: int) -> float:
-    """The lower bound of a candidate's share of the held-out gap
-    (:func:`~pipeline.discrepancy.select.holdout_rms_noise_bound`): surrogates of its
-    own fit-part residual's AR noise model, the same seed for every candidate."""
-    before = P.y[P.fit_start:P.holdout_start] - y_pred[P.fit_start:P.holdout_start]
-    ars = [fit_ar(e, P.config.ar_order_max) for e in before.T]
-    return holdout_rms_noise_bound(
-        *judged, whitening=[a[0] for a in ars], innovation_std=[a[1] for a in ars],
-        before=before, scale=hold_std, free=P.free, seed=seed, alpha=PRACTICAL_ALPHA)
-
-
+# With a loop opened (``P.opened_loops``) a candidate passes by the whitened tests only,
+# never by the plain held-out RMS test alone: the output error of a path the measured OP
+# drives carries the controller's answer to the disturbance, so a candidate that cancels
+# it (a smaller gain, a wide deadband downstream of the valve) cuts the plain held-out
+# error on nulls -- by 66 % on a valve-cooler null (unseen seed 8 648 001, a deadband of
+# width 4.6 at the vessel, whitened held-out z 0.9) -- while the prediction-error
+# criteria with the right noise model are consistent (method §10).  They are not enough
+# either where the controlled output's error is nearly all the disturbance, so an opened
+# candidate must also narrow the held-out gap of the loop closed again and driven by the
+# instruments only (:mod:`pipeline.discrepancy.closed_loop`).
 def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: int,
-            gap_reference: float | None, localization: dict[str, Any]):
+            gap_reference: dict[str, Any] | None, localization: dict[str, Any]):
     """Held-out comparison of the fitted candidates: the sorted unique candidates, the
     verdict, the effect found (or None), the look-alikes and the minor effects.
     ``gap_reference``: the held-out gap practical significance is measured against
     (:func:`gap_reference`; None: this model's); ``localization``: what
-    :func:`corroborated` reads.
-
-    With a loop opened (``P.opened_loops``) a candidate passes by the whitened tests only,
-    never by the plain held-out RMS test alone: the output error of a path the measured
-    OP drives carries the controller's answer to the disturbance, so a candidate that
-    cancels it (a smaller gain, a wide deadband downstream of the valve) cuts the plain
-    held-out error on nulls -- by 66 % on a valve-cooler null (unseen seed 8 648 001, a
-    deadband of width 4.6 at the vessel, whitened held-out z 0.9) -- while the
-    prediction-error criteria with the right noise model are consistent (method §10).
-    They are not enough either where the controlled output's error is nearly all the
-    disturbance, so an opened candidate must also narrow the held-out gap of the loop
-    closed again and driven by the instruments only (:mod:`pipeline.discrepancy.closed_loop`)."""
+    :func:`corroborated` reads.  With a loop opened: the comment above."""
     config, y, outputs = P.config, P.y, P.outputs
     candidates = []
     hold_slice = slice(P.holdout_start, P.n)
     hold_std = [float(np.std(y[hold_slice, i])) or 1.0 for i in range(len(outputs))]
-    gap_nom = pooled_rms([rms_of(resid[hold_slice, i]) for i in range(len(outputs))], hold_std)
+    rms_nom = [rms_of(resid[hold_slice, i]) for i in range(len(outputs))]
+    gap_nom = pooled_rms(rms_nom, hold_std)
+    gaps, reference, where = practical_gaps(outputs, rms_nom, gap_nom, gap_reference)
     e_nom = resid[hold_slice] / np.array(hold_std)
     # practical size on shapes: the held-out level of each output whose constant is
     # profiled (P.free) left out of the model's and every candidate's errors
@@ -731,7 +720,6 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         # path: the level it moves is evidence, the level both leave a nuisance
         judged = less_common_level(e_nom, e_cand, P.free) if fit.effect.level_is_evidence \
             else (c_nom, c_cand)
-        low = _practical_bound(P, fit.y_pred, judged, hold_std, seed)
         plain = bool(p_rms <= config.holdout_rms_alpha and gap_c < gap_nom)
         worse = [outputs[i] for i in worse_outputs(*judged, seed=seed + 31 * k,
                                                    alpha=config.holdout_rms_alpha,
@@ -744,12 +732,20 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         # told from a persisting disturbance by the noise model only (level_is_evidence)
         if (P.opened_loops or fit.effect.is_sensor_correction) and not whitened:
             plain = False
+        # the bound decides practical significance among the passed only (999
+        # surrogates a candidate; report.md shows "–" for the others)
+        fit_part = slice(P.fit_start, P.holdout_start)
+        low, low_on = practical_share(practical_bound(
+            *judged, before=y[fit_part] - fit.y_pred[fit_part], scale=hold_std, free=P.free,
+            seed=seed, ar_order_max=config.ar_order_max), gaps, reference) \
+            if whitened or plain else (math.nan, None)
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,
             holdout_rms=rms, holdout_z=t_hold, holdout_gap=gap_c,
             screening_score=fit.screening_score, passed=whitened or plain,
             gap_reduction=1.0 - gap_c / gap_nom if gap_nom > 0 else 0.0,
             holdout_rms_p=p_rms, gap_reduction_low=low, worse_on=tuple(worse),
+            gap_reduction_low_output=None if low_on is None else where[low_on],
             passed_by=("both" if whitened and plain else "whitened" if whitened
                        else "held-out RMS" if plain else ""),
             closed_loop_prediction_error_reduction=closed))
@@ -767,14 +763,13 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
             unique.append(c)
     candidates = unique
     passed = [c for c in candidates if c.passed]
-    # practical significance (:func:`gap_reference`)
-    bar = config.min_gap_reduction * (gap_nom if gap_reference is None else gap_reference)
 
     def practical(c: Candidate) -> bool:
-        # the share of the gap it closes, at its lower confidence bound: a point
-        # estimate of a few percent is within what a slow disturbance moves between
-        # stretches of the hold-out (select.holdout_rms_noise_bound)
-        return c.gap_reduction_low * gap_nom >= bar
+        # the share of the reference gap (:func:`gap_reference`) it closes on the output
+        # where it closes the most, at its lower confidence bound: a point estimate of a
+        # few percent is within what a slow disturbance moves between stretches of the
+        # hold-out (practical.holdout_rms_noise_bound, practical.practical_share)
+        return c.gap_reduction_low >= config.min_gap_reduction
 
     findings = [c for c in passed if practical(c)]
     minor = tuple(c for c in passed if not practical(c))

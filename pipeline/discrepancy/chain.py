@@ -336,9 +336,10 @@ class Chain:
                 pred[o] = pred[o] + shift[o]
         return pred, shift
 
-    def held_out(self, effects: Sequence[Effect]) -> float:
-        """Held-out gap (pooled RMS, as the result's ``gap``) of the nominal model with
-        `effects` (:meth:`prediction`; the nominal model's own when there are none).
+    def held_out(self, effects: Sequence[Effect]) -> dict[str, Any]:
+        """Held-out gap (the result's ``gap``: pooled, and ``per_output``) of the
+        nominal model with `effects` (:meth:`prediction`; the nominal model's own when
+        there are none).
 
         Parameters
         ----------
@@ -353,15 +354,18 @@ class Chain:
             y, y_nom, y_aug = (np.column_stack([sig[o] for o in self.outputs])
                                for sig in (s0.measured, s0.nominal, pred))
             self._held[key] = holdout_gap(y, self.outputs, s0.holdout_start, y - y_nom,
-                                          y_aug)["holdout_rms_after"]
+                                          y_aug)
         return self._held[key]
 
-    def needed(self, links: Sequence[Link], k: int) -> tuple[bool, float, float]:
-        """Whether the chain `links` as fitted needs its `k`-th effect: the held-out gap
-        without it, less that with all, must be at least ``min_gap_reduction`` of the
-        gap with the chain's sensor corrections only (the nominal gap when there are
-        none: the reference of :func:`pipeline.discrepancy.analyse.gap_reference`).
-        Returns (needed, gap without it, gap with all).
+    def needed(self, links: Sequence[Link], k: int) -> tuple[bool, float, float, float]:
+        """Whether the chain `links` as fitted needs its `k`-th effect: on some output,
+        or pooled, the held-out gap without it, less that with all, must be at least
+        ``min_gap_reduction`` of that gap with the chain's sensor corrections only (the
+        nominal model's when there are none: the reference of
+        :func:`pipeline.discrepancy.analyse.gap_reference`; the gaps
+        :func:`pipeline.discrepancy.practical.practical_share` judges a candidate on).
+        Returns (needed, that share where it is largest, pooled gap without it, pooled
+        gap with all).
 
         Parameters
         ----------
@@ -371,11 +375,13 @@ class Chain:
             Index of the effect in question.
         """
         effects = [lk.effect for lk in links]
-        bar = self.config.min_gap_reduction * self.held_out(
-            [e for e in effects if e.is_sensor_correction])
-        full = self.held_out(effects)
-        without = self.held_out(effects[:k] + effects[k + 1:])
-        return without - full >= bar, without, full
+        gaps = [self.held_out(e) for e in (
+            [e for e in effects if e.is_sensor_correction], effects[:k] + effects[k + 1:],
+            effects)]
+        ref, without, full = ([g["per_output"][o]["holdout_rms_after"] for o in self.outputs]
+                              + [g["holdout_rms_after"]] for g in gaps)
+        share = max((w - f) / r if r > 0 else 0.0 for w, f, r in zip(without, full, ref))
+        return share >= self.config.min_gap_reduction, share, without[-1], full[-1]
 
     def search(self, effects: Sequence[Effect], also: Sequence[Candidate] = ()
                ) -> DiscrepancyResult:
@@ -674,8 +680,8 @@ def prune(chain: Chain, links: Sequence[Link]) -> tuple[list[Link], list[Candida
     links, dropped = list(links), []
     while len(links) >= 2:
         checks = [chain.needed(links, k) for k in range(len(links))]
-        k = int(np.argmin([without for _, without, _ in checks]))  # the least needed
-        needed, without, full = checks[k]
+        k = int(np.argmin([share for _, share, _, _ in checks]))  # the least needed
+        needed, _, without, full = checks[k]
         if needed:
             break
         lk = links.pop(k)

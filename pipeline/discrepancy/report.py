@@ -43,6 +43,33 @@ def fmt_number(value: Any, digits: int = 4) -> str:
     return "–" if math.isnan(x) else f"{x:.{digits}g}"
 
 
+def fmt_percent(value: Any) -> str:
+    """A share as a percentage with one decimal, ``–`` when missing or NaN (a
+    candidate's lower bound is computed only when it passed the held-out tests).
+
+    Parameters
+    ----------
+    value : object
+        A JSON number (as :func:`json_number` reads it).
+    """
+    x = json_number(value)
+    return "–" if math.isnan(x) else f"{100 * x:.1f} %"
+
+
+def low_text(candidate: Mapping[str, Any]) -> str:
+    """A candidate's ``gap_reduction_low`` with the output it is measured on, e.g.
+    ``12.3 % (cw_flow)``; ``–`` when not computed.
+
+    Parameters
+    ----------
+    candidate : mapping
+        One of ``discrepancy.json``'s candidates.
+    """
+    text, on = fmt_percent(candidate.get("gap_reduction_low")), candidate.get(
+        "gap_reduction_low_output")
+    return f"{text} ({on})" if on and text != "–" else text
+
+
 def md_cell(value: Any) -> str:
     """``value`` as text for a Markdown table cell (pipes escaped, one line).
 
@@ -200,9 +227,10 @@ def _effects(doc: Mapping[str, Any]) -> list[str]:
         cfg = doc.get("config") if isinstance(doc.get("config"), Mapping) else {}
         lines += ["", "## Minor effects", "",
                   "Statistically significant, but each closes less than "
-                  f"{100 * json_number(cfg.get('min_gap_reduction')):.0f} % of the nominal "
-                  "model's held-out gap (with the accepted sensor corrections taken off): "
-                  "not a finding.  The gap reduction listed is of the model each was tried "
+                  f"{100 * json_number(cfg.get('min_gap_reduction')):.0f} % of every "
+                  "output's held-out gap of the nominal model (with the accepted sensor "
+                  "corrections taken off; at the 95 % lower bound when tried): not a "
+                  "finding.  The gap reduction listed is of the model each was tried "
                   "on (the augmented model when the chain holds effects; for one dropped "
                   "from the final chain, the chain without it).", ""]
         lines += [f"- {effect_text(e)}: gap reduction "
@@ -231,7 +259,7 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
             "or a held-out RMS reduction beyond the noise model's disturbance at p ≤ "
             f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
             f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
-            "the gap at the 95 % lower bound of its share." + (
+            "some output's held-out gap at the 95 % lower bound of its share." + (
                 " With the loop(s) opened, a candidate must also narrow the held-out "
                 "one-step prediction error of the loop closed again and driven by the "
                 "setpoints and loads alone (closed-loop check)."
@@ -258,8 +286,8 @@ def candidate_records(doc: Mapping[str, Any], limit: int = 8, *,
     return [{"effect": effect(c), "delta_bic": fmt_number(c.get("delta_bic")),
              "holdout_z": fmt_number(c.get("holdout_z"), 3),
              "holdout_gap": fmt_number(c.get("holdout_gap")),
-             "gap_reduction": f"{100 * json_number(c.get('gap_reduction')):.1f} %",
-             "gap_reduction_low": f"{100 * json_number(c.get('gap_reduction_low')):.1f} %",
+             "gap_reduction": fmt_percent(c.get("gap_reduction")),
+             "gap_reduction_low": low_text(c),
              "holdout_rms_p": fmt_number(c.get("holdout_rms_p"), 2),
              "passed": str(c.get("passed_by")) if c.get("passed") is True else (
                  "no (closed loop)"
@@ -275,7 +303,7 @@ def _candidates(doc: Mapping[str, Any]) -> list[str]:
     rule = pass_rule(doc)
     lines = ["", "## Candidates (best first)", ""] + ([rule, ""] if rule else [])
     lines += ["| # | effect | ΔBIC | held-out z | held-out gap | gap reduction | "
-              "gap reduction, 95 % lower bound | RMS p | passed |",
+              "largest output gap reduction, 95 % lower bound | RMS p | passed |",
               "|---|---|---|---|---|---|---|---|---|"]
     lines += [f"| {k} | {r['effect']} | "
               + " | ".join(md_cell(v) for key, v in r.items() if key != "effect") + " |"

@@ -55,11 +55,16 @@ class Candidate:
     passed_by : str
         Which acceptance passed: ``"whitened"``, ``"held-out RMS"``, ``"both"`` or ``""``.
     gap_reduction_low : float
-        One-sided 95 % lower confidence bound of the share of the held-out gap the
-        candidate closes, free outputs' held-out levels left out
-        (:func:`pipeline.discrepancy.select.centred`), from surrogate disturbances of
-        the candidate's own residual's noise model: what practical significance is
-        judged on (:func:`pipeline.discrepancy.select.holdout_rms_noise_bound`).
+        The share of the reference held-out gap the candidate closes where it closes the
+        most -- on one output, or pooled -- at the one-sided 95 % lower confidence bound
+        (each bound at 5 % over the gaps judged, free outputs' held-out levels left out),
+        from surrogate disturbances of the candidate's own residual's noise model: what
+        practical significance is judged on
+        (:func:`pipeline.discrepancy.practical.practical_share`).  NaN for a candidate that
+        failed the held-out tests (not computed: it would decide nothing).
+    gap_reduction_low_output : str or None
+        Where `gap_reduction_low` is measured: an output's name, or
+        :data:`pipeline.discrepancy.practical.POOLED_GAP` for the pooled gap (None with it NaN).
     worse_on : tuple of str
         Outputs whose held-out errors the candidate makes larger than the model it was
         added to, beyond chance (:func:`pipeline.discrepancy.select.worse_outputs`): such
@@ -86,6 +91,7 @@ class Candidate:
     holdout_rms_p: float = math.nan
     passed_by: str = ""
     gap_reduction_low: float = math.nan
+    gap_reduction_low_output: str | None = None
     worse_on: tuple[str, ...] = ()
     closed_loop_prediction_error_reduction: float = math.nan
 
@@ -105,6 +111,7 @@ class Candidate:
             holdout_rms_p=json_float(self.holdout_rms_p),
             passed_by=self.passed_by,
             gap_reduction_low=json_float(self.gap_reduction_low),
+            gap_reduction_low_output=self.gap_reduction_low_output,
             worse_on=list(self.worse_on),
             closed_loop_prediction_error_reduction=json_float(self.closed_loop_prediction_error_reduction),
         )

@@ -256,7 +256,7 @@ def holdout_rms_noise_test(nominal: np.ndarray, candidate: np.ndarray, *,
         return 0.0, 1.0
     reduction = 1.0 - math.sqrt(float(np.sum(e1 ** 2)) / t0)
     s0, s1 = np.zeros(n_sim), np.zeros(n_sim)
-    for i, block, s in _surrogates(whitening, innovation_std, before, scale, e0.shape[0],
+    for i, block, s in surrogates(whitening, innovation_std, before, scale, e0.shape[0],
                                    seed, n_sim):
         c = e0[:, i] - e1[:, i]
         s0[block] += np.sum(s ** 2, axis=1)
@@ -265,7 +265,7 @@ def holdout_rms_noise_test(nominal: np.ndarray, candidate: np.ndarray, *,
     return reduction, (1.0 + float(np.sum(replicates >= reduction))) / (1.0 + n_sim)
 
 
-def _surrogates(whitening: Sequence[np.ndarray], innovation_std: Sequence[float],
+def surrogates(whitening: Sequence[np.ndarray], innovation_std: Sequence[float],
                 before: np.ndarray, scale: Sequence[float], m: int, seed: int, n_sim: int
                 ) -> Iterator[tuple[int, slice, np.ndarray]]:
     """``(output, replicates, s)``: `n_sim` surrogate held-out disturbances of `m`
@@ -273,7 +273,28 @@ def _surrogates(whitening: Sequence[np.ndarray], innovation_std: Sequence[float]
     `before`'s last values, plus `before`'s mean, divided by `scale`
     (:func:`holdout_rms_noise_test`).  A block of replicates at a time (memory: a long
     hold-out times 999 would not fit); rows are drawn in order, so the blocks change no
-    number."""
+    number.  Shared by :func:`holdout_rms_noise_test` and
+    :func:`pipeline.discrepancy.practical.holdout_rms_noise_bound` (the same draws for
+    the same seed).
+
+    Parameters
+    ----------
+    whitening : sequence of ndarray
+        Each output's AR whitening filter ``[1, d_1, .., d_p]``.
+    innovation_std : sequence of float
+        Each output's innovation std, in the output's units.
+    before : ndarray (K, n_y)
+        A residual on the fit part (its last values start the surrogates; its mean is
+        their level).
+    scale : sequence of float
+        Each output's divisor.
+    m : int
+        Samples per surrogate (the hold-out's length).
+    seed : int
+        Seeds the draws.
+    n_sim : int
+        Surrogates per output.
+    """
     rng = np.random.default_rng(seed)
     rows = max(1, min(n_sim, SURROGATE_VALUES // max(m, 1)))
     for i in range(len(whitening)):
@@ -288,94 +309,6 @@ def _surrogates(whitening: Sequence[np.ndarray], innovation_std: Sequence[float]
             if zi is not None:
                 w = lfilter([1.0], d, w, axis=1, zi=np.tile(zi, (w.shape[0], 1)))[0]
             yield i, block, (w + level) / scale[i]
-
-
-def holdout_rms_noise_bound(nominal: np.ndarray, candidate: np.ndarray, *,
-                            whitening: Sequence[np.ndarray], innovation_std: Sequence[float],
-                            before: np.ndarray, scale: Sequence[float],
-                            free: Sequence[int], seed: int, alpha: float,
-                            n_sim: int = RMS_TEST_REPLICATES) -> float:
-    """The one-sided ``1 - alpha`` lower confidence bound of the share ``R`` of the
-    held-out gap a candidate closes (:func:`holdout_rms_test`'s ``R``), from the noise
-    model: what practical significance is judged on.
-
-    If the candidate is right, its held-out error is the disturbance alone and the
-    nominal model's is the disturbance plus the candidate's correction
-    ``c = e_0 - e_c``, which the fit part and the inputs fix:
-    ``R = 1 - sqrt(|s|^2 / (|s|^2 + |c|^2 + 2 <s, c>))``.  What the hold-out leaves
-    uncertain is the cross term -- how the disturbance happened to line up with the
-    correction; a slow disturbance has few independent values over a hold-out, so that
-    share can be large, and it is where a wrong candidate's chance share comes from.
-    ``R``'s spread is taken over surrogate held-out disturbances ``s`` of the
-    candidate's own residual (`whitening`, `innovation_std` and `before`: its AR noise
-    model and its fit-part residual, as :func:`holdout_rms_noise_test` draws them for
-    the nominal model: a parametric bootstrap), the levels of the `free` outputs left
-    out as in :func:`centred`.  The bound is the ``alpha`` quantile of those replicates,
-    and never above the ``R`` measured.  A wrong candidate whose correction is small has
-    ``R`` near ``|c|^2 / 2|s|^2`` whatever its chance share.
-
-    Measured and left out: each surrogate scaled to the energy the candidate's error
-    has on this hold-out (conditioning on how large the disturbance was).  On spent zoo
-    seeds it gave back two backlashes (heat exchanger 8 685 003, two tanks 8 685 002)
-    and lost two gains and two delays of the two tanks (8 680 000/006, 8 681 000/003);
-    it was less well calibrated on the known-answer records of
-    ``tests/discrepancy/test_discrepancy_select.py`` (12 of 150 below the 5 % bound,
-    against 7); and the real steam generator's combustion gain fell to a bound of 4.7 %
-    (5.4 % here).
-
-    Why not the block bootstrap of the held-out errors (:func:`holdout_rms_evidence`,
-    the bound until 2026-12-07): it resamples twenty blocks of the hold-out as if they
-    were exchangeable, which needs blocks much longer than the disturbance's correlation
-    time; the zoo's slow disturbance (about 30 min on a 72-min hold-out) spans several
-    blocks, and the spread came out of what the hold-out happened to contain.  True
-    delays and lags that closed 10-30 % of the held-out gap had bounds of -0.02 to 0.02
-    (blend 8 681 003/006/007, two tanks 8 682 004; spent zoo seeds).  And every candidate
-    drew its own blocks, so a lag and its degenerate inverse response of magnitude
-    1e-10, the same curve, had bounds of 0.043 and 0.055, and the bar chose between them
-    (two tanks 8 682 000).  Here the disturbance varies as its fitted model says,
-    continued from where the fit part left it, and every candidate is judged on the same
-    surrogate innovations (common random numbers).
-
-    Parameters
-    ----------
-    nominal, candidate : ndarray (M, n_y)
-        Held-out errors, each output divided by `scale` (as judged: :func:`centred` or
-        :func:`less_common_level`).
-    whitening, innovation_std : sequence
-        The candidate's residual's AR noise model per output
-        (:func:`pipeline.estimation.noise_model.fit_ar`), innovation std in the
-        output's units.
-    before : ndarray (K, n_y)
-        The candidate's residual on the fit part, in the outputs' units.
-    scale : sequence of float
-        The held-out std each output is divided by.
-    free : sequence of int
-        Outputs whose level is a nuisance (:func:`centred`).
-    seed : int
-        Seeds the surrogates (the same for every candidate of a search).
-    alpha : float
-        One-sided level (:data:`PRACTICAL_ALPHA`).
-    n_sim : int
-        Surrogate hold-outs.
-    """
-    e0 = np.atleast_2d(np.asarray(nominal, dtype=float).T).T
-    e1 = np.atleast_2d(np.asarray(candidate, dtype=float).T).T
-    t0 = float(np.sum(e0 ** 2))
-    if t0 <= 0.0:
-        return 0.0
-    reduction = 1.0 - math.sqrt(float(np.sum(e1 ** 2)) / t0)
-    s0, s1 = np.zeros(n_sim), np.zeros(n_sim)
-    free = set(free)
-    for i, block, s in _surrogates(whitening, innovation_std, before, scale, e0.shape[0],
-                                   seed, n_sim):
-        if i in free:
-            s = s - s.mean(axis=1, keepdims=True)
-        c = e0[:, i] - e1[:, i]
-        s1[block] += np.sum(s ** 2, axis=1)
-        s0[block] += np.sum((s + c) ** 2, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        replicates = np.where(s0 > 0, 1.0 - np.sqrt(s1 / s0), -np.inf)
-    return min(reduction, float(np.quantile(replicates, alpha)))
 
 
 def worse_outputs(nominal: np.ndarray, candidate: np.ndarray, *, seed: int, alpha: float,

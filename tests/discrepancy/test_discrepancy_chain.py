@@ -43,13 +43,14 @@ def _result(verdict: str, candidates=(), effect=None, gap_after=1.0, revised=(),
         series=SimpleNamespace(fit_start=0, holdout_start=400))
 
 
-def _chain(script):
+def _chain(script, outputs=None):
     """A chain on the boiler model whose searches answer from `script(prior, also)`;
-    returns the chain and the log of (prior effect names, forced candidate names)."""
+    returns the chain and the log of (prior effect names, forced candidate names).
+    `outputs`: the measured outputs' names (default the model's)."""
     model = boiler_model()
     rng = np.random.default_rng(0)
     inputs = {k: rng.standard_normal(N) for k in model.inputs}
-    measured = {o: rng.standard_normal(N) for o in model.outputs}
+    measured = {o: rng.standard_normal(N) for o in outputs or model.outputs}
     log = []
 
     def step(prior, _model, _measured, also):
@@ -204,20 +205,24 @@ def test_a_pair_that_closes_too_little_more_keeps_the_single_effect():
 
 def test_gap_reference_takes_off_sensor_corrections_only():
     """Practical significance of a later effect is judged against the gap of the latest
-    search whose model held sensor corrections only (analyse.gap_reference)."""
+    search whose model held sensor corrections only (analyse.gap_reference), output by
+    output (practical.practical_share)."""
     bias = Effect("sensor_bias_drift", "drum_level", {"bias": 1.0, "drift_per_h": 0.0})
     gain = Effect("gain", "controller", {"factor": 1.2})
 
-    def step(gap, *prior):
-        return SimpleNamespace(gap={"holdout_rms_before": gap}, revised_prior=prior)
+    def step(gap, *prior):  # two outputs
+        return SimpleNamespace(gap={"holdout_rms_before": gap, "per_output": {
+            "drum_level": {"holdout_rms_before": gap},
+            "pressure": {"holdout_rms_before": 10 * gap}}}, revised_prior=prior)
 
     nominal, after_bias, after_both = step(4.0), step(0.4, bias), step(0.3, bias, gain)
     assert gap_reference([], ()) is None  # the first search: its own gap
     assert gap_reference([nominal], (bias,)) is None  # only a sensor correction
-    assert gap_reference([nominal], (gain,)) == 4.0  # a process effect: the nominal gap
-    assert gap_reference([nominal, after_bias], (bias, gain)) == 0.4
-    assert gap_reference([nominal, after_bias, after_both], (bias, gain, gain)) == 0.4
-    assert gap_reference([nominal, step(1.0, gain)], (gain, bias)) == 4.0
+    # a process effect: the nominal gap, pooled and per output
+    assert gap_reference([nominal], (gain,)) is nominal.gap
+    assert gap_reference([nominal, after_bias], (bias, gain)) is after_bias.gap
+    assert gap_reference([nominal, after_bias, after_both], (bias, gain, gain)) is after_bias.gap
+    assert gap_reference([nominal, step(1.0, gain)], (gain, bias)) is nominal.gap
 
 
 def test_a_single_effects_location_lookalike_does_not_lead_a_replacing_pair():
@@ -254,14 +259,22 @@ def _sets(**gaps):
 
 
 def _scripted_gaps(chain, gaps):
-    """`chain` with Chain.held_out answering from `gaps` (:func:`_sets`)."""
-    chain.held_out = lambda effects: gaps[frozenset(e.name for e in effects)]
+    """`chain` with Chain.held_out answering from `gaps` (:func:`_sets`): a number is
+    every output's held-out RMS (and the pooled gap), a tuple one per output."""
+    def held_out(effects):
+        g = gaps[frozenset(e.name for e in effects)]
+        per = dict(zip(chain.outputs, g if isinstance(g, tuple) else [g] * len(chain.outputs),
+                       strict=True))
+        return {"holdout_rms_after": float(np.sqrt(np.mean(np.square(list(per.values()))))),
+                "per_output": {o: {"holdout_rms_after": v} for o, v in per.items()}}
+
+    chain.held_out = held_out
     return chain
 
 
-def _pruned(effects, gaps):
+def _pruned(effects, gaps, outputs=None):
     said = []
-    chain, _ = _chain(lambda prior, also: _result("no_significant_effect"))
+    chain, _ = _chain(lambda prior, also: _result("no_significant_effect"), outputs)
     chain.say = lambda *a: said.append(a)
     _scripted_gaps(chain, gaps)
     links = [Link(e, _cand(e, passed=True, delta_bic=100.0)) for e in effects]
@@ -293,6 +306,21 @@ def test_prune_keeps_a_masked_pair_and_a_later_effect_behind_a_sensor_bias():
     assert _pruned([bias, GAIN], behind)[0] == ["sensor_bias_drift", "gain"]
     behind[frozenset({"sensor_bias_drift", "gain"})] = 0.385  # 0.015 < 0.02
     assert _pruned([bias, GAIN], behind)[0] == ["sensor_bias_drift"]
+
+
+def test_prune_keeps_an_effect_needed_on_one_output_only():
+    """Chain.needed judges output by output (practical.practical_share): a lag that takes
+    one output's held-out error from 0.2 to 0.02 is needed although the other output's
+    error, 50 times larger, makes that 0.02 % of the pooled gap; the same lag closing
+    3 % of that output's error is not."""
+    outputs = ["steam_flow", "turbine_pressure"]
+    one = _sets(none=(0.2, 20.0), gain=(0.2, 10.0), extra_lag=(0.02, 20.0),
+                gain__extra_lag=(0.02, 10.0))
+    assert _pruned([GAIN, LAG], one, outputs)[0] == ["gain", "extra_lag"]
+    few = dict(one)
+    few[frozenset({"gain", "extra_lag"})] = (0.194, 10.0)
+    kept, dropped, _ = _pruned([GAIN, LAG], few, outputs)
+    assert kept == ["gain"] and [c.effect.name for c in dropped] == ["extra_lag"]
 
 
 def test_prune_always_keeps_the_last_effect():

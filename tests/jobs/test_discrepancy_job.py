@@ -114,8 +114,8 @@ def test_wrong_model_gain_is_named_and_the_augmented_model_resimulates(make_job,
                                atol=1e-12)
     report = (run_dir / "report.md").read_text()
     assert "effect_found" in report and "`gain` at `y`" in report
-    assert ("| effect | ΔBIC | held-out z | held-out gap | gap reduction | gap reduction, 95 % "
-            "lower bound | RMS p | passed |") in report
+    assert ("| effect | ΔBIC | held-out z | held-out gap | gap reduction | largest output gap "
+            "reduction, 95 % lower bound | RMS p | passed |") in report
 
 
 def test_external_simulator_outputs_get_output_effects(tmp_path, capsys):

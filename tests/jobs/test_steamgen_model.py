@@ -170,22 +170,26 @@ def test_discrepancy_job_runs_end_to_end_on_the_real_record(tmp_path, capsys):
     for o, v in check["holdout_rms_reported"].items():
         assert check["holdout_rms_resimulated"][o] == pytest.approx(v, rel=1e-9)
     before = d["gap"]["holdout_rms_before"]
-    for c in d["candidates"]:
+    for c in d["candidates"]:  # passed: better on some output, worse on none
         if c["passed"]:
-            assert c["holdout_gap"] < before
+            assert not c["worse_on"] and any(
+                c["holdout_rms"][o] < g["holdout_rms_before"]
+                for o, g in d["gap"]["per_output"].items())
     # Issue 12 build 5: the whitened criteria take slow O2 errors for noise (the AR
     # noise model is near a unit root); the held-out RMS test lets the air-scheduled
     # combustion gain through -- the 25 % what-if below -- while the whitened winners
     # (an O2 lag / dead time) close ~1 % and are minor.  The gain clears the practical
-    # bar, not by a wide margin: its share of the pooled gap at the 95 % lower bound
-    # (select.holdout_rms_noise_bound; 0.054 when written, the point estimate 0.157:
-    # the hold-out runs at lower load, and a slow O2 disturbance could shift much of
-    # the held-out level the gain does).
+    # bar, not by a wide margin: its share of O2's held-out gap at the lower bound
+    # (practical.practical_share: the largest of five bounds -- four outputs and the
+    # pooled gap -- each at 1 %; 0.063 when written, O2's point estimate 0.251: the
+    # hold-out runs at lower load, and a slow O2 disturbance could shift much of the
+    # held-out level the gain does).
     (gain,) = [c for c in d["candidates"] if (c["name"], c["location"]) == (
         "operating_point_gain", "combustion") and c["parameters"]["signal"] == "air"]
     assert gain["passed"] and gain["passed_by"] in ("held-out RMS", "both")
     assert gain["holdout_rms_p"] <= 0.01 and gain["gap_reduction"] > 0.1
     assert gain["gap_reduction_low"] >= d["config"]["min_gap_reduction"]
+    assert gain["gap_reduction_low_output"] == "o2"
     assert d["verdict"] == "effect_found"
     effect = d["effects"][0]
     assert (effect["name"], effect["location"], effect["parameters"]["signal"]) == (

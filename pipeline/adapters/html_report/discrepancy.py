@@ -23,7 +23,13 @@ from pipeline.adapters.html_report.page import (
     section,
     table,
 )
-from pipeline.discrepancy.report import effect_markup, json_number, pass_rule
+from pipeline.discrepancy.report import (
+    effect_markup,
+    fmt_percent,
+    json_number,
+    low_text,
+    pass_rule,
+)
 from pipeline.readouts.run_summary import signal_units
 
 __all__ = ["render_discrepancy_html", "effect_html"]
@@ -42,11 +48,6 @@ def effect_html(effect: Mapping[str, Any]) -> str:
         ``name``, ``location``, ``parameters`` (and optionally ``equivalent_locations``).
     """
     return effect_markup(effect, code=lambda s: f"<code>{esc(s)}</code>", plain=esc)
-
-
-def _pct(value: Any) -> str:
-    v = json_number(value)
-    return "–" if np.isnan(v) else f"{100 * v:.1f} %"
 
 
 def _header(doc: Mapping[str, Any], manifest: Mapping[str, Any]) -> str:
@@ -161,9 +162,9 @@ def _gap_chain(doc: Mapping[str, Any], units: dict[str, str]) -> str:
     values = [json_number(gap.get("holdout_rms_before"))] + \
         [json_number(e.get("gap_after")) for e in chain]
     rows = [[esc(k), effect_html(e), fmt(e.get("gap_before")), fmt(e.get("gap_after")),
-             _pct(e.get("gap_reduction"))] for k, e in enumerate(chain, 1)]
+             fmt_percent(e.get("gap_reduction"))] for k, e in enumerate(chain, 1)]
     per_out = [[esc(o), fmt(g.get("holdout_rms_before")), fmt(g.get("holdout_rms_after")),
-                _pct(g.get("reduction")), esc(units.get(o) or "–")]
+                fmt_percent(g.get("reduction")), esc(units.get(o) or "–")]
                for o, g in (gap.get("per_output") or {}).items() if isinstance(g, Mapping)]
     fig = new_figure(1.6 + 1.5 * len(labels), 2.6)
     ax = fig.add_axes((1.0 / (1.6 + 1.5 * len(labels)), 0.3, 1 - 1.3 / (1.6 + 1.5 * len(labels)),
@@ -186,7 +187,7 @@ def _gap_chain(doc: Mapping[str, Any], units: dict[str, str]) -> str:
                "<p>No effect was accepted: the gap stays the nominal model's.</p>")
             + table(["output", "held-out RMS before", "after", "reduction", "unit"], per_out
                     + [["<b>overall</b>", fmt(gap.get("holdout_rms_before")),
-                        fmt(gap.get("holdout_rms_after")), _pct(gap.get("reduction")), ""]],
+                        fmt(gap.get("holdout_rms_after")), fmt_percent(gap.get("reduction")), ""]],
                     table_id="gap-table", numeric=(1, 2, 3))
             + (table(["output", "held-out RMS reported", "model_augmented.yaml re-simulated"],
                      chk, table_id="model-check", numeric=(1, 2)) if chk else ""))
@@ -206,16 +207,16 @@ def _candidates(doc: Mapping[str, Any]) -> str:
             esc(c.get("n_parameters")), fmt(c.get("delta_bic")), fmt(c.get("criterion")),
             fmt(c.get("screening_score")), fmt(c.get("holdout_z"), 3), fmt(c.get("holdout_gap")),
             esc(", ".join(f"{o}: {fmt(v)}" for o, v in (c.get("holdout_rms") or {}).items())),
-            _pct(c.get("gap_reduction")), _pct(c.get("gap_reduction_low")),
+            fmt_percent(c.get("gap_reduction")), low_text(c),
             fmt(c.get("holdout_rms_p"), 2),
-            _pct(c.get("closed_loop_prediction_error_reduction")),
+            fmt_percent(c.get("closed_loop_prediction_error_reduction")),
             "yes" if c.get("passed") is True else "no", esc(c.get("passed_by") or "–")])
     rule = pass_rule(doc)
     return ((f"<p>{esc(rule)}</p>" if rule else "")
             + table(["#", "effect", "location", "parameters", "equivalent locations",
                      "parameters (n)", "ΔBIC", "criterion", "screening score", "held-out z",
                      "held-out gap", "held-out RMS", "gap_reduction",
-                     "gap_reduction, 95 % lower bound", "RMS p",
+                     "largest output gap_reduction, 95 % lower bound", "RMS p",
                      "closed-loop prediction-error reduction", "passed", "passed_by"], rows,
                     table_id="candidates-table",
                     numeric=(0, 5, 6, 7, 8, 9, 10, 12, 13, 14, 15)))
@@ -250,7 +251,7 @@ def _localisation(doc: Mapping[str, Any]) -> str:
             continue
         by = loc.get("explained_by") or []
         out.append(f"<h3>{esc(o)}</h3><p>Residual RMS {fmt(loc.get('residual_rms'))} "
-                   f"({_pct(loc.get('relative_residual'))} of the measured std), explained by "
+                   f"({fmt_percent(loc.get('relative_residual'))} of the measured std), explained by "
                    f"<b>{esc(', '.join(map(str, by)) or 'no input')}</b>.</p>")
         out.append(_signals_table(o, loc))
         for name, sig in (loc.get("signals") or {}).items():
@@ -260,7 +261,7 @@ def _localisation(doc: Mapping[str, Any]) -> str:
                                   "relative difference"],
                                  [[f"{fmt(b.get('f_lo_hz'), 3)}–{fmt(b.get('f_hi_hz'), 3)}",
                                    fmt(b.get("data_gain")), fmt(b.get("model_gain")),
-                                   _pct(b.get("relative_difference"))] for b in bands],
+                                   fmt_percent(b.get("relative_difference"))] for b in bands],
                                  numeric=(1, 2, 3)))
         tw = loc.get("time_windows") or {}
         if tw.get("mean_change_points_s") or tw.get("level_change_points_s"):
@@ -290,7 +291,7 @@ def _minor(doc: Mapping[str, Any]) -> str:
     out = []
     if minor:
         out.append(table(["effect", "gap_reduction", "ΔBIC", "held-out z"],
-                         [[effect_html(e), _pct(e.get("gap_reduction")), fmt(e.get("delta_bic")),
+                         [[effect_html(e), fmt_percent(e.get("gap_reduction")), fmt(e.get("delta_bic")),
                            fmt(e.get("holdout_z"), 3)] for e in minor],
                          table_id="minor-table", numeric=(1, 2, 3)))
     else:
