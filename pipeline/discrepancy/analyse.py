@@ -698,6 +698,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     rms_nom = [rms_of(resid[hold_slice, i]) for i in range(len(outputs))]
     gap_nom = pooled_rms(rms_nom, hold_std)
     gaps, reference, where = practical_gaps(outputs, rms_nom, gap_nom, gap_reference)
+    fit_part = slice(P.fit_start, P.holdout_start)
     e_nom = resid[hold_slice] / np.array(hold_std)
     # practical size on shapes: the held-out level of each output whose constant is
     # profiled (P.free) left out of the model's and every candidate's errors
@@ -714,7 +715,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         e_cand = (y[hold_slice] - fit.y_pred[hold_slice]) / np.array(hold_std)
         _, p_rms = holdout_rms_noise_test(
             e_nom, e_cand, whitening=P.ar, innovation_std=P.sigma,
-            before=resid[P.fit_start:P.holdout_start], scale=hold_std, seed=seed + k)
+            before=resid[fit_part], scale=hold_std, seed=seed + k)
         c_cand = centred(e_cand, P.free)
         # an actuator's nonlinearity moves a free output's held-out level by its own
         # path: the level it moves is evidence, the level both leave a nuisance
@@ -734,7 +735,6 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
             plain = False
         # the bound decides practical significance among the passed only (999
         # surrogates a candidate; report.md shows "–" for the others)
-        fit_part = slice(P.fit_start, P.holdout_start)
         low, low_on = practical_share(practical_bound(
             *judged, before=y[fit_part] - fit.y_pred[fit_part], scale=hold_std, free=P.free,
             seed=seed, ar_order_max=config.ar_order_max), gaps, reference) \

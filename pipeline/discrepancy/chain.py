@@ -36,6 +36,7 @@ import numpy as np
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.problem import SCALE_FACTOR_HINT
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
+from pipeline.discrepancy.practical import gap_values
 from pipeline.discrepancy.select import holdout_gap, same_class
 from pipeline.discrepancy.effects import Effect, apply_effect, original_location, output_offsets
 from pipeline.errors import DivergenceError
@@ -378,9 +379,9 @@ class Chain:
         gaps = [self.held_out(e) for e in (
             [e for e in effects if e.is_sensor_correction], effects[:k] + effects[k + 1:],
             effects)]
-        ref, without, full = ([g["per_output"][o]["holdout_rms_after"] for o in self.outputs]
-                              + [g["holdout_rms_after"]] for g in gaps)
-        share = max((w - f) / r if r > 0 else 0.0 for w, f, r in zip(without, full, ref))
+        ref, without, full = (gap_values(g, self.outputs, "holdout_rms_after") for g in gaps)
+        share = max((w - f) / r if r > 0 else 0.0
+                    for w, f, r in zip(without, full, ref, strict=True))
         return share >= self.config.min_gap_reduction, share, without[-1], full[-1]
 
     def search(self, effects: Sequence[Effect], also: Sequence[Candidate] = ()

@@ -17,8 +17,8 @@ import numpy as np
 from pipeline.discrepancy.select import PRACTICAL_ALPHA, RMS_TEST_REPLICATES, surrogates
 from pipeline.estimation.noise_model import fit_ar
 
-__all__ = ["POOLED_GAP", "holdout_rms_noise_bound", "practical_alpha", "practical_bound",
-           "practical_gaps", "practical_share"]
+__all__ = ["POOLED_GAP", "gap_values", "holdout_rms_noise_bound", "n_gaps", "practical_alpha",
+           "practical_bound", "practical_gaps", "practical_share"]
 
 
 def holdout_rms_noise_bound(nominal: np.ndarray, candidate: np.ndarray, *,
@@ -141,12 +141,39 @@ def practical_gaps(outputs: Sequence[str], rms: Sequence[float], pooled: float,
         The ``gap`` of the search the share is measured against
         (:func:`pipeline.discrepancy.analyse.gap_reference`; None: these gaps).
     """
-    n = len(outputs) + 1 if len(outputs) > 1 else 1
+    n = n_gaps(len(outputs))
     gaps, names = (list(rms) + [pooled])[:n], (list(outputs) + [POOLED_GAP])[:n]
     if reference is None:
         return gaps, gaps, names
-    ref = [reference["per_output"][o]["holdout_rms_before"] for o in outputs]
-    return gaps, (ref + [reference["holdout_rms_before"]])[:n], names
+    return gaps, gap_values(reference, outputs, "holdout_rms_before"), names
+
+
+def n_gaps(n_outputs: int) -> int:
+    """How many gaps practical significance judges on: each output's, and the pooled
+    one when there are several (one output: its gap is the pooled gap).
+
+    Parameters
+    ----------
+    n_outputs : int
+        Outputs judged.
+    """
+    return n_outputs + 1 if n_outputs > 1 else 1
+
+
+def gap_values(gap: Mapping[str, Any], outputs: Sequence[str], key: str) -> list[float]:
+    """One value of a result's ``gap`` (e.g. ``holdout_rms_before``) for each gap of
+    :func:`practical_gaps`: each output's, then the pooled one.
+
+    Parameters
+    ----------
+    gap : mapping
+        The ``gap`` of a search (:func:`~pipeline.discrepancy.select.holdout_gap`).
+    outputs : sequence of str
+        The outputs, in order.
+    key : str
+        The value wanted.
+    """
+    return ([gap["per_output"][o][key] for o in outputs] + [gap[key]])[:n_gaps(len(outputs))]
 
 
 def practical_bound(nominal: np.ndarray, candidate: np.ndarray, *, before: np.ndarray,
@@ -225,4 +252,4 @@ def practical_alpha(n_outputs: int) -> float:
     n_outputs : int
         Outputs judged.
     """
-    return PRACTICAL_ALPHA / (n_outputs + 1 if n_outputs > 1 else 1)
+    return PRACTICAL_ALPHA / n_gaps(n_outputs)
