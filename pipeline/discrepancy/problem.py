@@ -11,6 +11,7 @@ import numpy as np
 
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.errors import ConfigError, DataQualityError, InsufficientDataError, ModelError
+from pipeline.models.blocks import CONTROLLER_TYPES
 from pipeline.models.model import Model, open_at
 from pipeline.models.simulate import simulate
 from pipeline.models.stability import unstable_parts
@@ -222,10 +223,6 @@ def opened_signals(inputs: Mapping[str, Any], measured: Mapping[str, Any],
     """
     return ({**inputs, **{c: measured[c] for c in opened}},
             {k: v for k, v in measured.items() if k not in opened})
-
-
-#: Block types whose measured output opens their loop (:func:`loops_to_open`).
-CONTROLLER_TYPES = ("pi", "pid")
 
 
 def downstream(model: Model, start: str) -> set[str]:

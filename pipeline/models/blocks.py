@@ -541,6 +541,11 @@ class OperatingPointGain(Block):
         return (*super().references(), self.signal)
 
 
+#: Block types of a feedback controller: the blocks whose output a plant limits (e.g. to
+#: 0-100 %) and whose measured output opens their loop
+#: (:func:`pipeline.discrepancy.problem.loops_to_open`).
+CONTROLLER_TYPES = ("pi", "pid")
+
 #: YAML ``type`` -> block class.
 BLOCK_TYPES: dict[str, type[Block]] = {
     cls.TYPE: cls

@@ -37,6 +37,7 @@ import scipy.sparse
 import scipy.sparse.csgraph
 
 from pipeline.errors import ModelError
+from pipeline.models.blocks import CONTROLLER_TYPES
 from pipeline.models.model import Model
 
 __all__ = ["GROWTH_LIMIT", "MAX_LOOP_STATES", "UnstablePart", "check_delays",
@@ -299,8 +300,29 @@ def divergence_message(model: Model, y: np.ndarray, *, dt_s: float) -> str:
         found = []
     if found:
         return f"{head}; {found[0].describe(y.shape[0] * dt_s)}"
-    loops = [[model.block_names[i] for i in p] for p in _parts(model) if len(p) > 1]
+    parts = [p for p in _parts(model) if len(p) > 1]
+    loops = [[model.block_names[i] for i in p] for p in parts]
     where = (f"; look at the loop(s) {', '.join(str(p) for p in loops[:3])} (with nonlinear "
              "or long-delayed blocks, whose poles are not computed)" if loops
              else "; check the blocks' gains for values far outside the plant's")
-    return head + where
+    return head + where + next((h for p in parts if (h := _unlimited_controller_hint(model, p))),
+                               "")
+
+
+def _unlimited_controller_hint(model: Model, part: Sequence[int]) -> str:
+    """For a loop through a controller without limits and a nonlinear block that is not
+    a saturation: the likely cause and its fix in model-YAML terms (a valve-cooler
+    record of the plant zoo whose OP sat at 0 %: the model's PI wound on and the
+    operating-point gain ``v (1 + slope * controller)`` turned the feedback positive)."""
+    blocks = [model.blocks[i] for i in part]
+    controllers = [b.name for b in blocks if b.TYPE in CONTROLLER_TYPES]
+    curved = [f"{b.name!r} ({b.TYPE})" for b in blocks
+              if not b.LINEAR and b.TYPE != "saturation"]
+    if not controllers or not curved or any(b.TYPE == "saturation" for b in blocks):
+        return ""
+    return (f"; the loop's controller {controllers[0]!r} has no output limits in the model, "
+            f"so where the plant's controller output stops at a limit (e.g. 0 or 100 %) the "
+            f"model's winds on, and {', '.join(curved)} can turn the feedback positive "
+            f"there: add a block {{name: {controllers[0]}_limited, type: saturation, "
+            f"input: {controllers[0]}, low: ..., high: ...}} (the limits in the model's "
+            f"units) and let the blocks that read {controllers[0]!r} read it")

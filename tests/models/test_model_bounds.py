@@ -154,6 +154,38 @@ def test_divergence_through_a_nonlinear_loop_names_the_loop():
         simulate(model, {"u": np.ones(5000)}, dt_s=1.0)
 
 
+#: A PI loop through the gain ``c (1 + 0.1 c)`` of its own output ``c``: the incremental
+#: gain ``1 + 0.2 c`` turns negative below ``c = -5``, and ``c (1 + 0.1 c)`` is never
+#: below -2.5, so a setpoint 10 above the output winds the controller past -5 and the
+#: feedback turns positive (a quadratic valve characteristic beyond its range).
+CURVED_LOOP = ({"name": "err", "type": "sum", "inputs": ["y", "-u"]},
+               {"name": "controller", "type": "pi", "input": "err", "kp": 1.0, "ti_s": 10.0},
+               {"name": "flow", "type": "operating_point_gain", "input": "controller",
+                "slope": 0.1, "signal": "controller"},
+               {"name": "y", "type": "first_order", "input": "flow", "k": -1.0, "tau_s": 10.0})
+
+
+def test_divergence_of_an_unlimited_controller_names_the_saturation_to_add():
+    """The model's PI winds on past the range of the curved gain and the loop runs away;
+    the message says to limit the controller in YAML terms, and the model so limited
+    (here at +-4, inside the range where the gain keeps its sign) simulates finitely."""
+    with pytest.raises(DivergenceError, match=r"the loop's controller 'controller' has no "
+                                              r"output limits in the model.* 'flow' "
+                                              r"\(operating_point_gain\) can turn the feedback "
+                                              r"positive there: add a block \{name: "
+                                              r"controller_limited, type: saturation, input: "
+                                              r"controller, low: \.\.\., high: \.\.\.\}"):
+        simulate(model_from_dict(_model(*CURVED_LOOP)), {"u": np.full(2000, 10.0)}, dt_s=1.0)
+    err, pi, flow, y = CURVED_LOOP
+    limited = model_from_dict(_model(
+        err, pi, {"name": "controller_limited", "type": "saturation", "input": "controller",
+                  "low": -4.0, "high": 4.0},
+        {**flow, "input": "controller_limited", "signal": "controller_limited"}, y))
+    out = simulate(limited, {"u": np.full(2000, 10.0)}, dt_s=1.0).signals["y"]
+    assert np.all(np.isfinite(out))
+    assert out[-1] == pytest.approx(-(-4.0 * (1 + 0.1 * -4.0)), rel=1e-6)  # y = -flow at -4
+
+
 def test_a_candidate_that_diverges_is_named_with_the_scale_hint():
     """The OP-as-fraction case: the search fits ``gain`` with a factor near 100 in the
     boiler's pressure loop (PI kp -0.554 x 100 through 8 s of dead time): the augmented
