@@ -320,7 +320,7 @@ def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None
 
 def main_zoo(args: argparse.Namespace) -> None:
     """The zoo suite (module docstring, suite 4)."""
-    from tests.benchmarks.zoo_suite import ZOO_SEED0, summarise_zoo, zoo_jobs
+    from tests.benchmarks.zoo_suite import ZOO_SEED0, issue_bars, summarise_zoo, zoo_jobs
     from tests.zoo import FAMILIES, ZOO_EFFECTS
 
     trials = 20 if args.trials is None else args.trials
@@ -339,6 +339,7 @@ def main_zoo(args: argparse.Namespace) -> None:
           f"seeds from {seed0}, {time.perf_counter() - start:.0f} s wall on "
           f"{args.workers} workers\n")
     print(summarise_zoo(results))
+    print("\n".join(["", "Issue 34's bars:", ""] + issue_bars(results)))
 
 
 def run_jobs(jobs: list[tuple], *, workers: int = 2, verbose: bool = True,

@@ -640,3 +640,36 @@ def test_a_slow_signal_following_the_disturbance_is_not_named_an_unmodelled_inpu
     assert (cand["holdout_rms_p"] <= d["config"]["holdout_rms_alpha"]) == plain_passes
     assert not cand["passed"]
     assert d["localization"][output]["signals"][signal]["p_value"] >= 0.05
+
+
+def test_issue_bars_count_what_the_issue_asks_from_rows_written_by_hand():
+    """Rows with known outcomes: a class at 9/10 meets 90 %, one at 8/10 does not; backlash
+    at 8/10 meets its own 80 %; a family at 17/20 meets 80 %; 2 of 30 nulls flagged
+    (6.7 %) miss 5 % and 1 of 30 meets it; an error exit is not a flagged null;
+    invisible rows count nowhere."""
+    from tests.benchmarks.zoo_suite import INVISIBLE, issue_bars
+
+    def row(family, effect, correct, verdict="effect_found", label=None, error=float("nan")):
+        return {"family": family, "effect": effect, "correct": correct, "verdict": verdict,
+                "label": label or (effect if correct else "none"),
+                "param_error": error if correct else float("nan")}
+
+    rows = ([row("a", "gain", k < 9, error=0.02) for k in range(10)]
+            + [row("b", "extra_lag", k < 8, error=0.2) for k in range(10)]
+            + [row("b", "backlash", k < 8) for k in range(10)]
+            + [row("a", "gain", False, label=INVISIBLE) for _ in range(5)]
+            + [row("a", "none", False, "effect_found" if k < 2 else "no_significant_effect")
+               for k in range(30)]
+            + [row("b", "none", k > 0, "inconclusive" if k == 0 else "no_significant_effect")
+               for k in range(29)] + [row("b", "none", False, "error: exit 2", "error")])
+    bars = {ln.split(" | ")[0].lstrip("| "): ln for ln in issue_bars(rows) if ln.startswith("| ")}
+    assert bars["class gain (≥ 90%)"].endswith("| 9/10 | 90.0% | yes |")
+    assert bars["class extra_lag (≥ 90%)"].endswith("| 8/10 | 80.0% | **no** |")
+    assert bars["class backlash (≥ 80%)"].endswith("| 8/10 | 80.0% | yes |")
+    assert bars["family a (≥ 80%)"].endswith("| 9/10 | 90.0% | yes |")
+    assert bars["family b (≥ 80%)"].endswith("| 16/20 | 80.0% | yes |")
+    assert bars["nulls flagged, a (≤ 5%)"].endswith("| 2/30 | 6.7% | **no** |")
+    assert bars["nulls flagged, b (≤ 5%)"].endswith("| 1/30 | 3.3% | yes |")
+    # the correct trials' errors: nine 0.02, eight 0.2 (and eight unscored backlashes)
+    assert bars["median parameter error (≤ 10%)"].endswith("| 17 named | 2.0% | yes |")
+    assert "runs that exited with an error: 1" in issue_bars(rows)[-1]
