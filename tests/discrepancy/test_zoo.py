@@ -348,6 +348,28 @@ def test_the_explainable_bar_is_what_the_nominal_model_with_the_truth_closes(tmp
     assert math.isnan(model_gap_reduction(make_trial(hx, None, 8_108_000)))
 
 
+def test_effect_gaps_judge_any_parameters_as_the_explainable_bar_judges_the_truth(tmp_path):
+    """``effect_gaps`` (reading a miss): the nominal model alone leaves its held-out gap
+    as it is, the true stop closes what ``model_gap_reduction`` says, and a stop far
+    inside the true one is worse on the held-out part than the truth (spent seed
+    8 103 002, closed: the stop the controller winds up against)."""
+    from pipeline.discrepancy.effects import Effect
+    from tests.zoo.explainable import effect_gaps, model_gap_reduction
+
+    stop = make_trial(FAMILIES["heat_exchanger"], "saturation", 8_103_002)
+    job = write_trial(stop, tmp_path, discrepancy={"open_loops": False})
+    nominal = effect_gaps(job, [])
+    assert nominal["holdout_rms_after"] == nominal["holdout_rms_before"]
+    truth = Effect(stop.effect.name, stop.effect.location, dict(stop.effect.parameters))
+    true_gap = effect_gaps(job, [truth])
+    assert 1.0 - true_gap["holdout_rms_after"] / true_gap["holdout_rms_before"] == \
+        pytest.approx(model_gap_reduction(stop, job), rel=1e-12)
+    tighter = {k: v / 2 for k, v in stop.effect.parameters.items()}  # both stops halved
+    inside = effect_gaps(job, [Effect("saturation", stop.effect.location, tighter)])
+    assert inside["holdout_rms_after"] > true_gap["holdout_rms_after"]
+    assert set(true_gap["fit_rms"]) == set(nominal["per_output"])
+
+
 def _discrepancy_json(trial, tmp_path, capsys, discrepancy: dict | None = None) -> dict:
     """``plantdyn discrepancy`` on the trial's export and job, as a user runs it, with
     every default but the `discrepancy` keys given; its ``discrepancy.json``."""

@@ -23,6 +23,8 @@ among the visible ones (:mod:`tests.benchmarks.zoo_suite`).
 
 from __future__ import annotations
 
+import json
+import sys
 import tempfile
 from pathlib import Path
 
@@ -53,9 +55,36 @@ def model_gap_reduction(trial: ZooTrial, job: Path | None = None) -> float:
     if trial.effect is None:
         return float("nan")
     with tempfile.TemporaryDirectory(prefix="zoo_explainable_") as tmp:
-        cfg = load_job(job if job is not None else write_trial(trial, Path(tmp)))
-        model, _ = load_discrepancy_model(cfg)
-        data = prepare_discrepancy(cfg, load_recording(cfg), model)
+        view = _view(job if job is not None else write_trial(trial, Path(tmp)))
+    effect = Effect(trial.effect.name, trial.effect.location, dict(trial.effect.parameters))
+    gaps = _gaps(view, [effect])
+    if gaps is None:  # the model with the true effect diverges
+        return float("-inf")
+    before, after = gaps["holdout_rms_before"], gaps["holdout_rms_after"]
+    return 1.0 - after / before if before > 0 else float("nan")
+
+
+def effect_gaps(job: Path, effects: list[Effect]) -> dict | None:
+    """The nominal model of a written zoo trial (`job`) with `effects` added, judged as
+    :func:`model_gap_reduction` judges the true one: the held-out ``gap`` (pooled and
+    per output, :func:`~pipeline.discrepancy.select.holdout_gap`) plus ``fit_rms``, each
+    output's RMS error on the fit part; None when that model diverges.  For reading a
+    miss: how a fitted parameter and the true one compare on both parts of the record.
+
+    Parameters
+    ----------
+    job : Path
+        A trial's ``job.yaml`` (a kept trial folder, ``--keep``).
+    effects : list of Effect
+        Added in order (empty: the nominal model).
+    """
+    return _gaps(_view(job), effects)
+
+
+def _view(job: Path) -> tuple:
+    cfg = load_job(job)
+    model, _ = load_discrepancy_model(cfg)
+    data = prepare_discrepancy(cfg, load_recording(cfg), model)
     config = core_config(cfg)
     # the view the workflow compares in: loops opened at measured OPs where it opens them
     model, inputs, measured, free, _ = opened_view(model, data.inputs, data.measured,
@@ -63,14 +92,39 @@ def model_gap_reduction(trial: ZooTrial, job: Path | None = None) -> float:
                                                    free_outputs(cfg, data.measured))
     P, _, resid = discrepancy_problem(model, inputs, measured, data.dt_s, config,
                                       lambda *_: None, free)
-    effect = Effect(trial.effect.name, trial.effect.location, dict(trial.effect.parameters))
+    return model, inputs, data.dt_s, config, P, resid
+
+
+def _gaps(view: tuple, effects: list[Effect]) -> dict | None:
+    model, inputs, dt_s, config, P, resid = view
     try:
-        pred = predict_with_effects(model, [effect], inputs, dt_s=data.dt_s,
+        pred = predict_with_effects(model, effects, inputs, dt_s=dt_s,
                                     initial=config.initial, outputs=P.outputs)
-    except PipelineError:  # the model with the true effect diverges
-        return float("-inf")
-    y_aug = np.column_stack([pred[o][: P.y.shape[0]] for o in P.outputs])
-    gap = holdout_gap(P.y, list(P.outputs), P.holdout_start, resid,
-                      P.with_free_offsets(y_aug))
-    before, after = gap["holdout_rms_before"], gap["holdout_rms_after"]
-    return 1.0 - after / before if before > 0 else float("nan")
+    except PipelineError:
+        return None
+    y_aug = P.with_free_offsets(np.column_stack([pred[o][: P.y.shape[0]] for o in P.outputs]))
+    gap = holdout_gap(P.y, list(P.outputs), P.holdout_start, resid, y_aug)
+    fit = slice(P.fit_start, P.holdout_start)
+    rms = np.sqrt(np.mean((P.y[fit] - y_aug[fit]) ** 2, axis=0))
+    return {**gap, "fit_rms": dict(zip(P.outputs, map(float, rms), strict=True))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tests.zoo.explainable JOB.yaml [EFFECTS_JSON ...]``: the nominal
+    model's fit-part RMS and held-out gap, then with each JSON list of effects
+    (``[{"name": "saturation", "location": "pump", "parameters": {"high": 1.7}}]``)."""
+    args = sys.argv[1:] if argv is None else argv
+    for arg in ["[]", *args[1:]]:
+        effects = [Effect(e["name"], e["location"], dict(e["parameters"]))
+                   for e in json.loads(arg)]
+        g = effect_gaps(Path(args[0]), effects)
+        print(arg, "diverges" if g is None else
+              f"fit RMS {json.dumps({k: round(v, 5) for k, v in g['fit_rms'].items()})}, "
+              f"held-out gap {g['holdout_rms_after']:.4f} (per output "
+              + json.dumps({o: round(v["holdout_rms_after"], 5)
+                            for o, v in g["per_output"].items()}) + ")")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
