@@ -81,7 +81,9 @@ alone
    output's held-out level left out (``gap_reduction_low``: surrogates of the
    candidate's own residual's noise model,
    :func:`pipeline.discrepancy.practical.holdout_rms_noise_bound`, the largest share over
-   the outputs, :func:`pipeline.discrepancy.practical.practical_share`).  Accepted
+   the outputs and the pooled gap, :func:`pipeline.discrepancy.practical.practical_share`;
+   an output counts only when the nominal error on it is at least ``min_gap_reduction``
+   of its held-out std, :func:`pipeline.discrepancy.practical.carrying_gaps`).  Accepted
    candidates of different classes within ``lookalike_margin`` of the best BIC are a
    tie: the simplest is named, the others are its ``equivalent_effects``.
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the

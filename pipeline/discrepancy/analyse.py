@@ -34,7 +34,12 @@ from pipeline.discrepancy.problem import (
 )
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, DiscrepancySeries
 from pipeline.discrepancy.screen import class_key, kept_classes, nested_partners, screen_all
-from pipeline.discrepancy.practical import practical_bound, practical_gaps, practical_share
+from pipeline.discrepancy.practical import (
+    carrying_gaps,
+    practical_bound,
+    practical_gaps,
+    practical_share,
+)
 from pipeline.discrepancy.select import (
     criteria,
     decide,
@@ -698,6 +703,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     rms_nom = [rms_of(resid[hold_slice, i]) for i in range(len(outputs))]
     gap_nom = pooled_rms(rms_nom, hold_std)
     gaps, reference, where = practical_gaps(outputs, rms_nom, gap_nom, gap_reference)
+    carrying = carrying_gaps(reference, hold_std, config.min_gap_reduction)
     fit_part = slice(P.fit_start, P.holdout_start)
     e_nom = resid[hold_slice] / np.array(hold_std)
     # practical size on shapes: the held-out level of each output whose constant is
@@ -737,7 +743,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         # surrogates a candidate; report.md shows "–" for the others)
         low, low_on = practical_share(practical_bound(
             *judged, before=y[fit_part] - fit.y_pred[fit_part], scale=hold_std, free=P.free,
-            seed=seed, ar_order_max=config.ar_order_max), gaps, reference) \
+            seed=seed, ar_order_max=config.ar_order_max), gaps, reference, carrying) \
             if whitened or plain else (math.nan, None)
         candidates.append(Candidate(
             effect=fit.effect, criterion=bic, delta_bic=dbic, n_parameters=fit.n_parameters,

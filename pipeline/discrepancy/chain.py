@@ -36,7 +36,7 @@ import numpy as np
 from pipeline.discrepancy.config import DiscrepancyConfig
 from pipeline.discrepancy.problem import SCALE_FACTOR_HINT
 from pipeline.discrepancy.results import Candidate, DiscrepancyResult, EffectStep
-from pipeline.discrepancy.practical import gap_values
+from pipeline.discrepancy.practical import carrying_gaps, gap_values
 from pipeline.discrepancy.select import holdout_gap, same_class
 from pipeline.discrepancy.effects import Effect, apply_effect, original_location, output_offsets
 from pipeline.errors import DivergenceError
@@ -364,7 +364,8 @@ class Chain:
         ``min_gap_reduction`` of that gap with the chain's sensor corrections only (the
         nominal model's when there are none: the reference of
         :func:`pipeline.discrepancy.analyse.gap_reference`; the gaps
-        :func:`pipeline.discrepancy.practical.practical_share` judges a candidate on).
+        :func:`pipeline.discrepancy.practical.practical_share` judges a candidate on,
+        those that may carry a finding, :func:`~pipeline.discrepancy.practical.carrying_gaps`).
         Returns (needed, that share where it is largest, pooled gap without it, pooled
         gap with all).
 
@@ -380,8 +381,10 @@ class Chain:
             [e for e in effects if e.is_sensor_correction], effects[:k] + effects[k + 1:],
             effects)]
         ref, without, full = (gap_values(g, self.outputs, "holdout_rms_after") for g in gaps)
+        carrying = carrying_gaps(ref, [gaps[0]["per_output"][o]["holdout_std"]
+                                       for o in self.outputs], self.config.min_gap_reduction)
         share = max((w - f) / r if r > 0 else 0.0
-                    for w, f, r in zip(without, full, ref, strict=True))
+                    for w, f, r, c in zip(without, full, ref, carrying, strict=True) if c)
         return share >= self.config.min_gap_reduction, share, without[-1], full[-1]
 
     def search(self, effects: Sequence[Effect], also: Sequence[Candidate] = ()

@@ -17,8 +17,8 @@ import numpy as np
 from pipeline.discrepancy.select import PRACTICAL_ALPHA, RMS_TEST_REPLICATES, surrogates
 from pipeline.estimation.noise_model import fit_ar
 
-__all__ = ["POOLED_GAP", "gap_values", "holdout_rms_noise_bound", "n_gaps", "practical_alpha",
-           "practical_bound", "practical_gaps", "practical_share"]
+__all__ = ["POOLED_GAP", "carrying_gaps", "gap_values", "holdout_rms_noise_bound", "n_gaps",
+           "practical_alpha", "practical_bound", "practical_gaps", "practical_share"]
 
 
 def holdout_rms_noise_bound(nominal: np.ndarray, candidate: np.ndarray, *,
@@ -205,8 +205,41 @@ def practical_bound(nominal: np.ndarray, candidate: np.ndarray, *, before: np.nd
         alpha=practical_alpha(len(ars)))
 
 
+def carrying_gaps(reference: Sequence[float], scale: Sequence[float],
+                  floor: float) -> list[bool]:
+    """Which of the gaps of :func:`practical_gaps` may carry a finding: the pooled gap
+    always; an output's own gap only when the reference model's error on that output
+    is at least `floor` of the output's held-out std.
+
+    The pooled gap is in units of each output's held-out std; an output whose whole
+    reference error is below ``min_gap_reduction`` of that std is predicted within the
+    practical tolerance on that scale already, and a share of its gap is a share of
+    almost nothing.  Judged on its own it let the DCS scan delay a model does not have
+    through as a finding: a blend flow controller's gain x 1.05 closed 5.2-5.8 % of the
+    total flow's gap at the bound, an error of 1.3-1.4 % of that flow's held-out std,
+    and 0.0-0.2 % of the pooled gap (zoo must-show nulls 8 708 003/014/028, read after
+    the run).  With one output its gap is the pooled gap and always carries.
+
+    Parameters
+    ----------
+    reference : sequence of float
+        Per gap, the reference value (each output's held-out RMS, then the pooled gap).
+    scale : sequence of float
+        Each output's held-out std.
+    floor : float
+        The share of an output's held-out std its reference error must reach
+        (``min_gap_reduction``).
+    """
+    n = n_gaps(len(scale))
+    if n == 1:
+        return [True]
+    return [r >= floor * s for r, s in zip(reference[:len(scale)], scale, strict=True)] \
+        + [True]
+
+
 def practical_share(bounds: Sequence[float], gap: Sequence[float],
-                    reference: Sequence[float]) -> tuple[float, int]:
+                    reference: Sequence[float], carrying: Sequence[bool] | None = None
+                    ) -> tuple[float, int]:
     """The share of the reference gap a candidate closes where it closes the most, at
     the lower bound (:func:`holdout_rms_noise_bound`), and where: the index into the
     gaps -- each output's held-out RMS and, with several outputs, last the pooled gap.
@@ -236,9 +269,12 @@ def practical_share(bounds: Sequence[float], gap: Sequence[float],
     reference : sequence of float
         Per gap, the value the share is measured against
         (:func:`pipeline.discrepancy.analyse.gap_reference`; `gap` when there is none).
+    carrying : sequence of bool, optional
+        Per gap, whether it may carry a finding (:func:`carrying_gaps`; default: all).
     """
-    shares = [b * g / r if r > 0 else 0.0 for b, g, r in zip(bounds, gap, reference,
-                                                             strict=True)]
+    carrying = [True] * len(bounds) if carrying is None else carrying
+    shares = [(b * g / r if r > 0 else 0.0) if c else -np.inf
+              for b, g, r, c in zip(bounds, gap, reference, carrying, strict=True)]
     k = int(np.argmax(shares))
     return float(shares[k]), k
 

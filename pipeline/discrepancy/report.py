@@ -259,7 +259,9 @@ def pass_rule(doc: Mapping[str, Any]) -> str:
             "or a held-out RMS reduction beyond the noise model's disturbance at p ≤ "
             f"{fmt_number(cfg.get('holdout_rms_alpha'))} (held-out RMS); a finding must "
             f"also close ≥ {100 * json_number(cfg.get('min_gap_reduction')):.0f} % of "
-            "some output's held-out gap at the 95 % lower bound of its share." + (
+            "some output's held-out gap (one whose nominal error is at least that share "
+            "of its held-out std) or of the pooled gap, at the 95 % lower bound of its "
+            "share." + (
                 " With the loop(s) opened, a candidate must also narrow the held-out "
                 "one-step prediction error of the loop closed again and driven by the "
                 "setpoints and loads alone (closed-loop check)."

@@ -503,7 +503,8 @@ def holdout_gap(y: np.ndarray, outputs: list[str], holdout_start: int, resid: np
         before = rms_of(resid[hold_slice, i])
         after = rms_of(y[hold_slice, i] - y_aug[hold_slice, i])
         per_output[o] = {"holdout_rms_before": before, "holdout_rms_after": after,
-                         "reduction": 1.0 - after / before if before > 0 else 0.0}
+                         "reduction": 1.0 - after / before if before > 0 else 0.0,
+                         "holdout_std": hold_std[i]}
     before = pooled_rms([per_output[o]["holdout_rms_before"] for o in outputs], hold_std)
     after = pooled_rms([per_output[o]["holdout_rms_after"] for o in outputs], hold_std)
     gap = {"holdout_rms_before": before, "holdout_rms_after": after,

@@ -258,25 +258,27 @@ def _sets(**gaps):
             for k, v in gaps.items()}
 
 
-def _scripted_gaps(chain, gaps):
+def _scripted_gaps(chain, gaps, std=1.0):
     """`chain` with Chain.held_out answering from `gaps` (:func:`_sets`): a number is
-    every output's held-out RMS (and the pooled gap), a tuple one per output."""
+    every output's held-out RMS (and the pooled gap), a tuple one per output; every
+    output's held-out std is `std`."""
     def held_out(effects):
         g = gaps[frozenset(e.name for e in effects)]
         per = dict(zip(chain.outputs, g if isinstance(g, tuple) else [g] * len(chain.outputs),
                        strict=True))
         return {"holdout_rms_after": float(np.sqrt(np.mean(np.square(list(per.values()))))),
-                "per_output": {o: {"holdout_rms_after": v} for o, v in per.items()}}
+                "per_output": {o: {"holdout_rms_after": v, "holdout_std": std}
+                               for o, v in per.items()}}
 
     chain.held_out = held_out
     return chain
 
 
-def _pruned(effects, gaps, outputs=None):
+def _pruned(effects, gaps, outputs=None, std=1.0):
     said = []
     chain, _ = _chain(lambda prior, also: _result("no_significant_effect"), outputs)
     chain.say = lambda *a: said.append(a)
-    _scripted_gaps(chain, gaps)
+    _scripted_gaps(chain, gaps, std)
     links = [Link(e, _cand(e, passed=True, delta_bic=100.0)) for e in effects]
     kept, dropped = prune(chain, links)
     return [lk.effect.name for lk in kept], dropped, said
@@ -321,6 +323,18 @@ def test_prune_keeps_an_effect_needed_on_one_output_only():
     few[frozenset({"gain", "extra_lag"})] = (0.194, 10.0)
     kept, dropped, _ = _pruned([GAIN, LAG], few, outputs)
     assert kept == ["gain"] and [c.effect.name for c in dropped] == ["extra_lag"]
+
+
+def test_prune_drops_an_effect_needed_only_on_an_output_already_within_tolerance():
+    """The same lag as above, on an output whose reference error (0.2) is below 5 % of its
+    held-out std (std 5: 4 %): that output's gap does not carry (practical.carrying_gaps),
+    and the pooled gap hardly moves, so the lag is not needed; at std 3.9 (5.1 %) it is."""
+    outputs = ["steam_flow", "turbine_pressure"]
+    one = _sets(none=(0.2, 20.0), gain=(0.2, 10.0), extra_lag=(0.02, 20.0),
+                gain__extra_lag=(0.02, 10.0))
+    kept, dropped, _ = _pruned([GAIN, LAG], one, outputs, std=5.0)
+    assert kept == ["gain"] and [c.effect.name for c in dropped] == ["extra_lag"]
+    assert _pruned([GAIN, LAG], one, outputs, std=3.9)[0] == ["gain", "extra_lag"]
 
 
 def test_prune_always_keeps_the_last_effect():

@@ -19,6 +19,7 @@ import scipy.signal as ss
 from scipy.stats import binom
 
 from pipeline.discrepancy.practical import (
+    carrying_gaps,
     holdout_rms_noise_bound,
     practical_alpha,
     practical_share,
@@ -290,6 +291,22 @@ def test_a_correction_on_every_output_is_surer_pooled():
     assert bounds[2] > max(bounds[:2])
     gaps = list(np.sqrt(np.mean(e0 ** 2, axis=0))) + [np.sqrt(np.mean(e0 ** 2))]
     assert practical_share(bounds, gaps, gaps) == (pytest.approx(bounds[2]), 2)
+
+
+def test_an_output_predicted_within_tolerance_does_not_carry_a_finding():
+    """``carrying_gaps``: an output's gap carries when its reference error is at least
+    ``floor`` of its held-out std (0.06 of 1.0 does at 0.05, 0.04 does not; an error of 1.3 %
+    of the std, the blend's total flow, does not), the pooled gap always, one output's
+    gap always (it is the pooled gap).  ``practical_share`` then takes the largest share
+    among the gaps that carry: a 90 % share of the non-carrying output gives way to the
+    pooled 2 %."""
+    assert carrying_gaps([0.06, 0.04, 0.5], [1.0, 1.0], 0.05) == [True, False, True]
+    assert carrying_gaps([0.013 * 7.0, 1.4, 0.6], [7.0, 2.0], 0.05) == [False, True, True]
+    assert carrying_gaps([1e-6], [1.0], 0.05) == [True]
+    bounds, gaps = [0.9, 0.01, 0.02], [0.04, 1.0, 0.7]
+    assert practical_share(bounds, gaps, gaps) == (pytest.approx(0.9), 0)
+    carrying = carrying_gaps(gaps, [1.0, 1.0], 0.05)
+    assert practical_share(bounds, gaps, gaps, carrying) == (pytest.approx(0.02), 2)
 
 
 def test_the_practical_bound_leaves_a_free_outputs_level_out():
