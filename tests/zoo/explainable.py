@@ -35,7 +35,7 @@ from pipeline.discrepancy.analyse import discrepancy_problem
 from pipeline.discrepancy.chain import predict_with_effects
 from pipeline.discrepancy.effects import Effect
 from pipeline.discrepancy.problem import opened_view
-from pipeline.discrepancy.select import holdout_gap
+from pipeline.discrepancy.select import holdout_gap, rms_of
 from pipeline.errors import PipelineError
 from pipeline.jobs.discrepancy import (
     core_config,
@@ -105,8 +105,8 @@ def _gaps(view: tuple, effects: list[Effect]) -> dict | None:
     y_aug = P.with_free_offsets(np.column_stack([pred[o][: P.y.shape[0]] for o in P.outputs]))
     gap = holdout_gap(P.y, list(P.outputs), P.holdout_start, resid, y_aug)
     fit = slice(P.fit_start, P.holdout_start)
-    rms = np.sqrt(np.mean((P.y[fit] - y_aug[fit]) ** 2, axis=0))
-    return {**gap, "fit_rms": dict(zip(P.outputs, map(float, rms), strict=True))}
+    return {**gap, "fit_rms": {o: rms_of(P.y[fit, i] - y_aug[fit, i])
+                               for i, o in enumerate(P.outputs)}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,10 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     model's fit-part RMS and held-out gap, then with each JSON list of effects
     (``[{"name": "saturation", "location": "pump", "parameters": {"high": 1.7}}]``)."""
     args = sys.argv[1:] if argv is None else argv
+    view = _view(Path(args[0]))  # the job's data and nominal problem, once
     for arg in ["[]", *args[1:]]:
         effects = [Effect(e["name"], e["location"], dict(e["parameters"]))
                    for e in json.loads(arg)]
-        g = effect_gaps(Path(args[0]), effects)
+        g = _gaps(view, effects)
         print(arg, "diverges" if g is None else
               f"fit RMS {json.dumps({k: round(v, 5) for k, v in g['fit_rms'].items()})}, "
               f"held-out gap {g['holdout_rms_after']:.4f} (per output "
