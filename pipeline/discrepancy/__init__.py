@@ -89,7 +89,8 @@ alone
    ``no_significant_effect``: none passes, or the best-fitting candidate fails the
    held-out test while a worse one passes (it is listed as ``rejected``) -- unless the
    one that passes is a degenerate form of it (a two-sided saturation's one-sided
-   form), which is then named.
+   form), which is then named, or the better fit comes from outputs the passing one
+   leaves alone (:func:`pipeline.discrepancy.select.rival_on_own_outputs`).
 5. **Augment**: the accepted effect is added to the model
    (:func:`pipeline.discrepancy.effects.apply_effect`) and the held-out output-error RMS before and
    after is the ``gap``.

@@ -43,6 +43,7 @@ from pipeline.discrepancy.practical import (
 from pipeline.discrepancy.select import (
     criteria,
     decide,
+    rival_of,
     distinguishable,
     holdout_gap,
     centred,
@@ -710,7 +711,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
     # profiled (P.free) left out of the model's and every candidate's errors
     # (select.centred)
     c_nom = centred(e_nom, P.free)
-    shapes: dict[int, np.ndarray] = {}  # centred held-out errors by id of the candidate
+    shapes, predictions = {}, {}  # by id of a candidate: centred held-out errors, outputs
     for k, (fit, bic, t_hold, _) in enumerate(fitted):
         dbic = bic_nom - bic
         rms = {o: rms_of(y[hold_slice, i] - fit.y_pred[hold_slice, i])
@@ -756,6 +757,7 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
                        else "held-out RMS" if plain else ""),
             closed_loop_prediction_error_reduction=closed))
         shapes[id(candidates[-1])] = c_cand
+        predictions[id(candidates[-1])] = fit.y_pred
     order = np.argsort([c.criterion for c in candidates], kind="stable")
     candidates = [candidates[i] for i in order]
     # the same class can be fitted twice (screened under both noise weightings): keep
@@ -785,5 +787,6 @@ def _select(P: Problem, fitted: list, bic_nom: float, resid: np.ndarray, seed: i
         candidates, findings, lookalike_margin=config.lookalike_margin,
         lookalike_gap=config.lookalike_gap,
         distinguishable=lambda a, b, margin: distinguishable(
-            shapes[id(a)], shapes[id(b)], c_nom, margin=margin, seed=seed + 7919))
+            shapes[id(a)], shapes[id(b)], c_nom, margin=margin, seed=seed + 7919),
+        rival=rival_of(P, predictions))
     return candidates, verdict, effect, group, minor

@@ -410,6 +410,49 @@ def test_a_richer_fit_failing_where_its_form_holds_names_the_form():
     assert (verdict, effect.parameters["low"]) == ("effect_found", -2.2)
 
 
+def test_a_better_fit_rejects_a_finding_only_on_the_outputs_the_finding_explains():
+    """rival_on_own_outputs by hand: the failed better-BIC candidate rejects the finding
+    only when it also fits the outputs the finding improves (their BIC terms plus each
+    one's penalty); with one output that is the BIC comparison itself; a finding that
+    improves no output is judged on all of them.  decide follows it."""
+    import math
+
+    import numpy as np
+
+    from pipeline.discrepancy.select import decide, rival_on_own_outputs
+
+    nominal = np.array([100.0, 50.0])
+    finding = np.array([100.0, 20.0])  # improves the second output only
+    n = round(math.exp(2.0))  # log n = 2 (rounded: 7 samples, log 1.95)
+    # better overall (105 + 2k < 120 + 2k) but only through the first output
+    assert not rival_on_own_outputs(np.array([60.0, 45.0]), 1, finding, 1, nominal, n)
+    # better on the finding's own output as well
+    assert rival_on_own_outputs(np.array([100.0, 15.0]), 1, finding, 1, nominal, n)
+    # ... unless its extra parameters cost more than it gains there (17 + 3 log 7 >
+    # 20 + log 7)
+    assert not rival_on_own_outputs(np.array([100.0, 17.0]), 3, finding, 1, nominal, n)
+    # one output: the plain comparison
+    assert rival_on_own_outputs(np.array([70.0]), 1, np.array([80.0]), 1,
+                                np.array([100.0]), n)
+    assert not rival_on_own_outputs(np.array([85.0]), 1, np.array([80.0]), 1,
+                                    np.array([100.0]), n)
+    # a finding that improves no output's term is judged on all (142 < 152)
+    assert rival_on_own_outputs(np.array([90.0, 52.0]), 1, np.array([101.0, 51.0]), 1,
+                                nominal, n)
+
+    never = lambda a, b, margin: False  # noqa: E731
+    better = _cand("gain", {"factor": 1.05}, k=1, delta_bic=270.0, passed=False)
+    ui = _cand("extra_lag", {"tau_s": 50.0}, k=1, delta_bic=235.0)
+    verdict, effect, _ = decide([better, ui], [ui], lookalike_margin=3.0,
+                                lookalike_gap=0.10, distinguishable=never,
+                                rival=lambda a, b: False)
+    assert (verdict, effect) == ("effect_found", ui.effect)
+    verdict, effect, others = decide([better, ui], [ui], lookalike_margin=3.0,
+                                     lookalike_gap=0.10, distinguishable=never,
+                                     rival=lambda a, b: True)
+    assert (verdict, effect, others) == ("no_significant_effect", None, (better,))
+
+
 def _cand(name, params, *, k, delta_bic, passed=True):
     from pipeline.discrepancy.results import Candidate
     from pipeline.discrepancy.effects import Effect
