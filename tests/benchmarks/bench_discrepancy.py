@@ -49,7 +49,7 @@ import os
 import sys
 import time
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 from typing import Any
 
@@ -292,35 +292,55 @@ def _run_zoo(args: tuple) -> dict[str, Any]:
     return run_zoo_trial(*args)
 
 
-def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None
-            ) -> list[dict[str, Any]]:
+def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None,
+            redraws: Any = None) -> list[dict[str, Any]]:
     """Run zoo trials on a process pool, one printed line per trial (and one JSON line
     per trial appended to `jsonl`, which ``python -m tests.benchmarks.zoo_suite`` tabulates
-    again, several files together)."""
+    again, several files together).  `redraws` (:class:`tests.benchmarks.zoo_suite.Redraws`):
+    an invisible draw is followed by the job it names, run in the same pool."""
     import json
 
-    results = []
+    results: list[dict[str, Any]] = []
+    total = len(jobs)
     with ProcessPoolExecutor(max_workers=workers) as pool, \
             progress_bar("zoo suite", "trials") as tick:
-        tick(0, len(jobs))
-        for res in pool.map(_run_zoo, jobs, chunksize=1):
-            results.append(res)
-            tick(len(results), len(jobs))
-            if jsonl:
-                with open(jsonl, "a", encoding="utf-8") as fh:
-                    fh.write(json.dumps(res) + "\n")
-            mark = "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
-            print(f"{mark} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
-                  f"{res['label']:>20} {res.get('time_s', float('nan')):5.0f}s | truth "
-                  f"{res['truth']} | found {res['found']} | chain {res.get('chain')} | "
-                  f"noise {res['noise']:.3f} | ideal gap reduction "
-                  f"{res.get('ideal_gap_reduction', float('nan')):.3f}", flush=True)
+        tick(0, total)
+        pending = {pool.submit(_run_zoo, job): job for job in jobs}
+        while pending:
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                job, res = pending.pop(future), future.result()
+                results.append(res)
+                if redraws is not None and (again := redraws.after(job, res)) is not None:
+                    pending[pool.submit(_run_zoo, again)] = again
+                    total += 1
+                tick(len(results), total)
+                if jsonl:
+                    with open(jsonl, "a", encoding="utf-8") as fh:
+                        fh.write(json.dumps(res) + "\n")
+                _print_zoo_row(res)
     return results
+
+
+def _print_zoo_row(res: dict[str, Any]) -> None:
+    mark = "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
+    print(f"{mark} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
+          f"{res['label']:>20} {res.get('time_s', float('nan')):5.0f}s | truth "
+          f"{res['truth']} | found {res['found']} | chain {res.get('chain')} | "
+          f"noise {res['noise']:.3f} | ideal gap reduction "
+          f"{res.get('ideal_gap_reduction', float('nan')):.3f}", flush=True)
 
 
 def main_zoo(args: argparse.Namespace) -> None:
     """The zoo suite (module docstring, suite 4)."""
-    from tests.benchmarks.zoo_suite import ZOO_SEED0, issue_bars, summarise_zoo, zoo_jobs
+    from tests.benchmarks.zoo_suite import (
+        MAX_DRAWS_FACTOR,
+        ZOO_SEED0,
+        Redraws,
+        issue_bars,
+        summarise_zoo,
+        zoo_jobs,
+    )
     from tests.zoo import FAMILIES, ZOO_EFFECTS
 
     trials = 20 if args.trials is None else args.trials
@@ -334,10 +354,12 @@ def main_zoo(args: argparse.Namespace) -> None:
                     seed0=seed0)
     extra = {"open_loops": False} if args.closed_loops else None
     jobs = [(*j, args.keep, extra) for j in jobs]
-    results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl)
-    print(f"\n## Zoo suite: {trials} trials per (family, effect) + {nulls} nulls per family, "
-          f"seeds from {seed0}, {time.perf_counter() - start:.0f} s wall on "
-          f"{args.workers} workers\n")
+    max_draws = MAX_DRAWS_FACTOR * trials if args.max_draws is None else args.max_draws
+    results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl,
+                      redraws=Redraws(trials, max_draws, seed0))
+    print(f"\n## Zoo suite: {trials} visible trials per (family, effect) (at most "
+          f"{max_draws} draws) + {nulls} nulls per family, seeds from {seed0}, "
+          f"{time.perf_counter() - start:.0f} s wall on {args.workers} workers\n")
     print(summarise_zoo(results))
     print("\n".join(["", "Issue 34's bars:", ""] + issue_bars(results)))
 
@@ -500,6 +522,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--closed-loops", action="store_true",
                         help="zoo: run every trial with discrepancy.open_loops: false")
     parser.add_argument("--jsonl", default=None, help="zoo: append each trial's row here")
+    parser.add_argument("--max-draws", type=int, default=None,
+                        help="zoo: draws per (family, effect) at most; an invisible draw is "
+                             "replaced by the next seed until --trials are visible "
+                             "(default: MAX_DRAWS_FACTOR x --trials; --trials: no redraws)")
     parser.add_argument("--seed0", type=int, default=None,
                         help="first seed (default: the suite's SUITE_SEED0 or ZOO_SEED0; "
                         "fresh seeds for a new run)")

@@ -695,3 +695,24 @@ def test_issue_bars_count_what_the_issue_asks_from_rows_written_by_hand():
     # the correct trials' errors: nine 0.02, eight 0.2 (and eight unscored backlashes)
     assert bars["median parameter error (≤ 10%)"].endswith("| 17 named | 2.0% | yes |")
     assert "runs that exited with an error: 1" in issue_bars(rows)[-1]
+
+
+def test_an_invisible_draw_is_replaced_by_the_cells_next_seed_up_to_the_cap():
+    """Redraws: each invisible draw of an effect's cell is followed by that cell's next
+    seed (trial index trials, trials + 1, ...) until the cell has had max_draws draws;
+    visible draws and nulls are never replaced; cells count apart."""
+    from tests.benchmarks.zoo_suite import INVISIBLE, Redraws, zoo_seed
+
+    seed0, hidden, seen = 5_000_000, {"label": INVISIBLE}, {"label": "gain"}
+    r = Redraws(trials=2, max_draws=4, seed0=seed0)
+    job = ("valve_cooler", "backlash", zoo_seed("backlash", 0, seed0), None, "/keep", None)
+    assert r.after(job, seen) is None
+    # the cell's draws 3 and 4 (k = 2, 3; backlash is the sixth zoo effect), then none
+    assert r.after(job, hidden) == ("valve_cooler", "backlash", seed0 + 1000 * 5 + 2,
+                                    None, "/keep", None)
+    assert r.after(job, hidden)[2] == zoo_seed("backlash", 3, seed0)
+    assert r.after(job, hidden) is None
+    # another cell has its own count; a null is never redrawn
+    assert r.after(("blend", "backlash", 0, None), hidden)[2] == zoo_seed("backlash", 2, seed0)
+    assert r.after(("blend", None, 0, None), hidden) is None
+    assert Redraws(trials=2, max_draws=2, seed0=seed0).after(job, hidden) is None
