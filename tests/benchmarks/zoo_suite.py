@@ -49,8 +49,8 @@ from tests.zoo.trial import make_trial, write_trial
 #: The published zoo seeds: the must-show run of session 8 (fresh when it ran; the
 #: baseline of build 1 used 3 000 000).  Unseen runs since: 8 6x0 000 per session, the
 #: last 8 680 000 (session 16); 8 690 000 was read by a smoke check of session 17;
-#: 8 700 000 is issue 34's must-show run of session 19 (README), so the next fresh seeds
-#: start at 8 710 000.
+#: 8 700 000 is issue 34's must-show run of session 19 (README) and 8 710 000 that of
+#: session 20, so the next fresh seeds start at 8 720 000.
 ZOO_SEED0 = 8_100_000
 #: Row/column label of "nothing named" / "nothing injected".
 NONE = "none"
