@@ -322,9 +322,13 @@ def run_zoo(jobs: list[tuple], *, workers: int = 2, jsonl: str | None = None,
     return results
 
 
+def _mark(res: dict[str, Any]) -> str:
+    """A printed row's first column: right, invisible (not run) or wrong."""
+    return "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
+
+
 def _print_zoo_row(res: dict[str, Any]) -> None:
-    mark = "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
-    print(f"{mark} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
+    print(f"{_mark(res)} {res['family']:>14} {res['effect']:>18} seed {res['seed']} -> "
           f"{res['label']:>20} {res.get('time_s', float('nan')):5.0f}s | truth "
           f"{res['truth']} | found {res['found']} | chain {res.get('chain')} | "
           f"noise {res['noise']:.3f} | ideal gap reduction "
@@ -375,8 +379,7 @@ def run_jobs(jobs: list[tuple], *, workers: int = 2, verbose: bool = True,
             results.append(res)
             tick(len(results), len(jobs))
             if verbose:
-                mark = "ok " if res["correct"] else "-- " if res["label"] == "invisible" else "BAD"
-                print(f"{mark} {res['suite']:>8} {res['effect']:>28} seed {res['seed']} "
+                print(f"{_mark(res)} {res['suite']:>8} {res['effect']:>28} seed {res['seed']} "
                       f"{res['model']:>15} -> {res['label']:>20} {res['time_s']:5.1f}s | "
                       f"truth {res['truth']} | found {res['found']} | "
                       f"{res['noise']['kind']} {res['noise']['relative_std']:.2f} | "
