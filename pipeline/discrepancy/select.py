@@ -62,8 +62,8 @@ def rival_on_own_outputs(terms: np.ndarray, k: int, finding_terms: np.ndarray,
     come from outputs the finding leaves alone: a blend's flow-loop gain x 1.05 (the
     DCS scan delay's look-alike on the total flow, which then failed on held-out data)
     out-fitted a recycle flow into the composition that closed 28 % of the held-out gap
-    at its bound, and the verdict was ``no_significant_effect`` (spent zoo seed
-    8 707 007; four of the must-show run's five missed blend unmodelled inputs).
+    at its bound, and the verdict was ``no_significant_effect`` (spent zoo seeds
+    8 707 007 and 010, two of the must-show run's five missed blend unmodelled inputs).
 
     Parameters
     ----------
