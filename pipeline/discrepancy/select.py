@@ -94,9 +94,10 @@ def rival_of(P: Problem, predictions: Mapping[int, np.ndarray]
     predictions : mapping of int -> ndarray (N, n_y)
         Each candidate's predicted outputs, by ``id`` of the candidate.
     """
-    terms_nom, n_total = fit_terms(P, P.y_nominal)
-
     def rival(better: Any, finding: Any) -> bool:
+        # whitened here, not when the search starts: decide asks at most once, and only
+        # when a better-BIC candidate failed
+        terms_nom, n_total = fit_terms(P, P.y_nominal)
         return rival_on_own_outputs(
             fit_terms(P, predictions[id(better)])[0], better.n_parameters,
             fit_terms(P, predictions[id(finding)])[0], finding.n_parameters, terms_nom,
