@@ -339,6 +339,7 @@ def main_zoo(args: argparse.Namespace) -> None:
     """The zoo suite (module docstring, suite 4)."""
     from tests.benchmarks.zoo_suite import (
         MAX_DRAWS_FACTOR,
+        SEEDS_PER_EFFECT,
         ZOO_SEED0,
         Redraws,
         issue_bars,
@@ -354,13 +355,18 @@ def main_zoo(args: argparse.Namespace) -> None:
         if args.effects != list(HIDDEN_EFFECTS) else ZOO_EFFECTS
     start = time.perf_counter()
     seed0 = ZOO_SEED0 if args.seed0 is None else args.seed0
-    jobs = zoo_jobs(trials, nulls, families=families, effects=effects, hours=args.hours,
-                    seed0=seed0)
+    max_draws = min(MAX_DRAWS_FACTOR * trials, SEEDS_PER_EFFECT) \
+        if args.max_draws is None else args.max_draws
+    try:  # more trials, nulls or draws than an effect's seeds: one message, exit 2
+        jobs = zoo_jobs(trials, nulls, families=families, effects=effects,
+                        hours=args.hours, seed0=seed0)
+        redraws = Redraws(trials, max_draws, seed0)
+    except ValueError as exc:
+        print(f"bench_discrepancy --suite zoo: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     extra = {"open_loops": False} if args.closed_loops else None
     jobs = [(*j, args.keep, extra) for j in jobs]
-    max_draws = MAX_DRAWS_FACTOR * trials if args.max_draws is None else args.max_draws
-    results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl,
-                      redraws=Redraws(trials, max_draws, seed0))
+    results = run_zoo(jobs, workers=args.workers, jsonl=args.jsonl, redraws=redraws)
     print(f"\n## Zoo suite: {trials} visible trials per (family, effect) (at most "
           f"{max_draws} draws) + {nulls} nulls per family, seeds from {seed0}, "
           f"{time.perf_counter() - start:.0f} s wall on {args.workers} workers\n")
@@ -528,7 +534,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-draws", type=int, default=None,
                         help="zoo: draws per (family, effect) at most; an invisible draw is "
                              "replaced by the next seed until --trials are visible "
-                             "(default: MAX_DRAWS_FACTOR x --trials; --trials: no redraws)")
+                             "(default: MAX_DRAWS_FACTOR x --trials, at most SEEDS_PER_EFFECT; "
+                             "--trials: no redraws)")
     parser.add_argument("--seed0", type=int, default=None,
                         help="first seed (default: the suite's SUITE_SEED0 or ZOO_SEED0; "
                         "fresh seeds for a new run)")

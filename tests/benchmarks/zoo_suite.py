@@ -65,10 +65,21 @@ NAMED = ("gain", "dead_time", "extra_lag", "inverse_response", "sensor_bias_drif
          "stiction")
 
 
+#: Seeds per effect (and for the nulls): trial ``k`` of effect ``e`` is
+#: ``seed0 + SEEDS_PER_EFFECT * index(e) + k``, so ``k`` must stay below it, or the
+#: draws of one effect would reuse the next effect's seeds.
+SEEDS_PER_EFFECT = 1000
+
+
 def zoo_seed(effect: str | None, k: int, seed0: int = ZOO_SEED0) -> int:
-    """Seed of trial `k` of `effect` (None: a null trial)."""
+    """Seed of trial `k` of `effect` (None: a null trial); ValueError when `k` would
+    reach the next effect's seeds (``k >= SEEDS_PER_EFFECT``)."""
+    if not 0 <= k < SEEDS_PER_EFFECT:
+        raise ValueError(f"trial {k} of {effect or 'the nulls'}: the zoo has "
+                         f"{SEEDS_PER_EFFECT} seeds per effect (trials 0 to "
+                         f"{SEEDS_PER_EFFECT - 1}); ask for fewer trials, nulls or draws")
     index = len(ZOO_EFFECTS) if effect is None else ZOO_EFFECTS.index(effect)
-    return seed0 + 1000 * index + k
+    return seed0 + SEEDS_PER_EFFECT * index + k
 
 
 def _finite(value: Any) -> float | None:
@@ -187,12 +198,16 @@ class Redraws:
     trials : int
         Draws per cell before any redraw (the suite's ``--trials``).
     max_draws : int
-        Draws per cell at most (``trials``: no redraws).
+        Draws per cell at most (``trials``: no redraws); ValueError above
+        ``SEEDS_PER_EFFECT``, whose seeds would be the next effect's.
     seed0 : int
         The suite's first seed.
     """
 
     def __init__(self, trials: int, max_draws: int, seed0: int) -> None:
+        if max_draws > SEEDS_PER_EFFECT:
+            raise ValueError(f"{max_draws} draws per cell: the zoo has {SEEDS_PER_EFFECT} "
+                             f"seeds per effect; ask for --max-draws <= {SEEDS_PER_EFFECT}")
         self.max_draws, self.seed0 = max_draws, seed0
         self._next: dict[tuple[str, str], int] = {}
         self._trials = trials

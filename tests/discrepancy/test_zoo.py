@@ -716,3 +716,33 @@ def test_an_invisible_draw_is_replaced_by_the_cells_next_seed_up_to_the_cap():
     assert r.after(("blend", "backlash", 0, None), hidden)[2] == zoo_seed("backlash", 2, seed0)
     assert r.after(("blend", None, 0, None), hidden) is None
     assert Redraws(trials=2, max_draws=2, seed0=seed0).after(job, hidden) is None
+
+
+def test_no_draw_reaches_the_next_effects_seeds():
+    """Each effect owns 1000 seeds (trial k of effect e: seed0 + 1000 e + k): trial 999
+    is the last of the cell, trial 1000 would be the next effect's trial 0, so it is
+    refused, as are draw caps above 1000; the benchmark says so and exits 2."""
+    import subprocess
+    import sys
+
+    import pytest
+
+    from tests.benchmarks.zoo_suite import ZOO_EFFECTS, Redraws, zoo_seed
+
+    seed0 = 5_000_000
+    first, second = ZOO_EFFECTS[0], ZOO_EFFECTS[1]
+    assert zoo_seed(first, 999, seed0) == seed0 + 999
+    assert zoo_seed(second, 0, seed0) == seed0 + 1000
+    with pytest.raises(ValueError, match="1000 seeds per effect"):
+        zoo_seed(first, 1000, seed0)
+    with pytest.raises(ValueError, match="1000 seeds per effect"):
+        zoo_seed(None, -1, seed0)
+    Redraws(trials=20, max_draws=1000, seed0=seed0)  # the whole cell: allowed
+    with pytest.raises(ValueError, match="--max-draws <= 1000"):
+        Redraws(trials=20, max_draws=1001, seed0=seed0)
+    run = subprocess.run(
+        [sys.executable, "-m", "tests.benchmarks.bench_discrepancy", "--suite", "zoo",
+         "--trials", "1", "--nulls", "1001", "--seed0", str(seed0)],
+        capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    assert "trial 1000 of the nulls" in run.stderr and "Traceback" not in run.stderr
