@@ -151,3 +151,49 @@ def test_which_candidates_are_checked_closed():
     assert closed.applies(Effect("dead_time", "valve", {"delay_s": 2.0}), opened)
     assert not closed.applies(
         Effect("sensor_bias_drift", "y", {"bias": 0.1, "drift_per_h": 0.0}), opened)
+
+
+def test_a_linear_candidate_that_leaves_the_loop_unsettled_is_judged_like_a_nonlinearity():
+    """A linear candidate whose closed loop has not settled to 2 % by the hold-out's
+    end (and does not grow), where the model without it settles, is checked closed only
+    where all it moves is the controlled variable; one that settles, or makes the loop
+    grow, is checked as before.
+
+    Known answers by hand: PI (kp 2, ti 20 s) on valve (gain f) and plant (1 / (20 s +
+    1)) closes to ``400 s^2 + 20 (1 + 2 f) s + 2 f``.  f = 1: roots -0.05 and -0.1 /s;
+    f = 0.2: -0.02 and -0.05; f = 0.01: -0.001 and -0.0505; f = -1: one root > 0.  Over
+    a 1 000 s hold-out the slowest mode decays by exp(-50), exp(-20), exp(-1): the
+    nominal loop and f = 0.2 settle (below exp(-4)), f = 0.01 does not."""
+    from pipeline.models.model import open_at
+
+    def roots(f):
+        return np.roots([400.0, 20.0 * (1.0 + 2.0 * f), 2.0 * f]).real
+
+    assert np.allclose(sorted(roots(1.0)), [-0.1, -0.05])
+    assert max(roots(0.01)) * 1000.0 > -4.0 > max(roots(0.2)) * 1000.0
+    assert max(roots(-1.0)) > 0.0
+    model = model_from_dict({"model": {
+        "name": "valve_loop", "inputs": ["sp"], "outputs": ["y", "valve", "controller"],
+        "blocks": [
+            {"name": "error", "type": "sum", "inputs": ["sp", "-y"]},
+            {"name": "controller", "type": "pi", "input": "error", "kp": KP, "ti_s": TI},
+            {"name": "valve", "type": "gain", "input": "controller", "k": 1.0},
+            {"name": "plant", "type": "first_order", "input": "valve", "k": 1.0,
+             "tau_s": TAU},
+            {"name": "y", "type": "sum", "inputs": ["plant"]}]}})
+    n, hold = 2000, 1000
+    zeros = {o: np.zeros(n) for o in model.outputs}
+    closed = ClosedLoop(model, {"sp": np.zeros(n)}, zeros, DT, 0, hold, (), "rest",
+                        opened=("controller",))
+    opened = open_at(model, ["controller"])
+    # slow: the valve's meter shows it outside the loop, so it is judged opened ...
+    assert not closed.applies(Effect("gain", "valve", {"factor": 0.01}), opened)
+    # ... and a slow one that moves only the controlled variable is still checked
+    assert closed.applies(Effect("gain", "plant", {"factor": 0.01}), opened)
+    assert closed.applies(Effect("gain", "valve", {"factor": 0.2}), opened)  # settles
+    assert closed.applies(Effect("gain", "valve", {"factor": -1.0}), opened)  # grows
+    # a loop that was slow without the candidate: nothing to compare against, checked
+    slow_prior = ClosedLoop(model, {"sp": np.zeros(n)}, zeros, DT, 0, hold, (), "rest",
+                            prior=(Effect("gain", "plant", {"factor": 0.01}),),
+                            opened=("controller",))
+    assert slow_prior.applies(Effect("gain", "valve", {"factor": 0.5}), opened)
