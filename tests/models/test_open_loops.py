@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.signal
 
-from pipeline.discrepancy.problem import MIN_OP_EXPLAINED, loops_to_open, op_explained
+from pipeline.discrepancy.problem import loops_to_open
 from pipeline.errors import ModelError
 from pipeline.models.model import model_from_dict, open_at
 from pipeline.models.simulate import simulate
@@ -88,30 +88,46 @@ def test_a_loop_is_opened_only_at_a_measured_op_whose_path_settles_in_the_holdou
     if controller == "pid":
         spec["model"]["blocks"][1]["td_s"] = 2.0
     model = model_from_dict(spec)
-    inputs, signals = _record(model, n)
-    got = loops_to_open(model, inputs, {o: signals[o] for o in measured}, dt_s=1.0,
+    _, signals = _record(model, n)
+    got = loops_to_open(model, {o: signals[o] for o in measured}, dt_s=1.0,
                         holdout_fraction=1 / 3)
     assert got == opened
 
 
-@pytest.mark.parametrize(("extra", "opened"), [(0.0, ("controller",)), (0.8, ("controller",)),
-                                               (1.2, ())])
-def test_a_loop_stays_closed_when_its_op_is_mostly_the_answer_to_a_disturbance(extra, opened):
-    """Known answer: the measured OP is the model's own OP plus an independent slow
-    signal `extra` times its std (what the real controller did against a disturbance
-    the model does not know): the model explains ``1 / (1 + extra^2)`` of its
-    variance -- 1, 0.61, 0.41 -- and the loop is opened only above one half
-    (``MIN_OP_EXPLAINED``)."""
-    assert MIN_OP_EXPLAINED == 0.5
+@pytest.mark.parametrize("extra", [0.0, 0.8, 1.2, 3.0])
+def test_a_loop_is_opened_however_much_of_its_op_answers_a_disturbance(extra):
+    """The measured OP is the model's own OP plus an independent slow signal `extra`
+    times its std (what the real controller did against a disturbance the model does
+    not know: the model explains ``1 / (1 + extra^2)`` of its variance, 1 to 0.1).  The
+    loop is opened all the same: that share biases only the paths the controller
+    reads, and their candidates are checked closed (pipeline.discrepancy.closed_loop);
+    a settling path is what decides (the test above)."""
     model = model_from_dict(_loop(LAG))
-    inputs, signals = _record(model, 6000)
+    _, signals = _record(model, 6000)
     rng = np.random.default_rng(9)
-    slow = np.cumsum(rng.normal(0, 1, 6000))
-    slow = scipy.signal.detrend(slow)
+    slow = scipy.signal.detrend(np.cumsum(rng.normal(0, 1, 6000)))
     op = signals["controller"]
-    fit = slice(600, 4000)
-    slow *= extra * np.std(op[fit]) / np.std(slow[fit])
-    share = op_explained(model, inputs, op + slow, "controller", dt_s=1.0, part=fit)
-    assert share == pytest.approx(1.0 / (1.0 + extra**2), abs=0.08)
+    slow *= extra * np.std(op[600:4000]) / np.std(slow[600:4000])
     measured = {"temp": signals["temp"], "controller": op + slow}
-    assert loops_to_open(model, inputs, measured, dt_s=1.0, holdout_fraction=1 / 3) == opened
+    assert loops_to_open(model, measured, dt_s=1.0, holdout_fraction=1 / 3) == ("controller",)
+
+
+def test_a_loop_whose_closed_model_diverges_stays_closed():
+    """The closed check of an opened analysis needs the user's model to run closed;
+    with the error sum's sign flipped (sp + temp: positive feedback through the PI's
+    integral, growing without bound) it cannot, so the loop stays closed and the
+    analysis gets the model as given (it then names the divergence).  The same record
+    with the right sign is opened."""
+    from pipeline.discrepancy.config import DiscrepancyConfig
+    from pipeline.discrepancy.problem import opened_view
+
+    spec = _loop(LAG)
+    model = model_from_dict(spec)
+    inputs, signals = _record(model, 6000)
+    measured = {"temp": signals["temp"], "controller": signals["controller"]}
+    config = DiscrepancyConfig()
+    assert opened_view(model, inputs, measured, 1.0, config)[4] == ("controller",)
+    spec["model"]["blocks"][0]["inputs"] = ["sp", "temp"]
+    flipped = model_from_dict(spec)
+    got = opened_view(flipped, inputs, measured, 1.0, config)
+    assert got[4] == () and got[0] is flipped and set(got[2]) == {"temp", "controller"}
