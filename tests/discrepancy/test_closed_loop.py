@@ -120,15 +120,9 @@ def test_a_candidate_whose_closed_loop_diverges_fails_and_a_sensor_is_not_checke
     assert math.isnan(closed.prediction_error_reduction(Effect("gain", "plant__deadband", {"factor": 2.0})))
 
 
-def test_which_candidates_are_checked_closed():
-    """Linear effects always; a deadband or backlash only where all it moves is the
-    opened loop's controlled variable (opened, that output's error is the disturbance
-    the controller answered); never a sensor correction.  The controlled variable is
-    the measured output the controller's error reads, not the measured valve position
-    on the loop's way round."""
-    from pipeline.models.model import open_at
-
-    model = model_from_dict({"model": {
+def _valve_loop():
+    """sp -> PI -> valve (gain 1, measured) -> plant (k 1, tau 20 s) -> y."""
+    return model_from_dict({"model": {
         "name": "valve_loop", "inputs": ["sp"], "outputs": ["y", "valve", "controller"],
         "blocks": [
             {"name": "error", "type": "sum", "inputs": ["sp", "-y"]},
@@ -137,6 +131,17 @@ def test_which_candidates_are_checked_closed():
             {"name": "plant", "type": "first_order", "input": "valve", "k": 1.0,
              "tau_s": TAU},
             {"name": "y", "type": "sum", "inputs": ["plant"]}]}})
+
+
+def test_which_candidates_are_checked_closed():
+    """Linear effects always; a deadband or backlash only where all it moves is the
+    opened loop's controlled variable (opened, that output's error is the disturbance
+    the controller answered); never a sensor correction.  The controlled variable is
+    the measured output the controller's error reads, not the measured valve position
+    on the loop's way round."""
+    from pipeline.models.model import open_at
+
+    model = _valve_loop()
     zeros = {o: np.zeros(10) for o in model.outputs}
     closed = ClosedLoop(model, {"sp": np.zeros(10)}, zeros, DT, 0, 5, (), "rest",
                         opened=("controller",))
@@ -172,15 +177,7 @@ def test_a_linear_candidate_that_leaves_the_loop_unsettled_is_judged_like_a_nonl
     assert np.allclose(sorted(roots(1.0)), [-0.1, -0.05])
     assert max(roots(0.01)) * 1000.0 > -4.0 > max(roots(0.2)) * 1000.0
     assert max(roots(-1.0)) > 0.0
-    model = model_from_dict({"model": {
-        "name": "valve_loop", "inputs": ["sp"], "outputs": ["y", "valve", "controller"],
-        "blocks": [
-            {"name": "error", "type": "sum", "inputs": ["sp", "-y"]},
-            {"name": "controller", "type": "pi", "input": "error", "kp": KP, "ti_s": TI},
-            {"name": "valve", "type": "gain", "input": "controller", "k": 1.0},
-            {"name": "plant", "type": "first_order", "input": "valve", "k": 1.0,
-             "tau_s": TAU},
-            {"name": "y", "type": "sum", "inputs": ["plant"]}]}})
+    model = _valve_loop()
     n, hold = 2000, 1000
     zeros = {o: np.zeros(n) for o in model.outputs}
     closed = ClosedLoop(model, {"sp": np.zeros(n)}, zeros, DT, 0, hold, (), "rest",
